@@ -1,0 +1,365 @@
+"""The E-step: exact inference on the padded (procedure h, counter τ) lattice of a two-level PHP.
+
+One demonstration of T steps, K procedures, counter capacity C. Inputs are log-probabilities:
+
+  log_root  [T, K]     log η_⊥(h | o_t): the root pushes h at step t (t = 0, or after a stop at t-1).
+  log_op    [T, K, C]  log η_h^τ(a_t | o_t) of the demonstrated action.
+  log_stop  [T, K, C]  log ψ_h^τ(1 | o_{t+1}).
+  log_cont  [T, K, C]  log ψ_h^τ(0 | o_{t+1}).
+  length    []  int    steps used (1 ≤ length ≤ T); steps t ≥ length are padding.
+
+A path starts in (h_0, 0); the frame (h_t, τ_t) emits a_t; then it stops (the root pushes (h', 0)) or
+continues to (h_t, τ_t + 1), impossible at τ_t + 1 = C; the last step must stop.
+
+The lattice is a semi-Markov chain with one structural fact that makes inference cheap: (h, τ+1) at t+1 has
+the single predecessor (h, τ) at t. Hence w_t = shift(v_{t+1}), and
+
+  v_t = w_t + s_t · q_t,   s_t = Σ_h v_{t+1}(h, 0),   q_t ∝ α_t · η_t · ψ_t(1)  (the filter given a stop at t),
+
+so after a log-space forward filter (one exp per cell) the smoother runs in probability space with no
+transcendental functions, Viterbi needs one backpointer per step, and posterior sampling is exact
+forward-filter backward-sample. The forward carry is renormalised every step, so float32 stays accurate on
+traces of 10,000 steps with large logits; −inf masks give exact zeros, never NaN.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax.custom_derivatives import SymbolicZero
+
+NO_FRAME = -1  # procedure / counter value of padding steps in a LatticePath.
+
+
+class LatticePosterior(NamedTuple):
+  """Result of `forward_backward`.
+
+  Attributes:
+    log_likelihood: [] log P(ξ), up to the causal dynamics factor; −inf if no path is possible.
+    v: [T, K, C] P(h_t = h, τ_t = τ | ξ); zero on padding.
+    w: [T, K, C] P(h_t = h, τ_t = τ, τ_{t+1} = τ + 1 | ξ); zero on padding and at the last step.
+  """
+  log_likelihood: jax.Array
+  v: jax.Array
+  w: jax.Array
+
+
+class LatticePath(NamedTuple):
+  """One latent path through the lattice.
+
+  Attributes:
+    procedure: [T] int32 h_t, NO_FRAME on padding.
+    counter: [T] int32 τ_t, NO_FRAME on padding.
+    log_prob: [] log P(ζ, ξ) of the path (its complete-data log-likelihood).
+  """
+  procedure: jax.Array
+  counter: jax.Array
+  log_prob: jax.Array
+
+
+def _check_inputs(log_root, log_op, log_stop, log_cont, length):
+  """Validates shapes (static) and returns (T, K, C, length as an int32 array)."""
+  if jnp.ndim(log_op) != 3:
+    raise ValueError(f"log_op must be [T, K, C]; got shape {jnp.shape(log_op)}")
+  num_steps, num_procs, capacity = jnp.shape(log_op)
+  for name, arr in (("log_stop", log_stop), ("log_cont", log_cont)):
+    if jnp.shape(arr) != jnp.shape(log_op):
+      raise ValueError(f"{name} must have log_op's shape [T, K, C] = {jnp.shape(log_op)}; "
+                       f"got {jnp.shape(arr)}")
+  if jnp.shape(log_root) != (num_steps, num_procs):
+    raise ValueError(f"log_root must be [T, K] = {(num_steps, num_procs)}; got {jnp.shape(log_root)}")
+  if length is None:
+    length = num_steps
+  if isinstance(length, int) and not 1 <= length <= num_steps:
+    raise ValueError(f"length must be in 1..T = 1..{num_steps}; got {length}")
+  return num_steps, num_procs, capacity, jnp.asarray(length, jnp.int32)
+
+
+def _finite_or_zero(x):
+  return jnp.where(jnp.isfinite(x), x, 0.0)
+
+
+def _push_or_continue(stop_score, log_root_next, cont_score):
+  """Next step's [K, C] scores: pushes (h', 0) after a stop, (h, τ+1) after a continue."""
+  return jnp.concatenate([(stop_score + log_root_next)[:, None], cont_score[:, :-1]], axis=1)
+
+
+def _shift_down(x):
+  """[K, C] → [K, C] with out[h, τ] = x[h, τ+1] and zeros at τ = C-1."""
+  return jnp.concatenate([x[:, 1:], jnp.zeros_like(x[:, :1])], axis=1)
+
+
+def _scan_inputs(log_root, log_op, log_stop, log_cont):
+  """Per-step scan inputs: (t, log η + log ψ(1), log η + log ψ(0), log η_⊥ at t+1)."""
+  num_steps = log_op.shape[0]
+  log_root_next = jnp.concatenate([log_root[1:], jnp.zeros_like(log_root[:1])], axis=0)
+  return (jnp.arange(num_steps), log_op + log_stop, log_op + log_cont, log_root_next)
+
+
+def _initial_carry(log_root, capacity):
+  """Normalised [K, C] log-forward at t = 0 and its log scale."""
+  scale = _finite_or_zero(jnp.max(log_root[0]))
+  alpha = jnp.full((log_root.shape[1], capacity), -jnp.inf, log_root.dtype)
+  return alpha.at[:, 0].set(log_root[0] - scale), scale
+
+
+def _renormalise(scores):
+  scale = _finite_or_zero(jnp.max(scores))
+  return scores - scale, scale
+
+
+def _forward_filter(log_root, log_op, log_stop, log_cont, length):
+  """Sum-product forward pass.
+
+  Returns:
+    log_likelihood: [].
+    stop_filter: [T, K, C] q_t = P(h_t, τ_t | o_{0:t+1}, a_{0:t}, stop at t); the final-state posterior at
+      t = length-1; zero on padding and where no stop is possible.
+  """
+  capacity = log_op.shape[2]
+  alpha0, scale0 = _initial_carry(log_root, capacity)
+
+  def step(alpha, xs):
+    t, op_stop, op_cont, log_root_next = xs
+    stop_scores = alpha + op_stop
+    peak = _finite_or_zero(jnp.max(stop_scores))
+    weights = jnp.exp(stop_scores - peak)
+    total = jnp.sum(weights)
+    log_stop_mass = jnp.log(total) + peak
+    stop_filter = weights / jnp.where(total > 0, total, 1.0)
+    new_alpha, scale = _renormalise(_push_or_continue(log_stop_mass, log_root_next, alpha + op_cont))
+    inner = t < length - 1
+    log_increment = jnp.where(t == length - 1, log_stop_mass, jnp.where(inner, scale, 0.0))
+    alpha = jnp.where(inner, new_alpha, alpha)
+    return alpha, (jnp.where(t < length, stop_filter, 0.0), log_increment)
+
+  _, (stop_filter, log_increments) = jax.lax.scan(
+      step, alpha0, _scan_inputs(log_root, log_op, log_stop, log_cont))
+  return scale0 + jnp.sum(log_increments), stop_filter
+
+
+def _backward_smoother(stop_filter, length):
+  """v, w from the stop filter: v_{L-1} = q_{L-1}, v_t = shift(v_{t+1}) + s_t q_t. [T, K, C] each."""
+  def step(v_next, xs):
+    t, q = xs
+    w = _shift_down(v_next)
+    v_inner = w + jnp.sum(v_next[:, 0]) * q
+    v = jnp.where(t == length - 1, q, jnp.where(t < length - 1, v_inner, 0.0))
+    return v, (v, jnp.where(t < length - 1, w, 0.0))
+
+  _, (v, w) = jax.lax.scan(step, jnp.zeros_like(stop_filter[0]),
+                           (jnp.arange(stop_filter.shape[0]), stop_filter), reverse=True)
+  return v, w
+
+
+def _posterior_impl(log_root, log_op, log_stop, log_cont, length):
+  log_likelihood, stop_filter = _forward_filter(log_root, log_op, log_stop, log_cont, length)
+  v, w = _backward_smoother(stop_filter, length)
+  return log_likelihood, v, w
+
+
+@jax.custom_vjp
+def _posterior(log_root, log_op, log_stop, log_cont, length):
+  return _posterior_impl(log_root, log_op, log_stop, log_cont, length)
+
+
+def _posterior_fwd(log_root, log_op, log_stop, log_cont, length):
+  args = tuple(a.value for a in (log_root, log_op, log_stop, log_cont, length))
+  out = _posterior_impl(*args)
+  return out, (args, out[1], out[2])
+
+
+def _posterior_bwd(residuals, cotangents):
+  """∂ log P = marginals (the EG identities); autodiff only for cotangents on v and w themselves."""
+  args, v, w = residuals
+  g_log_likelihood, g_v, g_w = cotangents
+  grads = [jnp.zeros_like(a) for a in args[:4]]
+  if not isinstance(g_log_likelihood, SymbolicZero):
+    g = g_log_likelihood
+    grads = [g * v[:, :, 0], g * v, g * (v - w), g * w]
+  if not (isinstance(g_v, SymbolicZero) and isinstance(g_w, SymbolicZero)):
+    g_v = jnp.zeros_like(v) if isinstance(g_v, SymbolicZero) else g_v
+    g_w = jnp.zeros_like(w) if isinstance(g_w, SymbolicZero) else g_w
+    _, vjp = jax.vjp(lambda *a: _posterior_impl(*a, args[4])[1:], *args[:4])
+    grads = [g + h for g, h in zip(grads, vjp((g_v, g_w)))]
+  return (*grads, None)
+
+
+_posterior.defvjp(_posterior_fwd, _posterior_bwd, symbolic_zeros=True)
+_posterior_jit = jax.jit(_posterior)
+
+
+def forward_backward(log_root, log_op, log_stop, log_cont, length=None) -> LatticePosterior:
+  """Exact log-likelihood and single-step posterior marginals of one demonstration.
+
+  Gradients: ∂ log_likelihood / ∂ log_op = v, / ∂ log_cont = w, / ∂ log_stop = v − w,
+  / ∂ log_root[t, h] = v[t, h, 0] (a custom VJP returns them at no extra cost), so `jax.grad` of
+  `log_likelihood` is the paper's Expectation–Gradient gradient. Memory is linear in T. Batch with `jax.vmap`.
+
+  Args:
+    log_root: [T, K]. log_op, log_stop, log_cont: [T, K, C]. length: [] int, default T. (Module docstring.)
+
+  Returns:
+    LatticePosterior(log_likelihood [], v [T, K, C], w [T, K, C]).
+
+  Example:
+    >>> post = forward_backward(log_root, log_op, log_stop, log_cont, length=5)
+    >>> loss = -post.log_likelihood  # jax.grad(loss) flows into the networks that made the inputs
+  """
+  _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
+  return LatticePosterior(*_posterior_jit(log_root, log_op, log_stop, log_cont, length))
+
+
+def viterbi(log_root, log_op, log_stop, log_cont, length=None) -> LatticePath:
+  """Most likely latent path (max-product forward, one backpointer per step). Inputs as forward_backward."""
+  _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
+  return _viterbi(log_root, log_op, log_stop, log_cont, length)
+
+
+@jax.jit
+def _viterbi(log_root, log_op, log_stop, log_cont, length):
+  num_steps, _, capacity = log_op.shape
+  alpha0, scale0 = _initial_carry(log_root, capacity)
+
+  def forward(alpha, xs):
+    t, op_stop, op_cont, log_root_next = xs
+    stop_scores = (alpha + op_stop).reshape(-1)
+    best_stop = jnp.argmax(stop_scores).astype(jnp.int32)
+    new_alpha, scale = _renormalise(
+        _push_or_continue(stop_scores[best_stop], log_root_next, alpha + op_cont))
+    inner = t < length - 1
+    log_increment = jnp.where(t == length - 1, stop_scores[best_stop], jnp.where(inner, scale, 0.0))
+    return jnp.where(inner, new_alpha, alpha), (best_stop, log_increment)
+
+  _, (best_stop, log_increments) = jax.lax.scan(
+      forward, alpha0, _scan_inputs(log_root, log_op, log_stop, log_cont))
+
+  def backtrack(state_next, xs):
+    t, best = xs
+    tau_next = state_next % capacity
+    state = jnp.where(t == length - 1, best, jnp.where(tau_next > 0, state_next - 1, best))
+    state = jnp.where(t < length, state, NO_FRAME)
+    return jnp.where(t < length, state, state_next), state
+
+  _, states = jax.lax.scan(backtrack, jnp.int32(0), (jnp.arange(num_steps), best_stop), reverse=True)
+  return _path_from_states(states, capacity, scale0 + jnp.sum(log_increments))
+
+
+def sample_posterior(key, log_root, log_op, log_stop, log_cont, length=None) -> LatticePath:
+  """One exact sample from P(ζ | ξ) (forward filter, backward sample). Vmap over keys for many samples."""
+  _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
+  return _sample_posterior(key, log_root, log_op, log_stop, log_cont, length)
+
+
+@jax.jit
+def _sample_posterior(key, log_root, log_op, log_stop, log_cont, length):
+  num_steps, _, capacity = log_op.shape
+  _, stop_filter = _forward_filter(log_root, log_op, log_stop, log_cont, length)
+  flat_filter = stop_filter.reshape(num_steps, -1)
+
+  def backward(state_next, xs):
+    t, step_key, q = xs
+    drawn = jax.random.categorical(step_key, jnp.log(q)).astype(jnp.int32)
+    tau_next = state_next % capacity
+    state = jnp.where(t == length - 1, drawn, jnp.where(tau_next > 0, state_next - 1, drawn))
+    state = jnp.where(t < length, state, NO_FRAME)
+    return jnp.where(t < length, state, state_next), state
+
+  keys = jax.random.split(key, num_steps)
+  _, states = jax.lax.scan(backward, jnp.int32(0), (jnp.arange(num_steps), keys, flat_filter),
+                           reverse=True)
+  path = _path_from_states(states, capacity, jnp.zeros(()))
+  return path._replace(log_prob=_complete_log_likelihood(
+      log_root, log_op, log_stop, log_cont, path.procedure, path.counter, length))
+
+
+def max_marginal_path(posterior: LatticePosterior, length=None) -> LatticePath:
+  """Per step the most probable (h, τ) under v. Not always a valid path; log_prob is not computed (NaN)."""
+  num_steps, _, capacity = posterior.v.shape
+  length = num_steps if length is None else length
+  states = jnp.argmax(posterior.v.reshape(num_steps, -1), axis=1).astype(jnp.int32)
+  states = jnp.where(jnp.arange(num_steps) < length, states, NO_FRAME)
+  return _path_from_states(states, capacity, jnp.full((), jnp.nan, posterior.v.dtype))
+
+
+def _path_from_states(states, capacity, log_prob):
+  padding = states == NO_FRAME
+  proc, tau = jnp.divmod(jnp.where(padding, 0, states), capacity)
+  return LatticePath(jnp.where(padding, NO_FRAME, proc).astype(jnp.int32),
+                     jnp.where(padding, NO_FRAME, tau).astype(jnp.int32), log_prob)
+
+
+def complete_log_likelihood(log_root, log_op, log_stop, log_cont, procedure, counter, length=None):
+  """log P(ζ, ξ) of an annotated path, computed directly (−inf if the path breaks the semantics).
+
+  Args:
+    procedure, counter: [T] int, the frame (h_t, τ_t) of each step; values on padding are ignored.
+  Returns:
+    [] the complete-data log-likelihood.
+  """
+  _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
+  return _complete_log_likelihood(log_root, log_op, log_stop, log_cont, procedure, counter, length)
+
+
+@jax.jit
+def _complete_log_likelihood(log_root, log_op, log_stop, log_cont, procedure, counter, length):
+  num_steps, num_procs, capacity = log_op.shape
+  t = jnp.arange(num_steps)
+  valid = t < length
+  proc = jnp.clip(procedure, 0, num_procs - 1)
+  tau = jnp.clip(counter, 0, capacity - 1)
+  in_range = (procedure == proc) & (counter == tau)
+  next_proc, next_tau = jnp.roll(procedure, -1), jnp.roll(counter, -1)
+  continues = (next_tau == counter + 1) & (next_proc == procedure)
+  pushes = next_tau == 0
+  last = t == length - 1
+  transition = jnp.where(
+      last | pushes,
+      log_stop[t, proc, tau] + jnp.where(last, 0.0, jnp.roll(log_root, -1, axis=0)[t, jnp.roll(proc, -1)]),
+      jnp.where(continues, log_cont[t, proc, tau], -jnp.inf))
+  starts_at_zero = counter[0] == 0
+  terms = jnp.where(in_range, log_op[t, proc, tau] + transition, -jnp.inf)
+  total = log_root[0, proc[0]] + jnp.sum(jnp.where(valid, terms, 0.0))
+  return jnp.where(starts_at_zero, total, -jnp.inf)
+
+
+def annotate(log_op, procedure, counter):
+  """Restricts the lattice to annotated frames: strong, weak or partial supervision in one code path.
+
+  Every path visits exactly one cell per step, so masking log_op outside the annotated cell keeps exactly
+  the paths that agree with the annotation; forward_backward then returns the complete-data
+  log-likelihood for a fully annotated demonstration and anything between for a partial one.
+
+  Args:
+    log_op: [T, K, C].
+    procedure: [T] int, the annotated h_t or −1 where unknown.
+    counter: [T] int, the annotated τ_t or −1 where unknown.
+  Returns:
+    [T, K, C] log_op with −inf outside the annotation.
+  """
+  _, num_procs, capacity = log_op.shape
+  proc_ok = (procedure[:, None] < 0) | (procedure[:, None] == jnp.arange(num_procs)[None, :])
+  tau_ok = (counter[:, None] < 0) | (counter[:, None] == jnp.arange(capacity)[None, :])
+  return jnp.where(proc_ok[:, :, None] & tau_ok[:, None, :], log_op, -jnp.inf)
+
+
+def top_level(log_stop, length=None):
+  """The top level's lattice (K = 1, called once): no stop before the last step. [T, 1, C] → [T, 1, C]."""
+  num_steps = log_stop.shape[0]
+  length = num_steps if length is None else length
+  early = jnp.arange(num_steps) < length - 1
+  return jnp.where(early[:, None, None], -jnp.inf, log_stop)
+
+
+def posterior_entropy(log_root, log_op, log_stop, log_cont, length=None):
+  """Entropy of P(ζ | ξ) in nats: log P(ξ) − E[log P(ζ, ξ)], from the marginals. Returns []."""
+  post = forward_backward(log_root, log_op, log_stop, log_cont, length)
+  v, w = post.v, post.w
+
+  def expected(prob, log_factor):  # Σ prob · log_factor, with 0 · (−inf) = 0.
+    return jnp.sum(jnp.where(prob > 0, prob * log_factor, 0.0))
+
+  expected_complete = (expected(v[:, :, 0], log_root) + expected(v, log_op)
+                       + expected(w, log_cont) + expected(v - w, log_stop))
+  return post.log_likelihood - expected_complete
