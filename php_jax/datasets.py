@@ -1,0 +1,55 @@
+"""Problem sets and oracle demonstrations for the benchmarks (paper §5, DESIGN.md §5)."""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from php_jax import demos, executor
+from php_jax.envs import addition, nanocraft
+from php_jax.tasks import Task
+
+ADDITION_LENGTHS = tuple(range(1, 11))
+
+
+def column_triples(a: str, b: str) -> set[tuple[int, int, int]]:
+  """The (digit1, digit2, carry-in) of every column of a + b."""
+  triples, carry = set(), 0
+  for d1, d2 in zip(map(int, reversed(a)), map(int, reversed(b))):
+    triples.add((d1, d2, carry))
+    carry = (d1 + d2 + carry) // 10
+  return triples
+
+
+def addition_problems(seed: int, per_length: int = 16, lengths=ADDITION_LENGTHS,
+                      max_tries: int = 1000) -> list[tuple[str, str]]:
+  """per_length random problems for each number of digits, redrawn until every one of the 200
+  (digit1, digit2, carry-in) columns occurs (paper §5.2, footnote 2). Deterministic in seed."""
+  rng = np.random.default_rng(seed)
+  for _ in range(max_tries):
+    problems = [tuple("".join(map(str, row)) for row in rng.integers(0, 10, (2, n)))
+                for n in lengths for _ in range(per_length)]
+    covered = set().union(*(column_triples(a, b) for a, b in problems))
+    if len(covered) == 200:
+      return problems
+  raise RuntimeError(f"no problem set covering all 200 columns in {max_tries} draws; add problems")
+
+
+def addition_states(problems: list[tuple[str, str]], width: int | None = None) -> addition.State:
+  """Batched start states [B, ...] on a common tape width (default: fits the longest problem)."""
+  width = width or addition.width_for(max(len(a) for a, _ in problems))
+  states = [addition.make_problem(a, b, width) for a, b in problems]
+  return jax.tree.map(lambda *x: jnp.stack(x), *states)
+
+
+def nanocraft_states(key: jax.Array, num: int) -> nanocraft.State:
+  """num random NanoCraft start states [num, ...]."""
+  return jax.vmap(nanocraft.sample_problem)(jax.random.split(key, num))
+
+
+def oracle_demonstrations(task: Task, states, num_strong: int, max_steps: int) -> demos.Demonstration:
+  """The supervisor's demonstrations of a batch of problems; the first num_strong are strongly supervised."""
+  batch = jax.tree.leaves(states)[0].shape[0]
+  rollouts = executor.rollout_batch(task.oracle, task.spec, task.env, states,
+                                    jax.random.split(jax.random.key(0), batch), max_steps)
+  return demos.from_rollouts(rollouts, np.arange(batch) < num_strong)

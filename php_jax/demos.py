@@ -1,0 +1,112 @@
+"""Demonstrations: observations, elementary actions and (when annotated) the whole call stack per step."""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from php_jax.executor import Rollout
+
+UNKNOWN = -1  # procedure / counter value where the stack is not annotated, and on padding.
+
+
+class Demonstration(NamedTuple):
+  """One demonstration (a batch has a leading axis B). T = padded length, d = levels.
+
+  Attributes:
+    observations: [T+1, obs_dim] o_0 .. o_length (zero after).
+    actions: [T, num_factors] int32 elementary actions.
+    procedures: [T, d] int32 procedure per level at each step; UNKNOWN where not annotated or padding.
+    counters: [T, d] int32 τ per level at each step; UNKNOWN where not annotated or padding.
+    length: [] int32 steps used.
+    strong: [] bool whether training may use the annotation (weak demonstrations may still carry the
+      supervisor's stack, for measuring how well decoding recovers it).
+  """
+  observations: jax.Array
+  actions: jax.Array
+  procedures: jax.Array
+  counters: jax.Array
+  length: jax.Array
+  strong: jax.Array
+
+
+def from_rollouts(rollouts: Rollout, strong) -> Demonstration:
+  """A batch of recorded rollouts [B, S, ...] → demonstrations trimmed to the longest episode (host side).
+
+  Raises ValueError if an episode did not terminate or took an invalid action.
+  """
+  length = np.asarray(rollouts.length)
+  bad = np.flatnonzero(~np.asarray(rollouts.terminated))
+  if bad.size:
+    raise ValueError(f"rollouts {bad.tolist()} did not end with the root returning; cannot demonstrate")
+  num_steps = int(length.max())
+  pad = np.arange(num_steps)[None, :, None] >= length[:, None, None]
+  return Demonstration(
+      observations=jnp.asarray(np.asarray(rollouts.observations)[:, :num_steps + 1]),
+      actions=jnp.asarray(np.asarray(rollouts.actions)[:, :num_steps]),
+      procedures=jnp.asarray(np.where(pad, UNKNOWN, np.asarray(rollouts.procedures)[:, :num_steps])),
+      counters=jnp.asarray(np.where(pad, UNKNOWN, np.asarray(rollouts.counters)[:, :num_steps])),
+      length=jnp.asarray(length, jnp.int32),
+      strong=jnp.broadcast_to(jnp.asarray(strong, bool), length.shape))
+
+
+def _stack_error(prev_procs, prev_taus, procs, taus) -> str | None:
+  """Why stack (procs, taus) cannot follow (prev_procs, prev_taus) after one action, or None if it can.
+
+  Exactly one level j resumes: levels above it keep their frames, level j keeps its procedure with τ + 1,
+  and every level below it is a fresh push with τ = 0.
+  """
+  depth = len(procs)
+  for j in range(depth - 1, -1, -1):
+    if (np.array_equal(procs[:j], prev_procs[:j]) and np.array_equal(taus[:j], prev_taus[:j])
+        and procs[j] == prev_procs[j] and taus[j] == prev_taus[j] + 1 and np.all(taus[j + 1:] == 0)):
+      return None
+  changed = [i for i in range(depth) if (procs[i], taus[i]) != (prev_procs[i], prev_taus[i])]
+  level = changed[0] if changed else depth - 1
+  return (f"level {level} goes from (procedure {prev_procs[level]}, counter {prev_taus[level]}) to "
+          f"(procedure {procs[level]}, counter {taus[level]}): counters must increment by one at the "
+          f"resuming level, restart at 0 below it, and stay put above it")
+
+
+def validate(batch: Demonstration, spec) -> None:
+  """Checks a batch of demonstrations [B, ...] against a HierarchySpec (host side).
+
+  Raises ValueError naming the demonstration and step of the first problem: shapes, lengths over capacity,
+  actions or procedure ids out of range, or annotated stacks that break the call-stack semantics.
+  """
+  obs, actions = np.asarray(batch.observations), np.asarray(batch.actions)
+  procs, taus = np.asarray(batch.procedures), np.asarray(batch.counters)
+  lengths, strong = np.asarray(batch.length), np.asarray(batch.strong)
+  num_demos, num_steps = actions.shape[:2]
+  expected = {"observations": (num_demos, num_steps + 1, spec.obs_dim),
+              "actions": (num_demos, num_steps, len(spec.action_sizes)),
+              "procedures": (num_demos, num_steps, spec.num_levels),
+              "counters": (num_demos, num_steps, spec.num_levels), "length": (num_demos,),
+              "strong": (num_demos,)}
+  for name, shape in expected.items():
+    if np.shape(getattr(batch, name)) != shape:
+      raise ValueError(f"demonstrations.{name} has shape {np.shape(getattr(batch, name))}; expected {shape}")
+  for b in range(num_demos):
+    length = int(lengths[b])
+    if not 1 <= length <= num_steps:
+      raise ValueError(f"demonstration {b}: length {length} is outside 1..{num_steps} (the capacity)")
+    bad = np.argwhere((actions[b, :length] < 0) | (actions[b, :length] >= np.array(spec.action_sizes)))
+    if bad.size:
+      t, f = bad[0]
+      raise ValueError(f"demonstration {b}, step {t}: action factor {f} = {actions[b, t, f]} is outside "
+                       f"0..{spec.action_sizes[f] - 1}")
+    if not strong[b]:
+      continue
+    for t in range(length):
+      for level in range(spec.num_levels):
+        if not 0 <= procs[b, t, level] < spec.num_procs(level):
+          raise ValueError(f"demonstration {b}, step {t}: procedure id {procs[b, t, level]} at level {level} "
+                           f"is unknown (level {level} has {spec.num_procs(level)} procedures)")
+      if t == 0 and np.any(taus[b, 0] != 0):
+        raise ValueError(f"demonstration {b}, step 0: counters must start at 0; got {taus[b, 0].tolist()}")
+      if t > 0:
+        error = _stack_error(procs[b, t - 1], taus[b, t - 1], procs[b, t], taus[b, t])
+        if error:
+          raise ValueError(f"demonstration {b}, step {t}: {error}")

@@ -1,0 +1,50 @@
+"""What a hierarchy looks like: levels of procedures, each level's operation space, and the policy protocol
+that oracles and learned PHPs share (so one executor runs both)."""
+from __future__ import annotations
+
+import dataclasses
+from typing import Protocol
+
+import jax
+
+
+@dataclasses.dataclass(frozen=True)
+class HierarchySpec:
+  """Levels 0 (root) .. d-1 (lowest). Level i < d-1 calls level i+1's procedures; level d-1 takes
+  elementary actions, a product of categoricals of sizes action_sizes.
+
+  Attributes:
+    name: task name.
+    levels: procedure names per level; level 0 has the single root procedure.
+    action_sizes: elementary action factor sizes, e.g. (2, 4, 10) for addition, (5,) for NanoCraft.
+    obs_dim: observation size.
+  """
+  name: str
+  levels: tuple[tuple[str, ...], ...]
+  action_sizes: tuple[int, ...]
+  obs_dim: int
+
+  @property
+  def num_levels(self) -> int:
+    return len(self.levels)
+
+  def num_procs(self, level: int) -> int:
+    return len(self.levels[level])
+
+  def op_sizes(self, level: int) -> tuple[int, ...]:
+    """Factor sizes of level's operations: the next level's procedures, or the elementary action."""
+    if level == self.num_levels - 1:
+      return self.action_sizes
+    return (self.num_procs(level + 1),)
+
+
+class Policy(Protocol):
+  """A hierarchy's statements. level is a static int; proc, tau are [] int32; obs is [obs_dim]."""
+
+  def operation(self, level: int, proc: jax.Array, tau: jax.Array, obs: jax.Array,
+                key: jax.Array) -> jax.Array:
+    """η_proc^tau(obs): int32 [len(spec.op_sizes(level))], a callee [1] or an elementary action."""
+
+  def terminates(self, level: int, proc: jax.Array, tau: jax.Array, obs: jax.Array,
+                 key: jax.Array) -> jax.Array:
+    """ψ_proc^tau(obs): [] bool, whether the frame returns after its operation number tau."""

@@ -1,0 +1,132 @@
+"""PHP networks in Flax NNX (paper §4.1.2): per procedure an operation MLP and a termination MLP over the
+observation concatenated with τ as a real number; root networks (MLP or LSTM) standing in for untrained
+levels above; a whole hierarchy of PHP levels that the executor runs as a Policy.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from php_jax.hierarchy import HierarchySpec
+
+_he_init = nnx.initializers.variance_scaling(2.0, "fan_in", "truncated_normal", in_axis=-2, out_axis=-1,
+                                             batch_axis=(0,))
+
+
+class ProcedureMLPs(nnx.Module):
+  """K independent ReLU MLPs over concat(obs, τ), evaluated for every procedure at once.
+
+  The first layer is split into an observation part, computed once per observation, and a τ part added per
+  counter, so a [N observations × M counters] grid costs N + M first-layer products, not N × M.
+  """
+
+  def __init__(self, num_procs: int, obs_dim: int, hidden: tuple[int, ...], out_dim: int, *,
+               rngs: nnx.Rngs):
+    sizes = (obs_dim + 1, *hidden, out_dim)
+    self.kernels = nnx.List([nnx.Param(_he_init(rngs.params(), (num_procs, n_in, n_out)))
+                             for n_in, n_out in zip(sizes[:-1], sizes[1:])])
+    self.biases = nnx.List([nnx.Param(jnp.zeros((num_procs, n_out))) for n_out in sizes[1:]])
+
+  def __call__(self, obs: jax.Array, tau: jax.Array) -> jax.Array:
+    """obs: [N, obs_dim]; tau: [M] float → [N, K, M, out_dim]."""
+    first = self.kernels[0][...]
+    from_obs = jnp.einsum("nd,kdh->nkh", obs, first[:, :-1])
+    from_tau = tau[:, None, None] * first[None, :, -1]                      # [M, K, H]
+    x = from_obs[:, :, None, :] + jnp.swapaxes(from_tau, 0, 1)[None] + self.biases[0][...][None, :, None]
+    for kernel, bias in zip(list(self.kernels)[1:], list(self.biases)[1:]):
+      x = jnp.einsum("nkmh,khj->nkmj", jax.nn.relu(x), kernel[...]) + bias[...][None, :, None]
+    return x
+
+
+class PHPLevel(nnx.Module):
+  """The K procedures of one level: operation η_h^τ(·|o) and termination ψ_h^τ(·|o) networks.
+
+  Attributes:
+    op_sizes: factor sizes of the operation (callees of the next level, or the elementary action factors).
+    tau_in_termination: whether ψ sees τ (the paper's per-level hyper-parameter); if not, τ is fed as 0.
+  """
+
+  def __init__(self, num_procs: int, obs_dim: int, op_sizes: tuple[int, ...], hidden=(64, 64),
+               tau_in_termination: bool = True, *, rngs: nnx.Rngs):
+    self.op_sizes = tuple(op_sizes)
+    self.tau_in_termination = tau_in_termination
+    self.operation = ProcedureMLPs(num_procs, obs_dim, tuple(hidden), sum(op_sizes), rngs=rngs)
+    self.termination = ProcedureMLPs(num_procs, obs_dim, tuple(hidden), 1, rngs=rngs)
+
+  def op_log_probs(self, obs: jax.Array, tau: jax.Array) -> list[jax.Array]:
+    """Per factor f: [N, K, M, op_sizes[f]] log-probabilities (the factorized action head)."""
+    logits = self.operation(obs, tau)
+    splits = np.cumsum(self.op_sizes)[:-1]
+    return [jax.nn.log_softmax(part, axis=-1) for part in jnp.split(logits, splits, axis=-1)]
+
+  def log_op(self, obs: jax.Array, tau: jax.Array, ops: jax.Array) -> jax.Array:
+    """log η_h^τ(ops_n | obs_n) for every procedure and counter. obs [N, D], tau [M], ops [N, F] → [N, K, M]."""
+    total = 0.0
+    for f, log_probs in enumerate(self.op_log_probs(obs, tau)):
+      index = jnp.broadcast_to(ops[:, None, None, f:f + 1], log_probs.shape[:-1] + (1,))
+      total = total + jnp.take_along_axis(log_probs, index, axis=-1)[..., 0]
+    return total
+
+  def termination_logits(self, obs: jax.Array, tau: jax.Array) -> jax.Array:
+    """logit of ψ_h^τ(1 | obs). obs [N, D], tau [M] → [N, K, M]; log ψ(1) = log σ(z), log ψ(0) = log σ(−z)."""
+    tau = tau if self.tau_in_termination else jnp.zeros_like(tau)
+    return self.termination(obs, tau)[..., 0]
+
+
+class RootMLP(nnx.Module):
+  """η_⊥(h | o_t): a ReLU MLP over each observation. [T, obs_dim] → [T, K] log-probabilities."""
+
+  def __init__(self, obs_dim: int, num_children: int, hidden=(64, 64), *, rngs: nnx.Rngs):
+    sizes = (obs_dim, *hidden)
+    self.layers = nnx.List([nnx.Linear(a, b, rngs=rngs) for a, b in zip(sizes[:-1], sizes[1:])])
+    self.head = nnx.Linear(sizes[-1], num_children, rngs=rngs)
+
+  def __call__(self, observations: jax.Array) -> jax.Array:
+    x = observations
+    for layer in self.layers:
+      x = jax.nn.relu(layer(x))
+    return jax.nn.log_softmax(self.head(x), axis=-1)
+
+
+class RootLSTM(nnx.Module):
+  """η_⊥^LSTM(h | o_0..o_t): an LSTM over the observation sequence. [T, obs_dim] → [T, K] log-probabilities."""
+
+  def __init__(self, obs_dim: int, num_children: int, hidden: int = 64, *, rngs: nnx.Rngs):
+    self.rnn = nnx.RNN(nnx.OptimizedLSTMCell(obs_dim, hidden, rngs=rngs))
+    self.head = nnx.Linear(hidden, num_children, rngs=rngs)
+
+  def __call__(self, observations: jax.Array) -> jax.Array:
+    hidden = self.rnn(observations[None])[0]
+    return jax.nn.log_softmax(self.head(hidden), axis=-1)
+
+
+class PHPHierarchy(nnx.Module):
+  """A whole hierarchy of PHP levels; a Policy for the executor (argmax, or sampling when `sample`)."""
+
+  def __init__(self, spec: HierarchySpec, hidden=(64, 64), tau_in_termination=None, sample: bool = False,
+               *, rngs: nnx.Rngs):
+    tau_in_termination = tau_in_termination or (True,) * spec.num_levels
+    if len(tau_in_termination) != spec.num_levels:
+      raise ValueError(f"tau_in_termination needs one flag per level ({spec.num_levels}); "
+                       f"got {tau_in_termination}")
+    self.spec = spec
+    self.sample = sample
+    self.levels = nnx.List([
+        PHPLevel(spec.num_procs(i), spec.obs_dim, spec.op_sizes(i), hidden, tau_in_termination[i], rngs=rngs)
+        for i in range(spec.num_levels)])
+
+  def operation(self, level, proc, tau, obs, key):
+    tau = jnp.asarray(tau, jnp.float32)[None]
+    factors = [lp[0, proc, 0] for lp in self.levels[level].op_log_probs(obs[None], tau)]
+    if self.sample:
+      keys = jax.random.split(key, len(factors))
+      return jnp.stack([jax.random.categorical(k, lp) for k, lp in zip(keys, factors)]).astype(jnp.int32)
+    return jnp.stack([jnp.argmax(lp) for lp in factors]).astype(jnp.int32)
+
+  def terminates(self, level, proc, tau, obs, key):
+    logit = self.levels[level].termination_logits(obs[None], jnp.asarray(tau, jnp.float32)[None])[0, proc, 0]
+    if self.sample:
+      return jax.random.bernoulli(key, jax.nn.sigmoid(logit))
+    return logit > 0
