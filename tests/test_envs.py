@@ -131,3 +131,11 @@ def test_nanocraft_sample_problem_places_only_perimeter_cells():
   assert 0.4 < fraction < 0.6
   specs = {tuple(s) for s in np.asarray(states.spec)}
   assert specs <= {tuple(s) for s in nc.SPECS} and len(specs) > 50
+
+
+def test_decimal_sum_and_correctness_rule():
+  assert add.decimal_sum("999", "001") == "1000" and add.decimal_sum("00", "00") == "0"
+  assert add.decimal_sum("5" * 5000, "5" * 5000) == "1" + "1" * 4999 + "0"
+  assert add.is_correct("0100", "099", "001") and add.is_correct("00", "00", "00")
+  assert not add.is_correct("", "0", "0") and not add.is_correct("101", "099", "001")
+  assert add.decimal_sum("9999999999", "0000000001") == "10000000000"

@@ -103,6 +103,15 @@ def oracle_step_budget(num_digits: int) -> int:
   return 8 * (num_digits + 1)
 
 
+def decimal_sum(a: str, b: str) -> str:
+  """a + b for decimal strings of any length, without leading zeros (Python's int() stops at 4300 digits)."""
+  digits, carry = [], 0
+  for d1, d2 in zip(reversed(a.rjust(len(b), "0")), reversed(b.rjust(len(a), "0"))):
+    carry, digit = divmod(int(d1) + int(d2) + carry, 10)
+    digits.append(str(digit))
+  return (("1" if carry else "") + "".join(reversed(digits))).lstrip("0") or "0"
+
+
 def is_correct(result_digits: str, a: str, b: str) -> bool:
   """Whether a result string equals a + b as an integer (leading zeros allowed; empty is wrong)."""
-  return result_digits.isdigit() and int(result_digits) == int(a) + int(b)
+  return result_digits.isdigit() and (result_digits.lstrip("0") or "0") == decimal_sum(a, b)

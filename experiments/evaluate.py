@@ -1,0 +1,62 @@
+r"""Runs a hierarchy on a file of problems and writes one JSON outcome line per problem, in order.
+
+  python -m experiments.evaluate --task=addition --policy=oracle --problems=IN.jsonl --out=OUT.jsonl
+
+--policy is `oracle` (the supervisor) or a training workdir holding a saved model. A malformed problem line
+is reported with its line number and exit status 2 before anything runs; the output file is written
+atomically, so it is either complete or absent.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import tempfile
+
+from absl import app, flags
+
+from experiments import problems as problem_files
+from php_jax import evaluation, tasks
+
+_TASK = flags.DEFINE_enum("task", None, ["addition", "nanocraft"], "Benchmark task.")
+_POLICY = flags.DEFINE_string("policy", "oracle", "'oracle' or a workdir with a trained model.")
+_PROBLEMS = flags.DEFINE_string("problems", None, "Input JSON-lines file of problems.")
+_OUT = flags.DEFINE_string("out", None, "Output JSON-lines file of outcomes.")
+_BATCH_SIZE = flags.DEFINE_integer("batch_size", 64, "Problems rolled out together.")
+
+
+def load_policy(task: tasks.Task, policy: str):
+  """The oracle, or the trained hierarchy saved in a workdir."""
+  if policy == "oracle":
+    return task.oracle
+  raise FileNotFoundError(f"--policy={policy!r}: no trained model found; training lands with the "
+                          "training experiments (issue 4). Use --policy=oracle.")
+
+
+def write_lines_atomically(path: str, rows) -> None:
+  directory = os.path.dirname(os.path.abspath(path))
+  with tempfile.NamedTemporaryFile("w", dir=directory, delete=False, suffix=".tmp") as f:
+    for row in rows:
+      f.write(json.dumps(row) + "\n")
+  os.replace(f.name, path)
+
+
+def main(argv):
+  del argv
+  task = tasks.get(_TASK.value)
+  try:
+    problems = problem_files.read_problems(_PROBLEMS.value, task.name)
+    policy = load_policy(task, _POLICY.value)
+  except (problem_files.ProblemFileError, OSError) as e:
+    print(f"error: {e}", file=sys.stderr)
+    sys.exit(2)
+  solve = evaluation.solve_addition if task.name == "addition" else evaluation.solve_nanocraft
+  outcomes = solve(policy, task.spec, problems, batch_size=_BATCH_SIZE.value)
+  write_lines_atomically(_OUT.value, outcomes)
+  correct = sum(o["correct"] for o in outcomes)
+  print(f"{task.name}: {correct}/{len(outcomes)} correct -> {_OUT.value}")
+
+
+if __name__ == "__main__":
+  flags.mark_flags_as_required(["task", "problems", "out"])
+  app.run(main)

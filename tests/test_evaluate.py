@@ -1,0 +1,81 @@
+"""`python -m experiments.evaluate`: good files solved by the oracle, malformed lines refused with exit 2."""
+import json
+import subprocess
+import sys
+
+import pytest
+
+from experiments import problems as problem_files
+
+
+def _evaluate(tmp_path, task, lines):
+  problems = tmp_path / "in.jsonl"
+  problems.write_text("".join(line + "\n" for line in lines))
+  out = tmp_path / "out.jsonl"
+  proc = subprocess.run([sys.executable, "-m", "experiments.evaluate", f"--task={task}", "--policy=oracle",
+                         f"--problems={problems}", f"--out={out}"], capture_output=True, text=True,
+                        timeout=300)
+  return proc, out
+
+
+def test_addition_file_solved_in_order(tmp_path):
+  lines = ['{"a": "0123", "b": "4567"}', '{"a": "9999999999", "b": "0000000001"}', "",
+           '{"a": "5", "b": "7"}', json.dumps({"a": "9" * 150, "b": "0" * 149 + "1"})]
+  proc, out = _evaluate(tmp_path, "addition", lines)
+  assert proc.returncode == 0, proc.stderr
+  rows = [json.loads(line) for line in out.read_text().splitlines()]
+  assert [r["result"] for r in rows] == ["4690", "10000000000", "12", "1" + "0" * 150]
+  assert rows[0] == {"result": "4690", "terminated": True, "valid": True, "steps": 23, "correct": True}
+  assert all(r["terminated"] and r["valid"] and r["correct"] for r in rows)
+
+
+def test_nanocraft_file_solved(tmp_path):
+  lines = ['{"x": 1, "y": 2, "w": 3, "h": 2, "preplaced": [[2, 1], [3, 3]]}',
+           '{"x": 4, "y": 4, "w": 2, "h": 2, "preplaced": []}']
+  proc, out = _evaluate(tmp_path, "nanocraft", lines)
+  assert proc.returncode == 0, proc.stderr
+  rows = [json.loads(line) for line in out.read_text().splitlines()]
+  assert len(rows) == 2 and all(r["correct"] for r in rows)
+  assert rows[1]["grid"][4][4:] == [1, 1] and rows[1]["grid"][5][4:] == [1, 1]
+  assert sum(map(sum, rows[1]["grid"])) == 4 and set(rows[0]) == {"grid", "terminated", "valid", "steps",
+                                                                    "correct"}
+
+
+def test_malformed_line_exits_2_with_line_number_and_writes_nothing(tmp_path):
+  proc, out = _evaluate(tmp_path, "addition", ['{"a": "12", "b": "34"}', '{"a": "12", "b": "3"}'])
+  assert proc.returncode == 2
+  assert "in.jsonl:2:" in proc.stderr and "same number of digits" in proc.stderr
+  assert not out.exists()
+
+
+def test_unknown_policy_exits_2(tmp_path):
+  problems = tmp_path / "in.jsonl"
+  problems.write_text('{"a": "1", "b": "2"}\n')
+  proc = subprocess.run([sys.executable, "-m", "experiments.evaluate", "--task=addition",
+                         f"--policy={tmp_path / 'nowhere'}", f"--problems={problems}",
+                         f"--out={tmp_path / 'out.jsonl'}"], capture_output=True, text=True, timeout=300)
+  assert proc.returncode == 2 and "no trained model" in proc.stderr
+
+
+@pytest.mark.parametrize("task, line, message", [
+    ("addition", '{"a": "12", "b": "3"}', "same number of digits"),
+    ("addition", '{"a": "1x", "b": "23"}', "decimal digits"),
+    ("addition", '{"a": "", "b": ""}', "decimal digits"),
+    ("addition", '{"a": 12, "b": 34}', 'string fields "a" and "b"'),
+    ("addition", '[1, 2]', "JSON object"),
+    ("addition", '{"a": "1", "b": "2"', "Expecting"),
+    ("nanocraft", '{"x": 0, "y": 1, "w": 2, "h": 2}', "does not fit"),
+    ("nanocraft", '{"x": 3, "y": 1, "w": 4, "h": 2}', "does not fit"),
+    ("nanocraft", '{"x": 1, "y": 1, "w": 3, "h": 3, "preplaced": [[2, 2]]}', "not on the building's perimeter"),
+    ("nanocraft", '{"x": 1, "y": 1, "w": 3, "h": 3, "preplaced": [[9, 1]]}', "not on the building's perimeter"),
+    ("nanocraft", '{"x": 1, "y": 1, "w": 2, "h": 2, "preplaced": [[1, 1], [1, 1]]}', "twice"),
+    ("nanocraft", '{"x": 1, "y": 1, "w": 2, "h": 2, "preplaced": [[1]]}', "integer pairs"),
+    ("nanocraft", '{"x": true, "y": 1, "w": 2, "h": 2}', "integer fields"),
+])
+def test_parser_names_line_and_problem(tmp_path, task, line, message):
+  path = tmp_path / "p.jsonl"
+  path.write_text('{"a": "1", "b": "2"}\n' if task == "addition" else '{"x": 1, "y": 1, "w": 2, "h": 2}\n')
+  path.write_text(path.read_text() + line + "\n")
+  with pytest.raises(problem_files.ProblemFileError, match=message) as info:
+    problem_files.read_problems(str(path), task)
+  assert str(info.value).startswith(f"{path}:2:")
