@@ -11,7 +11,7 @@ from flax import nnx
 
 from php_jax.hierarchy import HierarchySpec
 
-_he_init = nnx.initializers.variance_scaling(2.0, "fan_in", "truncated_normal", in_axis=-2, out_axis=-1,
+_he_init = nnx.initializers.variance_scaling(2.0, "fan_in", "normal", in_axis=-2, out_axis=-1,
                                              batch_axis=(0,))
 
 

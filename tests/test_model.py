@@ -1,0 +1,91 @@
+"""PHP networks: the split first layer equals a plain MLP on concat(obs, τ), the factorized head is a
+distribution, the τ switch, the LSTM root is causal, and random hierarchies run without retracing."""
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from php_jax import executor, tasks
+from php_jax.envs import addition
+from php_jax.model import PHPHierarchy, PHPLevel, RootLSTM, RootMLP
+
+
+def _plain_mlp(mlps, proc, obs, tau):
+  x = jnp.concatenate([obs, jnp.array([tau])])
+  kernels, biases = list(mlps.kernels), list(mlps.biases)
+  for i, (k, b) in enumerate(zip(kernels, biases)):
+    x = x @ k[...][proc] + b[...][proc]
+    if i < len(kernels) - 1:
+      x = jax.nn.relu(x)
+  return x
+
+
+def test_split_first_layer_equals_plain_mlp_on_concatenated_input():
+  level = PHPLevel(3, 44, (2, 4, 10), hidden=(16, 8), rngs=nnx.Rngs(0))
+  obs = jax.random.normal(jax.random.key(1), (5, 44))
+  tau = jnp.arange(4.0)
+  grid = level.operation(obs, tau)
+  assert grid.shape == (5, 3, 4, 16)
+  for n, k, m in [(0, 0, 0), (4, 2, 3), (2, 1, 1)]:
+    np.testing.assert_allclose(grid[n, k, m], _plain_mlp(level.operation, k, obs[n], tau[m]), atol=1e-5)
+
+
+def test_factorized_head_is_a_distribution_over_all_actions():
+  level = PHPLevel(2, 44, (2, 4, 10), rngs=nnx.Rngs(0))
+  obs = jax.random.normal(jax.random.key(2), (1, 44))
+  actions = jnp.array([[k, t, a] for k in range(2) for t in range(4) for a in range(10)])
+  log_probs = level.log_op(jnp.repeat(obs, len(actions), axis=0), jnp.array([1.0]), actions)[:, :, 0]
+  np.testing.assert_allclose(jnp.exp(log_probs).sum(axis=0), 1.0, atol=1e-5)
+
+
+def test_termination_ignores_tau_when_switched_off():
+  obs = jax.random.normal(jax.random.key(3), (2, 5))
+  tau = jnp.arange(6.0)
+  hidden = PHPLevel(2, 5, (5,), tau_in_termination=False, rngs=nnx.Rngs(0)).termination_logits(obs, tau)
+  seen = PHPLevel(2, 5, (5,), tau_in_termination=True, rngs=nnx.Rngs(0)).termination_logits(obs, tau)
+  np.testing.assert_allclose(hidden, hidden[:, :, :1] * jnp.ones((1, 1, 6)), atol=1e-6)
+  assert not np.allclose(seen[:, :, 0], seen[:, :, 5])
+
+
+def test_root_networks_give_distributions_and_lstm_is_causal():
+  obs = jax.random.normal(jax.random.key(4), (7, 44))
+  for root in (RootMLP(44, 3, rngs=nnx.Rngs(0)), RootLSTM(44, 3, rngs=nnx.Rngs(0))):
+    out = root(obs)
+    assert out.shape == (7, 3)
+    np.testing.assert_allclose(jnp.exp(out).sum(-1), 1.0, atol=1e-5)
+  lstm = RootLSTM(44, 3, rngs=nnx.Rngs(0))
+  changed = obs.at[4:].set(0.0)
+  np.testing.assert_allclose(lstm(obs)[:4], lstm(changed)[:4], atol=1e-6)
+  assert not np.allclose(lstm(obs)[4:], lstm(changed)[4:])
+
+
+def test_random_php_hierarchies_run_in_the_executor_without_retracing():
+  task = tasks.get("addition")
+  traced = jax.jit(chex.assert_max_traces(executor.rollout_batch.__wrapped__, n=1),
+                   static_argnames=("spec", "env", "max_steps", "record"))
+  keys = jax.random.split(jax.random.key(0), 8)
+  for seed in range(3):
+    model = PHPHierarchy(task.spec, hidden=(32,), rngs=nnx.Rngs(seed))
+    states = jax.vmap(lambda k: addition.sample_problem(k, 4, 8))(jax.random.split(jax.random.key(seed), 8))
+    out = traced(model, task.spec, addition, states, keys, 40)
+    assert out.actions.shape == (8, 40, 3)
+    lengths = np.asarray(out.length)
+    assert np.all((lengths >= 1) & (lengths <= 40))
+    # A run stops early only because the root returned or an action was invalid.
+    assert np.all((lengths == 40) | np.asarray(out.terminated) | ~np.asarray(out.valid))
+
+
+def test_sampling_hierarchy_draws_valid_operations():
+  task = tasks.get("nanocraft")
+  model = PHPHierarchy(task.spec, sample=True, rngs=nnx.Rngs(0))
+  obs = jnp.array([0.0, 2, 3, 1, 1])
+  keys = jax.random.split(jax.random.key(0), 30)
+
+  def draws(m):
+    return set(np.asarray(jax.jit(jax.vmap(
+        lambda k: m.operation(1, jnp.int32(2), jnp.int32(0), obs, k)[0]))(keys)).tolist())
+
+  ops = draws(model)
+  assert ops <= set(range(6)) and len(ops) > 1
+  assert len(draws(PHPHierarchy(task.spec, rngs=nnx.Rngs(0)))) == 1
