@@ -80,33 +80,58 @@ def _finite_or_zero(x):
   return jnp.where(jnp.isfinite(x), x, 0.0)
 
 
-def _push_or_continue(stop_score, log_root_next, cont_score):
-  """Next step's [K, C] scores: pushes (h', 0) after a stop, (h, τ+1) after a continue."""
-  return jnp.concatenate([(stop_score + log_root_next)[:, None], cont_score[:, :-1]], axis=1)
+def _shift(x, by: int, fill):
+  """Shifts the last axis by ±1 (out[s] = x[s - by]), filling the vacated end. Unlike jnp.roll this is
+  one cheap concatenate on the CPU, which matters inside scan bodies."""
+  pad = jnp.full(x.shape[:-1] + (1,), fill, x.dtype)
+  return jnp.concatenate([pad, x[..., :-1]] if by == 1 else [x[..., 1:], pad], axis=-1)
 
 
-def _shift_down(x):
-  """[K, C] → [K, C] with out[h, τ] = x[h, τ+1] and zeros at τ = C-1."""
-  return jnp.concatenate([x[:, 1:], jnp.zeros_like(x[:, :1])], axis=1)
+def _is_push(num_procs, capacity):
+  """[S] bool: cells with τ = 0, with (h, τ) flattened to s = h·C + τ."""
+  return jnp.arange(num_procs * capacity) % capacity == 0
 
 
-def _scan_inputs(log_root, log_op, log_stop, log_cont):
-  """Per-step scan inputs: (t, log η + log ψ(1), log η + log ψ(0), log η_⊥ at t+1)."""
-  num_steps = log_op.shape[0]
-  log_root_next = jnp.concatenate([log_root[1:], jnp.zeros_like(log_root[:1])], axis=0)
-  return (jnp.arange(num_steps), log_op + log_stop, log_op + log_cont, log_root_next)
+def _forward_scan(log_root, log_op, log_stop, log_cont, length, semiring_max: bool):
+  """α recursion over flattened cells, renormalised every step.
 
+  The carry is (continuing cells' log-mass [S], pending log stop mass []), both relative to the running
+  scale; step t pushes with log η_⊥(· | o_t) itself, so the scan reads the raw inputs (no shifted copies).
 
-def _initial_carry(log_root, capacity):
-  """Normalised [K, C] log-forward at t = 0 and its log scale."""
-  scale = _finite_or_zero(jnp.max(log_root[0]))
-  alpha = jnp.full((log_root.shape[1], capacity), -jnp.inf, log_root.dtype)
-  return alpha.at[:, 0].set(log_root[0] - scale), scale
+  Returns:
+    alphas: [T, S] log α_t relative to the scale at t (before emitting a_t).
+    stop_total: [T] log of the stop mass at t, relative to the same scale (max-product: the best stop).
+    log_increments: [T] summing to log P(ξ) (max-product: the best path's log-probability).
+    best_stop: [T] the best stopping cell (max-product only).
+  """
+  num_steps, num_procs, capacity = log_op.shape
+  is_push = _is_push(num_procs, capacity)
+  can_continue = jnp.arange(num_procs * capacity) % capacity < capacity - 1
 
+  def step(carry, xs):
+    continuing, pending = carry
+    t, log_root, log_op, log_stop, log_cont = xs
+    pushed = jnp.broadcast_to((log_root + pending)[:, None], (num_procs, capacity)).reshape(-1)
+    alpha = jnp.where(is_push, pushed, continuing)
+    emit = alpha + log_op.reshape(-1)
+    stop_scores = emit + log_stop.reshape(-1)
+    cont_scores = jnp.where(can_continue, emit + log_cont.reshape(-1), -jnp.inf)
+    if semiring_max:
+      best = jnp.argmax(stop_scores).astype(jnp.int32)
+      stop_total = stop_scores[best]
+    else:
+      peak = _finite_or_zero(jnp.max(stop_scores))
+      stop_total = jnp.log(jnp.sum(jnp.exp(stop_scores - peak))) + peak
+    scale = _finite_or_zero(jnp.maximum(jnp.max(cont_scores), stop_total))
+    inner = t < length - 1
+    log_increment = jnp.where(t == length - 1, stop_total, jnp.where(inner, scale, 0.0))
+    new_carry = (_shift(cont_scores, 1, -jnp.inf) - scale, stop_total - scale)
+    carry = jax.tree.map(lambda new, old: jnp.where(inner, new, old), new_carry, carry)
+    return carry, (alpha, stop_total, log_increment) + ((best,) if semiring_max else ())
 
-def _renormalise(scores):
-  scale = _finite_or_zero(jnp.max(scores))
-  return scores - scale, scale
+  init = (jnp.full(num_procs * capacity, -jnp.inf, log_op.dtype), jnp.zeros((), log_op.dtype))
+  _, outputs = jax.lax.scan(step, init, (jnp.arange(num_steps), log_root, log_op, log_stop, log_cont))
+  return outputs
 
 
 def _forward_filter(log_root, log_op, log_stop, log_cont, length):
@@ -114,49 +139,48 @@ def _forward_filter(log_root, log_op, log_stop, log_cont, length):
 
   Returns:
     log_likelihood: [].
-    stop_filter: [T, K, C] q_t = P(h_t, τ_t | o_{0:t+1}, a_{0:t}, stop at t); the final-state posterior at
-      t = length-1; zero on padding and where no stop is possible.
+    stop_filter: [T, S] q_t = P(h_t, τ_t | o_{0:t+1}, a_{0:t}, stop at t) over flat cells; the final-state
+      posterior at t = length-1; zero on padding and where no stop is possible.
   """
-  capacity = log_op.shape[2]
-  alpha0, scale0 = _initial_carry(log_root, capacity)
-
-  def step(alpha, xs):
-    t, op_stop, op_cont, log_root_next = xs
-    stop_scores = alpha + op_stop
-    peak = _finite_or_zero(jnp.max(stop_scores))
-    weights = jnp.exp(stop_scores - peak)
-    total = jnp.sum(weights)
-    log_stop_mass = jnp.log(total) + peak
-    stop_filter = weights / jnp.where(total > 0, total, 1.0)
-    new_alpha, scale = _renormalise(_push_or_continue(log_stop_mass, log_root_next, alpha + op_cont))
-    inner = t < length - 1
-    log_increment = jnp.where(t == length - 1, log_stop_mass, jnp.where(inner, scale, 0.0))
-    alpha = jnp.where(inner, new_alpha, alpha)
-    return alpha, (jnp.where(t < length, stop_filter, 0.0), log_increment)
-
-  _, (stop_filter, log_increments) = jax.lax.scan(
-      step, alpha0, _scan_inputs(log_root, log_op, log_stop, log_cont))
-  return scale0 + jnp.sum(log_increments), stop_filter
+  num_steps = log_op.shape[0]
+  alphas, log_stop_mass, log_increments = _forward_scan(log_root, log_op, log_stop, log_cont, length,
+                                                        semiring_max=False)
+  used = (jnp.arange(num_steps) < length) & jnp.isfinite(log_stop_mass)
+  safe_mass = jnp.where(used, log_stop_mass, 0.0)[:, None]
+  stop_scores = alphas + (log_op + log_stop).reshape(num_steps, -1)
+  weights = jnp.where(used[:, None], jnp.exp(stop_scores - safe_mass), 0.0)
+  total = jnp.sum(weights, axis=1, keepdims=True)  # ≈ 1; dividing keeps the smoother's mass exactly 1
+  return jnp.sum(log_increments), weights / jnp.where(total > 0, total, 1.0)
 
 
-def _backward_smoother(stop_filter, length):
-  """v, w from the stop filter: v_{L-1} = q_{L-1}, v_t = shift(v_{t+1}) + s_t q_t. [T, K, C] each."""
+def _backward_smoother(stop_filter, length, capacity):
+  """v, w [T, S] from the stop filter: v_{L-1} = q_{L-1}, v_t = shift(v_{t+1}) + s_t q_t, w_t = shift(v_{t+1}).
+
+  Padding needs no masks: q and v are zero there, so zeros propagate.
+  """
+  num_cells = stop_filter.shape[1]
+  is_push = _is_push(num_cells // capacity, capacity)
+  is_last = jnp.roll(is_push, -1)
+
+  def shift_down(v):  # out[h, τ] = v[h, τ+1], zero at τ = C-1
+    return jnp.where(is_last, 0.0, _shift(v, -1, 0.0))
+
   def step(v_next, xs):
     t, q = xs
-    w = _shift_down(v_next)
-    v_inner = w + jnp.sum(v_next[:, 0]) * q
-    v = jnp.where(t == length - 1, q, jnp.where(t < length - 1, v_inner, 0.0))
-    return v, (v, jnp.where(t < length - 1, w, 0.0))
+    pushed_next = jnp.where(t == length - 1, 1.0, jnp.sum(jnp.where(is_push, v_next, 0.0)))
+    v = shift_down(v_next) + pushed_next * q
+    return v, v
 
-  _, (v, w) = jax.lax.scan(step, jnp.zeros_like(stop_filter[0]),
-                           (jnp.arange(stop_filter.shape[0]), stop_filter), reverse=True)
+  _, v = jax.lax.scan(step, jnp.zeros_like(stop_filter[0]),
+                      (jnp.arange(stop_filter.shape[0]), stop_filter), reverse=True)
+  w = shift_down(jnp.concatenate([v[1:], jnp.zeros_like(v[:1])]))
   return v, w
 
 
 def _posterior_impl(log_root, log_op, log_stop, log_cont, length):
   log_likelihood, stop_filter = _forward_filter(log_root, log_op, log_stop, log_cont, length)
-  v, w = _backward_smoother(stop_filter, length)
-  return log_likelihood, v, w
+  v, w = _backward_smoother(stop_filter, length, log_op.shape[2])
+  return log_likelihood, v.reshape(log_op.shape), w.reshape(log_op.shape)
 
 
 @jax.custom_vjp
@@ -220,20 +244,8 @@ def viterbi(log_root, log_op, log_stop, log_cont, length=None) -> LatticePath:
 @jax.jit
 def _viterbi(log_root, log_op, log_stop, log_cont, length):
   num_steps, _, capacity = log_op.shape
-  alpha0, scale0 = _initial_carry(log_root, capacity)
-
-  def forward(alpha, xs):
-    t, op_stop, op_cont, log_root_next = xs
-    stop_scores = (alpha + op_stop).reshape(-1)
-    best_stop = jnp.argmax(stop_scores).astype(jnp.int32)
-    new_alpha, scale = _renormalise(
-        _push_or_continue(stop_scores[best_stop], log_root_next, alpha + op_cont))
-    inner = t < length - 1
-    log_increment = jnp.where(t == length - 1, stop_scores[best_stop], jnp.where(inner, scale, 0.0))
-    return jnp.where(inner, new_alpha, alpha), (best_stop, log_increment)
-
-  _, (best_stop, log_increments) = jax.lax.scan(
-      forward, alpha0, _scan_inputs(log_root, log_op, log_stop, log_cont))
+  _, _, log_increments, best_stop = _forward_scan(log_root, log_op, log_stop, log_cont, length,
+                                                  semiring_max=True)
 
   def backtrack(state_next, xs):
     t, best = xs
@@ -243,7 +255,7 @@ def _viterbi(log_root, log_op, log_stop, log_cont, length):
     return jnp.where(t < length, state, state_next), state
 
   _, states = jax.lax.scan(backtrack, jnp.int32(0), (jnp.arange(num_steps), best_stop), reverse=True)
-  return _path_from_states(states, capacity, scale0 + jnp.sum(log_increments))
+  return _path_from_states(states, capacity, jnp.sum(log_increments))
 
 
 def sample_posterior(key, log_root, log_op, log_stop, log_cont, length=None) -> LatticePath:
@@ -256,7 +268,6 @@ def sample_posterior(key, log_root, log_op, log_stop, log_cont, length=None) -> 
 def _sample_posterior(key, log_root, log_op, log_stop, log_cont, length):
   num_steps, _, capacity = log_op.shape
   _, stop_filter = _forward_filter(log_root, log_op, log_stop, log_cont, length)
-  flat_filter = stop_filter.reshape(num_steps, -1)
 
   def backward(state_next, xs):
     t, step_key, q = xs
@@ -267,7 +278,7 @@ def _sample_posterior(key, log_root, log_op, log_stop, log_cont, length):
     return jnp.where(t < length, state, state_next), state
 
   keys = jax.random.split(key, num_steps)
-  _, states = jax.lax.scan(backward, jnp.int32(0), (jnp.arange(num_steps), keys, flat_filter),
+  _, states = jax.lax.scan(backward, jnp.int32(0), (jnp.arange(num_steps), keys, stop_filter),
                            reverse=True)
   path = _path_from_states(states, capacity, jnp.zeros(()))
   return path._replace(log_prob=_complete_log_likelihood(

@@ -1,0 +1,174 @@
+r"""Benchmarks as commands: ratios against baselines measured in the same process.
+
+  python -m experiments.benchmark estep     # E-step: ours vs a plain log-space scan vs dynamax's smoother
+  python -m experiments.benchmark rollout   # oracle rollouts: elementary steps per second
+
+estep times values + marginals for B demonstrations of T steps (vmapped, jitted) at the sizes of issue 3,
+checks that the three agree on log P(ξ), and prints lattice cells (B·T·K·C) per second and ratios.
+"""
+from __future__ import annotations
+
+import importlib.util
+import json
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl import app, flags
+
+import php_jax
+from php_jax import datasets, executor, tasks
+from php_jax.envs import addition
+
+_SIZES = flags.DEFINE_string(
+    "sizes", "160x80x3x8,160x200x6x16,32x400x6x32,16x10000x3x8,4096x200x6x16",
+    "Comma-separated BxTxKxC for estep.")
+_MIN_TIME = flags.DEFINE_float("min_time", 1.0, "Seconds of repetitions per measurement (median taken).")
+_DYNAMAX_MAX_BYTES = flags.DEFINE_float("dynamax_max_gb", 4.0, "Skip dynamax above this working set (GB).")
+_OUT = flags.DEFINE_string("out", None, "Optional JSON file for the results.")
+_DIGITS = flags.DEFINE_integer("digits", 1000, "rollout: digits per addition problem.")
+_PROBLEMS = flags.DEFINE_integer("problems", 100, "rollout: number of problems.")
+
+
+def _median_seconds(fn, *args) -> float:
+  jax.block_until_ready(fn(*args))  # compile
+  start = time.perf_counter()
+  jax.block_until_ready(fn(*args))
+  first = time.perf_counter() - start
+  times = [first]
+  for _ in range(min(20, max(0, int(_MIN_TIME.value / max(first, 1e-9)) - 1))):
+    start = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    times.append(time.perf_counter() - start)
+  return statistics.median(times)
+
+
+def plain_forward_backward(log_root, log_op, log_stop, log_cont):
+  """The appendix's recursions, straight: log-space α and β scans, marginals exp(α + β − log Z)."""
+  num_steps, num_procs, capacity = log_op.shape
+  neg_inf_col = jnp.full((num_procs, 1), -jnp.inf)
+  alpha0 = jnp.full((num_procs, capacity), -jnp.inf).at[:, 0].set(log_root[0])
+
+  def forward(alpha, t):
+    emit = alpha + log_op[t]
+    stop_mass = jax.nn.logsumexp(emit + log_stop[t])
+    nxt = jnp.concatenate([(stop_mass + log_root[t + 1])[:, None], (emit + log_cont[t])[:, :-1]], axis=1)
+    return nxt, alpha
+
+  last_alpha, alphas = jax.lax.scan(forward, alpha0, jnp.arange(num_steps - 1))
+  alphas = jnp.concatenate([alphas, last_alpha[None]])
+  log_z = jax.nn.logsumexp(last_alpha + log_op[-1] + log_stop[-1])
+
+  def backward(beta_next, t):
+    pushed = jax.nn.logsumexp(log_root[t + 1] + beta_next[:, 0])
+    shifted = jnp.concatenate([beta_next[:, 1:], neg_inf_col], axis=1)
+    beta = log_op[t] + jnp.logaddexp(log_stop[t] + pushed, log_cont[t] + shifted)
+    w = jnp.exp(alphas[t] + log_op[t] + log_cont[t] + shifted - log_z)
+    return beta, (beta, w)
+
+  beta_last = log_op[-1] + log_stop[-1]
+  _, (betas, w) = jax.lax.scan(backward, beta_last, jnp.arange(num_steps - 1), reverse=True)
+  betas = jnp.concatenate([betas, beta_last[None]])
+  w = jnp.concatenate([w, jnp.zeros((1, num_procs, capacity))])
+  return log_z, jnp.exp(alphas + betas - log_z), w
+
+
+def dynamax_smoother(log_root, log_op, log_stop, log_cont):
+  """dynamax's hmm_smoother on the flattened K·C states, time-varying transitions built per step."""
+  from dynamax.hidden_markov_model import inference as hmm  # optional dependency (pip install .[bench])
+  num_steps, num_procs, capacity = log_op.shape
+  states = num_procs * capacity
+  cont_target = jnp.eye(states, k=1) * (jnp.arange(states) % capacity < capacity - 1)[:, None]
+  push_target = (jnp.arange(states) % capacity == 0).astype(jnp.float32)
+
+  def transition(t):
+    stop = jnp.exp(log_stop[t]).reshape(states, 1)
+    cont = jnp.exp(log_cont[t]).reshape(states, 1)
+    root_next = jnp.repeat(jnp.exp(log_root[t + 1]), capacity) * push_target
+    return stop * root_next[None, :] + cont * cont_target
+
+  emissions = log_op.reshape(num_steps, states).at[-1].add(log_stop[-1].reshape(states))
+  initial = (jnp.exp(log_root[0])[:, None] * (jnp.arange(capacity) == 0)[None, :]).reshape(states)
+  post = hmm.hmm_smoother(initial, None, emissions, transition_fn=transition)  # also pairwise posteriors
+  return post.marginal_loglik, post.smoothed_probs
+
+
+def _random_inputs(key, batch, num_steps, num_procs, capacity):
+  k1, k2, k3 = jax.random.split(key, 3)
+  log_root = jax.nn.log_softmax(jax.random.normal(k1, (batch, num_steps, num_procs)), axis=-1)
+  log_op = jax.nn.log_sigmoid(2.0 * jax.random.normal(k2, (batch, num_steps, num_procs, capacity)))
+  z = jax.random.normal(k3, (batch, num_steps, num_procs, capacity))
+  return log_root, log_op, jax.nn.log_sigmoid(z), jax.nn.log_sigmoid(-z)
+
+
+def bench_estep():
+  ours = jax.jit(jax.vmap(lambda *a: tuple(php_jax.forward_backward(*a))))
+  plain = jax.jit(jax.vmap(plain_forward_backward))
+  dyn = jax.jit(jax.vmap(dynamax_smoother))
+  rows = []
+  have_dynamax = importlib.util.find_spec("dynamax") is not None
+  print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()})"
+        + ("" if have_dynamax else "; dynamax not installed (pip install -e .[bench]): its column is skipped"))
+  header = f"{'B x T x K x C':>20} {'ours Gcell/s':>13} {'plain':>8} {'dynamax':>8} {'vs plain':>9} {'vs dynamax':>11}"
+  print(header)
+  for size in _SIZES.value.split(","):
+    batch, num_steps, num_procs, capacity = map(int, size.split("x"))
+    cells = batch * num_steps * num_procs * capacity
+    inputs = _random_inputs(jax.random.key(0), batch, num_steps, num_procs, capacity)
+    t_ours = _median_seconds(ours, *inputs)
+    t_plain = _median_seconds(plain, *inputs)
+    ll_ours, ll_plain = ours(*inputs)[0], plain(*inputs)[0]
+    agree = float(jnp.max(jnp.abs(ll_ours - ll_plain) / jnp.maximum(1.0, jnp.abs(ll_plain))))
+    dyn_bytes = 4 * batch * num_steps * (num_procs * capacity) ** 2 + 16 * cells  # pairwise posteriors
+    t_dyn = None
+    if have_dynamax and dyn_bytes <= _DYNAMAX_MAX_BYTES.value * 1e9:
+      t_dyn = _median_seconds(dyn, *inputs)
+      agree = max(agree, float(jnp.max(jnp.abs(ll_ours - dyn(*inputs)[0]) / jnp.maximum(1.0, jnp.abs(ll_ours)))))
+    row = {"size": size, "cells": cells, "ours_s": t_ours, "plain_s": t_plain, "dynamax_s": t_dyn,
+           "ours_gcells_per_s": cells / t_ours / 1e9, "speedup_vs_plain": t_plain / t_ours,
+           "speedup_vs_dynamax": t_dyn / t_ours if t_dyn else None, "max_rel_loglik_diff": agree}
+    rows.append(row)
+    dyn_text = f"{cells / t_dyn / 1e9:8.3f}" if t_dyn else f"{'skipped':>8}"
+    ratio_text = f"{row['speedup_vs_dynamax']:10.1f}x" if t_dyn else f"{'-':>11}"
+    print(f"{size:>20} {row['ours_gcells_per_s']:13.3f} {cells / t_plain / 1e9:8.3f} {dyn_text} "
+          f"{row['speedup_vs_plain']:8.2f}x {ratio_text}   (log P agree to {agree:.1e})", flush=True)
+  return rows
+
+
+def bench_rollout():
+  task = tasks.get("addition")
+  rng = np.random.default_rng(0)
+  problems = [tuple("".join(map(str, rng.integers(0, 10, _DIGITS.value))) for _ in range(2))
+              for _ in range(_PROBLEMS.value)]
+  states = datasets.addition_states(problems)
+  keys = jax.random.split(jax.random.key(0), len(problems))
+  budget = addition.oracle_step_budget(_DIGITS.value)
+  rows = []
+  print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}); "
+        f"{len(problems)} problems of {_DIGITS.value} digits")
+  for record in (False, True):
+    run = lambda s, k, record=record: executor.rollout_batch(task.oracle, task.spec, addition, s, k, budget,
+                                                           record)
+    seconds = _median_seconds(run, states, keys)
+    out = run(states, keys)
+    steps = int(np.asarray(out.length).sum())
+    assert bool(np.all(out.terminated)), "the oracle failed a problem"
+    rows.append({"record": record, "steps": steps, "seconds": seconds, "steps_per_s": steps / seconds})
+    print(f"record={record!s:5}: {steps} elementary steps in {seconds:.3f} s = {steps / seconds:,.0f} steps/s")
+  return rows
+
+
+def main(argv):
+  commands = {"estep": bench_estep, "rollout": bench_rollout}
+  if len(argv) != 2 or argv[1] not in commands:
+    raise app.UsageError(f"usage: python -m experiments.benchmark {{{'|'.join(commands)}}} [--flags]")
+  rows = commands[argv[1]]()
+  if _OUT.value:
+    with open(_OUT.value, "w") as f:
+      json.dump(rows, f, indent=1)
+
+
+if __name__ == "__main__":
+  app.run(main)
