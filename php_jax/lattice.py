@@ -97,6 +97,7 @@ def _forward_scan(log_root, log_op, log_stop, log_cont, length, semiring_max: bo
 
   The carry is (continuing cells' log-mass [S], pending log stop mass []), both relative to the running
   scale; step t pushes with log η_⊥(· | o_t) itself, so the scan reads the raw inputs (no shifted copies).
+  The carry runs on through padding: every output there is masked afterwards.
 
   Returns:
     alphas: [T, S] log α_t relative to the scale at t (before emitting a_t).
@@ -110,7 +111,7 @@ def _forward_scan(log_root, log_op, log_stop, log_cont, length, semiring_max: bo
 
   def step(carry, xs):
     continuing, pending = carry
-    t, log_root, log_op, log_stop, log_cont = xs
+    log_root, log_op, log_stop, log_cont = xs
     pushed = jnp.broadcast_to((log_root + pending)[:, None], (num_procs, capacity)).reshape(-1)
     alpha = jnp.where(is_push, pushed, continuing)
     emit = alpha + log_op.reshape(-1)
@@ -123,15 +124,14 @@ def _forward_scan(log_root, log_op, log_stop, log_cont, length, semiring_max: bo
       peak = _finite_or_zero(jnp.max(stop_scores))
       stop_total = jnp.log(jnp.sum(jnp.exp(stop_scores - peak))) + peak
     scale = _finite_or_zero(jnp.maximum(jnp.max(cont_scores), stop_total))
-    inner = t < length - 1
-    log_increment = jnp.where(t == length - 1, stop_total, jnp.where(inner, scale, 0.0))
-    new_carry = (_shift(cont_scores, 1, -jnp.inf) - scale, stop_total - scale)
-    carry = jax.tree.map(lambda new, old: jnp.where(inner, new, old), new_carry, carry)
-    return carry, (alpha, stop_total, log_increment) + ((best,) if semiring_max else ())
+    carry = (_shift(cont_scores, 1, -jnp.inf) - scale, stop_total - scale)
+    return carry, (alpha, stop_total, scale) + ((best,) if semiring_max else ())
 
   init = (jnp.full(num_procs * capacity, -jnp.inf, log_op.dtype), jnp.zeros((), log_op.dtype))
-  _, outputs = jax.lax.scan(step, init, (jnp.arange(num_steps), log_root, log_op, log_stop, log_cont))
-  return outputs
+  _, (alphas, stop_total, scale, *best) = jax.lax.scan(step, init, (log_root, log_op, log_stop, log_cont))
+  t = jnp.arange(num_steps)
+  log_increments = jnp.where(t == length - 1, stop_total, jnp.where(t < length - 1, scale, 0.0))
+  return (alphas, stop_total, log_increments, *best)
 
 
 def _forward_filter(log_root, log_op, log_stop, log_cont, length):
@@ -167,7 +167,7 @@ def _backward_smoother(stop_filter, length, capacity):
 
   def step(v_next, xs):
     t, q = xs
-    pushed_next = jnp.where(t == length - 1, 1.0, jnp.sum(jnp.where(is_push, v_next, 0.0)))
+    pushed_next = jnp.where(t == length - 1, 1.0, jnp.sum(v_next[::capacity]))  # Σ_h v_{t+1}(h, 0)
     v = shift_down(v_next) + pushed_next * q
     return v, v
 
