@@ -1,0 +1,36 @@
+"""The runnable example and the benchmark commands work (functionality only; nothing here is timed)."""
+import importlib.util
+import pathlib
+import subprocess
+import sys
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def test_embedding_example_learns_and_decodes(capsys):
+  spec = importlib.util.spec_from_file_location("embed_estep", ROOT / "examples" / "embed_estep.py")
+  example = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(example)
+  first, last = example.main(steps=80)
+  assert last < first - 1.0
+  assert "procedure:" in capsys.readouterr().out
+
+
+def test_benchmark_commands_run_and_cross_check(tmp_path):
+  out = tmp_path / "estep.json"
+  proc = subprocess.run([sys.executable, "-m", "experiments.benchmark", "estep", "--sizes=4x12x2x3,2x5x1x4",
+                         "--min_time=0", f"--out={out}"], capture_output=True, text=True, timeout=300, cwd=ROOT)
+  assert proc.returncode == 0, proc.stderr
+  assert "4x12x2x3" in proc.stdout and out.exists()
+  rows = __import__("json").loads(out.read_text())
+  assert all(r["max_rel_loglik_diff"] < 1e-5 for r in rows)
+  proc = subprocess.run([sys.executable, "-m", "experiments.benchmark", "rollout", "--digits=5", "--problems=3",
+                         "--min_time=0"], capture_output=True, text=True, timeout=300, cwd=ROOT)
+  assert proc.returncode == 0, proc.stderr
+  assert "steps/s" in proc.stdout
+
+
+def test_benchmark_rejects_unknown_command():
+  proc = subprocess.run([sys.executable, "-m", "experiments.benchmark", "nonsense"], capture_output=True,
+                        text=True, timeout=120, cwd=ROOT)
+  assert proc.returncode != 0 and "usage" in proc.stderr
