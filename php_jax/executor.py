@@ -17,17 +17,17 @@ from php_jax.hierarchy import HierarchySpec, Policy
 
 
 class Rollout(NamedTuple):
-  """One episode (add a leading batch axis under vmap). S = max_steps.
+  """A batch of episodes; every field has a leading batch axis B. S = max_steps.
 
   Attributes:
     final_state: the environment state after the last step.
-    observations: [S+1, obs_dim] o_0 .. o_length, zero after; None when not recorded.
-    actions: [S, num_factors] int32 elementary actions; None when not recorded.
-    procedures: [S, d] int32 the stack's procedure per level at each action; None when not recorded.
-    counters: [S, d] int32 the stack's τ per level at each action; None when not recorded.
-    length: [] int32 elementary steps taken.
-    terminated: [] bool the root returned within the budget with no invalid action.
-    valid: [] bool no invalid action was taken.
+    observations: [B, S+1, obs_dim] o_0 .. o_length, zero after; None when not recorded.
+    actions: [B, S, num_factors] int32 elementary actions (zero after length); None when not recorded.
+    procedures: [B, S, d] int32 the stack's procedure per level at each action; None when not recorded.
+    counters: [B, S, d] int32 the stack's τ per level at each action; None when not recorded.
+    length: [B] int32 elementary steps taken.
+    terminated: [B] bool the root returned within the budget with no invalid action.
+    valid: [B] bool no invalid action was taken.
   """
   final_state: Any
   observations: jax.Array | None
@@ -49,64 +49,100 @@ def _descend(policy: Policy, depth: int, procs, taus, start, obs, key):
   return procs, taus
 
 
-def rollout(policy: Policy, spec: HierarchySpec, env, state, max_steps: int, key: jax.Array,
-            record: bool = True) -> Rollout:
-  """Runs the hierarchy from the root until it returns, an invalid action, or max_steps actions.
+class _Machine(NamedTuple):
+  """One problem's machine between steps: environment state, stack [d] procedures and counters, PRNG key."""
+  state: Any
+  procs: jax.Array
+  taus: jax.Array
+  key: jax.Array
 
-  Args:
-    policy: the hierarchy's statements (an oracle or a learned PHP); a pytree.
-    spec: its HierarchySpec.
-    env: an environment module with observe(state) and step(state, action); states have `.failed`.
-    state: the start state.
-    max_steps: static step budget.
-    key: PRNG key handed to the policy (used when it samples).
-    record: whether to return observations, actions and stacks.
+
+def _start(policy: Policy, spec: HierarchySpec, env, state, key) -> _Machine:
+  """Pushes (root, 0) and descends on o_0."""
+  key, descend_key = jax.random.split(key)
+  zeros = jnp.zeros(spec.num_levels, jnp.int32)
+  procs, taus = _descend(policy, spec.num_levels, zeros, zeros, 0, env.observe(state), descend_key)
+  return _Machine(state, procs, taus, key)
+
+
+def _advance(policy: Policy, spec: HierarchySpec, env, machine: _Machine):
+  """One elementary step: act, observe, pop the frames that stop, resume and descend.
+
+  Returns (machine, (new observation, action, stack procedures, stack counters), root returned).
   """
   depth = spec.num_levels
-  num_factors = len(spec.action_sizes)
-  obs0 = env.observe(state)
-  key, descend_key = jax.random.split(key)
-  zeros = jnp.zeros(depth, jnp.int32)
-  procs, taus = _descend(policy, depth, zeros, zeros, 0, obs0, descend_key)
-  if record:
-    buffers = (jnp.zeros((max_steps + 1, obs0.shape[0]), obs0.dtype).at[0].set(obs0),
-               jnp.zeros((max_steps, num_factors), jnp.int32),
-               jnp.zeros((max_steps, depth), jnp.int32), jnp.zeros((max_steps, depth), jnp.int32))
-  else:
-    buffers = None
-
-  def body(carry):
-    t, state, procs, taus, key, _, _, buffers = carry
-    key, act_key, stop_key, descend_key = jax.random.split(key, 4)
-    obs = env.observe(state)
-    action = policy.operation(depth - 1, procs[-1], taus[-1], obs, act_key)
-    state = env.step(state, action)
-    new_obs = env.observe(state)
-    if record:
-      observations, actions, stack_procs, stack_taus = buffers
-      buffers = (observations.at[t + 1].set(new_obs), actions.at[t].set(action),
-                 stack_procs.at[t].set(procs), stack_taus.at[t].set(taus))
-    stops = jnp.stack([policy.terminates(level, procs[level], taus[level], new_obs,
-                                         jax.random.fold_in(stop_key, level)) for level in range(depth)])
-    root_returned = jnp.all(stops)
-    resume = depth - 1 - jnp.argmin(stops[::-1])  # the deepest frame that does not stop
-    taus = taus.at[resume].add(1)
-    procs, taus = _descend(policy, depth, procs, taus, resume, new_obs, descend_key)
-    done = root_returned | state.failed
-    return t + 1, state, procs, taus, key, done, root_returned & ~state.failed, buffers
-
-  def cond(carry):
-    t, done = carry[0], carry[5]
-    return (~done) & (t < max_steps)
-
-  init = (jnp.int32(0), state, procs, taus, key, jnp.zeros((), bool), jnp.zeros((), bool), buffers)
-  t, state, _, _, _, _, terminated, buffers = jax.lax.while_loop(cond, body, init)
-  recorded = buffers if record else (None,) * 4
-  return Rollout(state, *recorded, length=t, terminated=terminated, valid=~state.failed)
+  state, procs, taus, key = machine
+  key, act_key, stop_key, descend_key = jax.random.split(key, 4)
+  action = policy.operation(depth - 1, procs[-1], taus[-1], env.observe(state), act_key)
+  state = env.step(state, action)
+  obs = env.observe(state)
+  stops = jnp.stack([policy.terminates(level, procs[level], taus[level], obs,
+                                       jax.random.fold_in(stop_key, level)) for level in range(depth)])
+  resume = depth - 1 - jnp.argmin(stops[::-1])  # the deepest frame that does not stop
+  new_taus = taus.at[resume].add(1)
+  new_procs, new_taus = _descend(policy, depth, procs, new_taus, resume, obs, descend_key)
+  return _Machine(state, new_procs, new_taus, key), (obs, action, procs, taus), jnp.all(stops)
 
 
 @functools.partial(jax.jit, static_argnames=("spec", "env", "max_steps", "record"))
 def rollout_batch(policy: Policy, spec: HierarchySpec, env, states, keys, max_steps: int,
                   record: bool = True) -> Rollout:
-  """`rollout` vmapped over a batch of start states [B, ...] and keys [B]; compiled once per shape."""
-  return jax.vmap(lambda s, k: rollout(policy, spec, env, s, max_steps, k, record))(states, keys)
+  """Runs the hierarchy from the root on a batch of start states [B, ...] until each root returns, takes an
+  invalid action, or max_steps actions pass. Compiled once per shape.
+
+  One while loop steps the whole batch (the step itself is vmapped); finished problems are frozen. Recording
+  buffers are written once per step, never copied, so recording costs O(steps).
+
+  Args:
+    policy: the hierarchy's statements (an oracle or a learned PHP); a pytree.
+    spec: its HierarchySpec.
+    env: an environment module with observe(state) and step(state, action); states have `.failed`.
+    states: batched start states.
+    keys: [B] PRNG keys handed to the policy (used when it samples).
+    max_steps: static step budget.
+    record: whether to return observations, actions and stacks.
+  """
+  batch = keys.shape[0]
+  depth, num_factors = spec.num_levels, len(spec.action_sizes)
+  machines = jax.vmap(lambda s, k: _start(policy, spec, env, s, k))(states, keys)
+  advance = jax.vmap(lambda m: _advance(policy, spec, env, m))
+  if record:
+    obs0 = jax.vmap(env.observe)(states)
+    buffers = (jnp.zeros((batch, max_steps + 1, obs0.shape[-1]), obs0.dtype).at[:, 0].set(obs0),
+               jnp.zeros((batch, max_steps, num_factors), jnp.int32),
+               jnp.zeros((batch, max_steps, depth), jnp.int32), jnp.zeros((batch, max_steps, depth), jnp.int32))
+  else:
+    buffers = None
+  done = jnp.zeros(batch, bool)
+
+  def body(loop):
+    t, machines, done, returned, length, buffers = loop
+    advanced, (obs, action, procs, taus), root_returned = advance(machines)
+    active = ~done
+
+    def keep_active(new, old):
+      return jnp.where(active.reshape((batch,) + (1,) * (new.ndim - 1)), new, old)
+
+    machines = jax.tree.map(keep_active, advanced, machines)
+    if record:
+      observations, actions, stack_procs, stack_taus = buffers
+      buffers = (observations.at[:, t + 1].set(obs), actions.at[:, t].set(action),
+                 stack_procs.at[:, t].set(procs), stack_taus.at[:, t].set(taus))
+    returned = returned | (active & root_returned)
+    done = done | root_returned | machines.state.failed
+    return t + 1, machines, done, returned, length + active, buffers
+
+  def cond(loop):
+    return (loop[0] < max_steps) & ~jnp.all(loop[2])
+
+  init = (jnp.int32(0), machines, done, jnp.zeros(batch, bool), jnp.zeros(batch, jnp.int32), buffers)
+  _, machines, _, returned, length, buffers = jax.lax.while_loop(cond, body, init)
+  valid = ~machines.state.failed
+  if record:  # rows written after an episode ended are not part of it
+    steps = jnp.arange(max_steps)[None, :] < length[:, None]
+    observations, actions, stack_procs, stack_taus = buffers
+    obs_used = jnp.arange(max_steps + 1)[None, :] <= length[:, None]
+    buffers = (jnp.where(obs_used[..., None], observations, 0), jnp.where(steps[..., None], actions, 0),
+               jnp.where(steps[..., None], stack_procs, 0), jnp.where(steps[..., None], stack_taus, 0))
+  recorded = buffers if record else (None,) * 4
+  return Rollout(machines.state, *recorded, length=length, terminated=returned & valid, valid=valid)

@@ -83,11 +83,10 @@ def step(state: State, action: jax.Array) -> State:
   in_range = (kind >= 0) & (kind <= 1) & (tape >= 0) & (tape < NUM_TAPES) & (arg >= 0) & (arg <= 9)
   move_ok = (arg <= RIGHT) & (new_head >= 0) & (new_head < width)
   ok = in_range & jnp.where(kind == MOVE, move_ok, True)
-  moved = state.heads.at[tape_index].set(new_head)
-  written = state.tapes.at[tape_index, head].set(arg)
+  written = jnp.where(ok & (kind == WRITE), arg, state.tapes[tape_index, head])  # O(1), not O(width)
   return State(
-      tapes=jnp.where(ok & (kind == WRITE), written, state.tapes),
-      heads=jnp.where(ok & (kind == MOVE), moved, state.heads),
+      tapes=state.tapes.at[tape_index, head].set(written),
+      heads=state.heads.at[tape_index].set(jnp.where(ok & (kind == MOVE), new_head, head)),
       failed=state.failed | ~ok)
 
 
