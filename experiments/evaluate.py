@@ -16,7 +16,7 @@ import tempfile
 from absl import app, flags
 
 from experiments import problems as problem_files
-from php_jax import evaluation, tasks
+from php_jax import checkpoint, evaluation, tasks
 
 _TASK = flags.DEFINE_enum("task", None, ["addition", "nanocraft"], "Benchmark task.")
 _POLICY = flags.DEFINE_string("policy", "oracle", "'oracle' or a workdir with a trained model.")
@@ -26,11 +26,13 @@ _BATCH_SIZE = flags.DEFINE_integer("batch_size", 64, "Problems rolled out togeth
 
 
 def load_policy(task: tasks.Task, policy: str):
-  """The oracle, or the trained hierarchy saved in a workdir."""
+  """The oracle, or the trained hierarchy saved in a workdir (which must be for the same task)."""
   if policy == "oracle":
     return task.oracle
-  raise FileNotFoundError(f"--policy={policy!r}: no trained model found; training lands with the "
-                          "training experiments (issue 4). Use --policy=oracle.")
+  saved_task, hierarchy = checkpoint.load_hierarchy(policy)
+  if saved_task != task.name:
+    raise ValueError(f"--policy={policy!r} holds a {saved_task} model, not {task.name}")
+  return hierarchy
 
 
 def write_lines_atomically(path: str, rows) -> None:
@@ -47,7 +49,7 @@ def main(argv):
   try:
     problems = problem_files.read_problems(_PROBLEMS.value, task.name)
     policy = load_policy(task, _POLICY.value)
-  except (problem_files.ProblemFileError, OSError) as e:
+  except (problem_files.ProblemFileError, OSError, ValueError) as e:
     print(f"error: {e}", file=sys.stderr)
     sys.exit(2)
   solve = evaluation.solve_addition if task.name == "addition" else evaluation.solve_nanocraft

@@ -42,13 +42,27 @@ def addition_states(problems: list[tuple[str, str]], width: int | None = None) -
   return jax.tree.map(lambda *x: jnp.stack(x), *states)
 
 
-def nanocraft_states(key: jax.Array, num: int) -> nanocraft.State:
-  """num random NanoCraft start states [num, ...]."""
-  return jax.vmap(nanocraft.sample_problem)(jax.random.split(key, num))
+def nanocraft_problems(seed: int, num: int, place_prob: float = 0.5) -> list[tuple]:
+  """num random NanoCraft problems (x, y, w, h, preplaced): a building drawn uniformly from the 100 specs,
+  each perimeter cell pre-placed with place_prob. Deterministic in seed."""
+  rng = np.random.default_rng(seed)
+  problems = []
+  for index in rng.integers(0, len(nanocraft.SPECS), num):
+    x, y, w, h = (int(v) for v in nanocraft.SPECS[index])
+    cells = np.argwhere(np.asarray(nanocraft.perimeter(nanocraft.SPECS[index])))
+    problems.append((x, y, w, h, [c.tolist() for c in cells if rng.random() < place_prob]))
+  return problems
+
+
+def nanocraft_states(problems: list[tuple]) -> nanocraft.State:
+  """Batched start states [B, ...] for (x, y, w, h, preplaced) problems."""
+  states = [nanocraft.make_problem(x, y, w, h, pre) for x, y, w, h, pre in problems]
+  return jax.tree.map(lambda *x: jnp.stack(x), *states)
 
 
 def oracle_demonstrations(task: Task, states, num_strong: int, max_steps: int) -> demos.Demonstration:
-  """The supervisor's demonstrations of a batch of problems; the first num_strong are strongly supervised."""
+  """The supervisor's demonstrations of a batch of problems; the first num_strong are strongly supervised
+  (weak ones keep the supervisor's stack for measuring decoding, flagged strong=False)."""
   batch = jax.tree.leaves(states)[0].shape[0]
   rollouts = executor.rollout_batch(task.oracle, task.spec, task.env, states,
                                     jax.random.split(jax.random.key(0), batch), max_steps)

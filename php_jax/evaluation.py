@@ -8,7 +8,6 @@ from __future__ import annotations
 from collections import defaultdict
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from php_jax import datasets, executor
@@ -57,17 +56,12 @@ def solve_addition(policy: Policy, spec: HierarchySpec, problems: list[tuple[str
   return outcomes
 
 
-def nanocraft_states(problems: list[NanoCraftProblem]) -> nanocraft.State:
-  states = [nanocraft.make_problem(x, y, w, h, pre) for x, y, w, h, pre in problems]
-  return jax.tree.map(lambda *x: jnp.stack(x), *states)
-
-
 def solve_nanocraft(policy: Policy, spec: HierarchySpec, problems: list[NanoCraftProblem],
                     batch_size: int = 256, budget_factor: int = 2) -> list[dict]:
   """One outcome per problem, in order: {"grid", "terminated", "valid", "steps", "correct"}."""
   max_steps = budget_factor * nanocraft.ORACLE_STEP_BUDGET
   indices = list(range(len(problems)))
-  states_of = lambda idx: nanocraft_states([problems[i] for i in idx])
+  states_of = lambda idx: datasets.nanocraft_states([problems[i] for i in idx])
   outcomes = [None] * len(problems)
   for index, r in _run_batches(policy, spec, nanocraft, states_of, indices, min(batch_size, len(problems)),
                                max_steps):

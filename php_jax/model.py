@@ -94,11 +94,13 @@ class RootLSTM(nnx.Module):
   """η_⊥^LSTM(h | o_0..o_t): an LSTM over the observation sequence. [T, obs_dim] → [T, K] log-probabilities."""
 
   def __init__(self, obs_dim: int, num_children: int, hidden: int = 64, *, rngs: nnx.Rngs):
-    self.rnn = nnx.RNN(nnx.OptimizedLSTMCell(obs_dim, hidden, rngs=rngs))
+    self.hidden = hidden
+    self.cell = nnx.LSTMCell(obs_dim, hidden, rngs=rngs)
     self.head = nnx.Linear(hidden, num_children, rngs=rngs)
 
   def __call__(self, observations: jax.Array) -> jax.Array:
-    hidden = self.rnn(observations[None])[0]
+    zeros = jnp.zeros(self.hidden, observations.dtype)
+    _, hidden = jax.lax.scan(lambda carry, obs: self.cell(carry, obs), (zeros, zeros), observations)
     return jax.nn.log_softmax(self.head(hidden), axis=-1)
 
 

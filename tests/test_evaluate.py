@@ -54,7 +54,7 @@ def test_unknown_policy_exits_2(tmp_path):
   proc = subprocess.run([sys.executable, "-m", "experiments.evaluate", "--task=addition",
                          f"--policy={tmp_path / 'nowhere'}", f"--problems={problems}",
                          f"--out={tmp_path / 'out.jsonl'}"], capture_output=True, text=True, timeout=300)
-  assert proc.returncode == 2 and "no trained model" in proc.stderr
+  assert proc.returncode == 2 and "no trained model in" in proc.stderr
 
 
 @pytest.mark.parametrize("task, line, message", [

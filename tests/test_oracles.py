@@ -63,7 +63,7 @@ def test_nanocraft_oracle_solves_all_100_specs(place_prob):
 def test_demonstration_stacks_follow_the_semantics():
   for task, states, budget in [
       (ADDITION, datasets.addition_states(datasets.addition_problems(seed=0)), add.oracle_step_budget(10)),
-      (NANOCRAFT, datasets.nanocraft_states(jax.random.key(0), 64), nc.ORACLE_STEP_BUDGET)]:
+      (NANOCRAFT, datasets.nanocraft_states(datasets.nanocraft_problems(0, 64)), nc.ORACLE_STEP_BUDGET)]:
     batch = datasets.oracle_demonstrations(task, states, num_strong=1000, max_steps=budget)
     demos.validate(batch, task.spec)  # raises on any broken stack
     procs, taus, length = np.asarray(batch.procedures), np.asarray(batch.counters), np.asarray(batch.length)

@@ -1,0 +1,72 @@
+"""Shared plumbing of the training experiments: flags, train_and_evaluate, results.json, metrics.jsonl."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from typing import Callable
+
+import numpy as np
+from absl import flags
+
+from php_jax import checkpoint, tasks, train
+from php_jax.demos import Demonstration
+
+WORKDIR = flags.DEFINE_string("workdir", None, "Directory for results.json, metrics.jsonl and the model.")
+NUM_STRONG = flags.DEFINE_integer("num_strong", 1, "Strongly supervised (call-stack annotated) demonstrations.")
+SEED = flags.DEFINE_integer("seed", 0, "Seed for data, initialisation and decoding.")
+ITERATIONS = flags.DEFINE_integer("iterations", 2000, "Adam iterations per level (the paper: 2000).")
+LEARNING_RATE = flags.DEFINE_float("learning_rate", 3e-3, "Adam learning rate.")
+HIDDEN = flags.DEFINE_list("hidden", ["64", "64"], "Hidden layer sizes of every operation/termination MLP.")
+ROOT = flags.DEFINE_enum("root", "lstm", ["lstm", "mlp"], "Root network standing in for untrained levels.")
+TAU_IN_TERMINATION = flags.DEFINE_list("tau_in_termination", None,
+                                       "Per level (root first), whether ψ sees τ: e.g. 0,1,1. Default: task's.")
+STRONG_WEIGHT = flags.DEFINE_float("strong_weight", 1.0, "Weight on the strongly supervised loss.")
+DECODE = flags.DEFINE_enum("decode", "sample", list(train.DECODERS), "Decoding of weak views for the level above.")
+EVAL_EVERY = flags.DEFINE_integer("eval_every", 100, "Iterations between logged losses / root snapshots.")
+NUM_VALIDATION = flags.DEFINE_integer("num_validation", 50, "Validation problems (training distribution).")
+
+
+def config_from_flags(default_tau: tuple[bool, ...]) -> train.TrainConfig:
+  tau = (tuple(v.lower() in ("1", "true", "yes") for v in TAU_IN_TERMINATION.value)
+         if TAU_IN_TERMINATION.value else default_tau)
+  return train.TrainConfig(iterations=ITERATIONS.value, learning_rate=LEARNING_RATE.value,
+                           hidden=tuple(int(h) for h in HIDDEN.value), root=ROOT.value,
+                           tau_in_termination=tau, strong_weight=STRONG_WEIGHT.value, decode=DECODE.value,
+                           eval_every=EVAL_EVERY.value, seed=SEED.value)
+
+
+def strong_mask(num_demos: int, num_strong: int, seed: int) -> np.ndarray:
+  """Which demonstrations are strongly supervised: num_strong chosen at random (seeded)."""
+  if not 0 <= num_strong <= num_demos:
+    raise ValueError(f"--num_strong must be in 0..{num_demos}; got {num_strong}")
+  mask = np.zeros(num_demos, bool)
+  mask[np.random.default_rng(seed).permutation(num_demos)[:num_strong]] = True
+  return mask
+
+
+def train_and_evaluate(task_name: str, demos: Demonstration, config: train.TrainConfig, workdir: str,
+                       validate: Callable, test: Callable[[object], dict], extra: dict) -> dict:
+  """Trains every level, saves the model, tests it, writes results.json; returns the results."""
+  os.makedirs(workdir, exist_ok=True)
+  task = tasks.get(task_name)
+  start = time.time()
+  metrics_path = os.path.join(workdir, "metrics.jsonl")
+  with open(metrics_path, "w") as metrics:
+    def log(row):
+      row = {**row, "seconds": round(time.time() - start, 2)}
+      metrics.write(json.dumps(row) + "\n")
+      metrics.flush()
+      print(json.dumps(row), flush=True)
+    hierarchy, report = train.train_hierarchy(task.spec, demos, config, validate, log=log)
+  checkpoint.save_hierarchy(workdir, task_name, hierarchy, config.hidden, config.tau_in_termination)
+  test_results = test(hierarchy)
+  results = {
+      "task": task_name, "config": dataclasses.asdict(config), **extra,
+      "levels": {str(level): {k: v for k, v in entry.items() if k != "losses"} | {
+          "final_loss": entry["losses"][-1][1] if entry["losses"] else None} for level, entry in report.items()},
+      "test": test_results, "wall_seconds": round(time.time() - start, 1)}
+  checkpoint.write_atomically(os.path.join(workdir, "results.json"), json.dumps(results, indent=1).encode())
+  print(json.dumps({"test": test_results, "wall_seconds": results["wall_seconds"]}), flush=True)
+  return results

@@ -1,0 +1,219 @@
+"""Expectation–Gradient training of PHPs (paper §4.2, DESIGN.md §4): one level at a time, lowest first.
+
+Level i's loss on a batch of its views is −(w_strong Σ_strong log P(ζ, ξ) + Σ_weak log P(ξ)) / N, each term the
+lattice's exact log-likelihood (strong views through `annotate`). Below the root level, a root network (MLP
+or LSTM over the view's observations) stands in for the untrained levels above; the root level is the
+lattice's top-level mode (one procedure, called once). After a level is trained, its weak views are decoded
+(Viterbi, per-step max-marginal, or a posterior sample) into the view of the level above.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import nnx
+
+from php_jax import lattice, views
+from php_jax.demos import UNKNOWN, Demonstration
+from php_jax.demos import validate as validate_demos
+from php_jax.hierarchy import HierarchySpec
+from php_jax.model import PHPHierarchy, PHPLevel, RootLSTM, RootMLP
+
+DECODERS = ("sample", "viterbi", "max_marginal")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+  """Hyper-parameters of level-wise EG training (defaults follow the paper where it says)."""
+  iterations: int = 2000            # per level, as in the paper
+  learning_rate: float = 3e-3
+  hidden: tuple[int, ...] = (64, 64)
+  root: str = "lstm"                # network standing in for untrained levels: "lstm" or "mlp"
+  root_hidden: int = 64
+  tau_in_termination: tuple[bool, ...] | None = None  # per level; None: all True
+  strong_weight: float = 1.0        # weight on strongly supervised demonstrations' loss
+  decode: str = "sample"            # how weak views are decoded for the level above (the paper sampled)
+  capacity: int = 8                 # counter capacity C below the root level when nothing is annotated
+  eval_every: int = 100             # root-level snapshot interval (validation rollouts)
+  seed: int = 0
+
+
+class LevelModel(nnx.Module):
+  """What one level trains: its PHP networks, and a root network unless it is the root level."""
+
+  def __init__(self, php: PHPLevel, root: nnx.Module | None):
+    self.php = php
+    self.root = root
+
+
+def lattice_inputs(model: LevelModel, observations, actions, procedures, counters, length, capacity: int):
+  """One view → the lattice's inputs, annotated where procedures/counters are known.
+
+  observations [T+1, D], actions [T, F], procedures/counters [T] (UNKNOWN = −1), length [] →
+  (log_root [T, K], log_op, log_stop, log_cont [T, K, C]).
+  """
+  tau = jnp.arange(capacity, dtype=jnp.float32)
+  log_op = model.php.log_op(observations[:-1], tau, actions)
+  z = model.php.termination_logits(observations[1:], tau)
+  log_stop, log_cont = jax.nn.log_sigmoid(z), jax.nn.log_sigmoid(-z)
+  if model.root is None:  # the root level: one procedure, called once
+    log_root = jnp.zeros(log_op.shape[:2], log_op.dtype)
+    log_stop = lattice.top_level(log_stop, length)
+  else:
+    log_root = model.root(observations[:-1])
+  return log_root, lattice.annotate(log_op, procedures, counters), log_stop, log_cont
+
+
+def view_log_likelihoods(model: LevelModel, batch: views.LevelView, capacity: int) -> jax.Array:
+  """[B] log P(ζ, ξ) for annotated views, log P(ξ) for the others."""
+  def one(obs, act, proc, tau, n):
+    return lattice.forward_backward(*lattice_inputs(model, obs, act, proc, tau, n, capacity),
+                                    length=n).log_likelihood
+  return jax.vmap(one)(batch.observations, batch.actions, batch.procedures, batch.counters, batch.length)
+
+
+def level_loss(model: LevelModel, batch: views.LevelView, capacity: int, strong_weight: float) -> jax.Array:
+  weights = jnp.where(batch.strong, strong_weight, 1.0)
+  return -jnp.sum(weights * view_log_likelihoods(model, batch, capacity)) / batch.length.shape[0]
+
+
+def _device_view(view: views.LevelView) -> views.LevelView:
+  """The view as device arrays, with annotations only on strong demonstrations."""
+  strong = view.strong[:, None]
+  return views.LevelView(
+      observations=jnp.asarray(view.observations), actions=jnp.asarray(view.actions),
+      procedures=jnp.asarray(np.where(strong, view.procedures, UNKNOWN)),
+      counters=jnp.asarray(np.where(strong, view.counters, UNKNOWN)),
+      length=jnp.asarray(view.length), times=jnp.asarray(view.times), strong=jnp.asarray(view.strong))
+
+
+def decode(model: LevelModel, view: views.LevelView, capacity: int, method: str, key: jax.Array):
+  """Each view's most likely / sampled frames at this level: (procedures, counters) [B, T] numpy."""
+  batch = _device_view(view)
+
+  def one(obs, act, proc, tau, n, k):
+    inputs = lattice_inputs(model, obs, act, proc, tau, n, capacity)
+    if method == "viterbi":
+      return lattice.viterbi(*inputs, length=n)
+    if method == "sample":
+      return lattice.sample_posterior(k, *inputs, length=n)
+    return lattice.max_marginal_path(lattice.forward_backward(*inputs, length=n), length=n)
+
+  keys = jax.random.split(key, view.length.shape[0])
+  paths = jax.jit(jax.vmap(one))(batch.observations, batch.actions, batch.procedures, batch.counters,
+                                 batch.length, keys)
+  return np.asarray(paths.procedure), np.asarray(paths.counter)
+
+
+def train_level(model: LevelModel, view: views.LevelView, capacity: int, config: TrainConfig,
+                on_eval: Callable[[int, float], float | None] | None = None,
+                log: Callable[[dict], None] = print) -> dict:
+  """Full-batch Adam on one level's EG loss. Updates `model` in place.
+
+  on_eval(iteration, loss) is called every config.eval_every iterations and at the end; if it returns a
+  score, the earliest snapshot with the highest score is kept (else the final iterate).
+  Returns {"losses": [...], "best_iteration": int | None, "best_score": float | None}.
+  """
+  batch = _device_view(view)
+  graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+  optimizer = optax.adam(config.learning_rate)
+  opt_state = optimizer.init(params)
+
+  @jax.jit
+  def update(params, opt_state):
+    def loss_of(p):
+      return level_loss(nnx.merge(graphdef, p, rest), batch, capacity, config.strong_weight)
+    loss, grads = jax.value_and_grad(loss_of)(params)
+    updates, opt_state = optimizer.update(grads, opt_state, params)
+    return optax.apply_updates(params, updates), opt_state, loss
+
+  losses, best = [], {"best_iteration": None, "best_score": None, "params": None}
+  for iteration in range(1, config.iterations + 1):
+    params, opt_state, loss = update(params, opt_state)
+    if iteration % config.eval_every == 0 or iteration == config.iterations:
+      loss = float(loss)
+      losses.append((iteration, loss))
+      nnx.update(model, params)
+      score = on_eval(iteration, loss) if on_eval else None
+      log({"iteration": iteration, "loss": loss, **({"validation": score} if score is not None else {})})
+      if score is not None and (best["best_score"] is None or score > best["best_score"]):
+        best = {"best_iteration": iteration, "best_score": score, "params": jax.tree.map(jnp.copy, params)}
+  nnx.update(model, best["params"] if best["params"] is not None else params)
+  return {"losses": losses, "best_iteration": best["best_iteration"], "best_score": best["best_score"]}
+
+
+def _capacity(view: views.LevelView, level: int, config: TrainConfig) -> int:
+  """The root level needs its whole view; below, the longest annotated call (the cells the networks are
+  evaluated on scale with C), or config.capacity when nothing is annotated."""
+  if level == 0:
+    return int(view.length.max())
+  annotated = view.counters[view.strong][view.counters[view.strong] >= 0]
+  return int(annotated.max()) + 1 if annotated.size else config.capacity
+
+
+def agreement(demos: Demonstration, view: views.LevelView, level: int, procedures, counters) -> float | None:
+  """Fraction of weak demonstrations' elementary steps whose decoded (procedure, counter) at `level` equals
+  the supervisor's (None if no weak demonstration carries the supervisor's stack)."""
+  true_procs, true_taus = np.asarray(demos.procedures), np.asarray(demos.counters)
+  match = total = 0
+  for b in np.flatnonzero(~view.strong):
+    n_elem = int(demos.length[b])
+    if np.any(true_procs[b, :n_elem, level] == UNKNOWN):
+      continue
+    bounds = list(view.times[b, :view.length[b]]) + [n_elem]
+    for k in range(view.length[b]):
+      steps = slice(bounds[k], bounds[k + 1])
+      match += np.sum((true_procs[b, steps, level] == procedures[b, k])
+                      & (true_taus[b, steps, level] == counters[b, k]))
+      total += bounds[k + 1] - bounds[k]
+  return float(match / total) if total else None
+
+
+def make_hierarchy(spec: HierarchySpec, config: TrainConfig) -> PHPHierarchy:
+  return PHPHierarchy(spec, hidden=config.hidden, tau_in_termination=config.tau_in_termination,
+                      rngs=nnx.Rngs(config.seed))
+
+
+def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConfig,
+                    validate: Callable[[PHPHierarchy], float] | None = None,
+                    log: Callable[[dict], None] = print) -> tuple[PHPHierarchy, dict]:
+  """Trains every level from the lowest to the root. validate(hierarchy) → validation accuracy, used to pick
+  the root level's snapshot. Returns the hierarchy and a report (per level: losses, capacity, decoding
+  agreement with the supervisor on weak demonstrations, wall time)."""
+  if config.decode not in DECODERS:
+    raise ValueError(f"decode must be one of {DECODERS}; got {config.decode!r}")
+  validate_demos(demos, spec)  # malformed annotations are refused, naming the demonstration and step
+  hierarchy = make_hierarchy(spec, config)
+  view = views.lowest_view(demos, spec.num_levels)
+  report = {}
+  for level in range(spec.num_levels - 1, -1, -1):
+    start = time.time()
+    capacity = _capacity(view, level, config)
+    root = None
+    if level > 0:
+      rngs = nnx.Rngs(config.seed + 1000 + level)
+      num = spec.num_procs(level)
+      root = (RootLSTM(spec.obs_dim, num, config.root_hidden, rngs=rngs) if config.root == "lstm"
+              else RootMLP(spec.obs_dim, num, (config.root_hidden,), rngs=rngs))
+    model = LevelModel(hierarchy.levels[level], root)
+    on_eval = (lambda it, loss: validate(hierarchy)) if (level == 0 and validate) else None
+    log({"level": level, "capacity": capacity, "view_length": int(view.length.max())})
+    result = train_level(model, view, capacity, config, on_eval,
+                         log=lambda row, level=level: log({"level": level, **row}))
+    entry = {"capacity": capacity, "losses": result["losses"], "best_iteration": result["best_iteration"],
+             "validation": result["best_score"]}
+    if level > 0:
+      key = jax.random.fold_in(jax.random.key(config.seed), level)
+      procs, taus = decode(model, view, capacity, config.decode, key)
+      procs = np.where(view.strong[:, None], view.procedures, procs)
+      taus = np.where(view.strong[:, None], view.counters, taus)
+      entry["decoding_agreement"] = agreement(demos, view, level, procs, taus)
+      view = views.view_above(demos, view, level, procs, taus)
+    entry["seconds"] = time.time() - start
+    report[level] = entry
+  return hierarchy, report

@@ -1,0 +1,87 @@
+"""Level views of demonstrations (paper §4.2.3, DESIGN.md §4), host side.
+
+The level-i view of a demonstration is the sequence of operations that level i's procedures executed: the
+level-(i+1) calls (for the lowest level, the elementary actions), each with the observation at the call's
+start, then the final observation. A call at level j starts at elementary step t exactly when every counter
+at levels ≥ j is 0 at t (a fresh chain of pushes). Strong views come from the annotated stack; weak views
+from decoding the trained level below, one level at a time.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from php_jax.demos import UNKNOWN, Demonstration
+
+
+class LevelView(NamedTuple):
+  """Demonstrations as seen by one level [B, ...]. T = padded view length.
+
+  Attributes:
+    observations: [B, T+1, obs_dim] observation at each operation's start, then the final observation.
+    actions: [B, T, F] int32 the operations (callee procedure ids, or elementary action factors).
+    procedures: [B, T] int32 this level's annotated procedure per operation, UNKNOWN where not annotated.
+    counters: [B, T] int32 this level's annotated τ per operation, UNKNOWN where not annotated.
+    length: [B] int32 operations used.
+    times: [B, T] int32 elementary step at which each operation starts (−1 on padding).
+    strong: [B] bool whether the annotation may be trained on.
+  """
+  observations: np.ndarray
+  actions: np.ndarray
+  procedures: np.ndarray
+  counters: np.ndarray
+  length: np.ndarray
+  times: np.ndarray
+  strong: np.ndarray
+
+
+def _pack(demos: Demonstration, level: int, times: list[np.ndarray], actions: list[np.ndarray]) -> LevelView:
+  """Pads per-demonstration operation lists into a LevelView whose annotation is read at `level`."""
+  obs, procs, taus = (np.asarray(x) for x in (demos.observations, demos.procedures, demos.counters))
+  strong, lengths = np.asarray(demos.strong), np.asarray(demos.length)
+  num_demos, width = len(times), max(1, max(len(t) for t in times))
+  num_factors = actions[0].shape[1] if actions[0].ndim == 2 else 1
+  view = LevelView(
+      observations=np.zeros((num_demos, width + 1, obs.shape[-1]), np.float32),
+      actions=np.zeros((num_demos, width, num_factors), np.int32),
+      procedures=np.full((num_demos, width), UNKNOWN, np.int32),
+      counters=np.full((num_demos, width), UNKNOWN, np.int32),
+      length=np.array([len(t) for t in times], np.int32),
+      times=np.full((num_demos, width), -1, np.int32), strong=strong.copy())
+  for b, (t, a) in enumerate(zip(times, actions)):
+    n = len(t)
+    view.observations[b, :n] = obs[b, t]
+    view.observations[b, n] = obs[b, lengths[b]]
+    view.actions[b, :n] = a.reshape(n, num_factors)
+    view.times[b, :n] = t
+    if strong[b]:
+      view.procedures[b, :n] = procs[b, t, level]
+      view.counters[b, :n] = taus[b, t, level]
+  return view
+
+
+def lowest_view(demos: Demonstration, num_levels: int) -> LevelView:
+  """The lowest level's view: every elementary step, with the annotation at level d−1."""
+  lengths = np.asarray(demos.length)
+  times = [np.arange(n) for n in lengths]
+  actions = [np.asarray(demos.actions)[b, :n] for b, n in enumerate(lengths)]
+  return _pack(demos, num_levels - 1, times, actions)
+
+
+def view_above(demos: Demonstration, view: LevelView, level: int, procedures: np.ndarray,
+               counters: np.ndarray) -> LevelView:
+  """The view of level−1 from level's view and level's (annotated or decoded) frames per operation.
+
+  Args:
+    demos: the elementary demonstrations the views came from.
+    view: level's view.
+    level: the level of `view` (≥ 1).
+    procedures, counters: [B, T] level's procedure and τ at each of its operations.
+  """
+  times, actions = [], []
+  for b, n in enumerate(view.length):
+    starts = np.flatnonzero(counters[b, :n] == 0)  # level's calls start where its counter restarts
+    times.append(view.times[b, starts])
+    actions.append(procedures[b, starts])
+  return _pack(demos, level - 1, times, actions)
