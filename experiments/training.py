@@ -48,18 +48,20 @@ def strong_mask(num_demos: int, num_strong: int, seed: int) -> np.ndarray:
 
 def train_and_evaluate(task_name: str, demos: Demonstration, config: train.TrainConfig, workdir: str,
                        validate: Callable, test: Callable[[object], dict], extra: dict) -> dict:
-  """Trains every level, saves the model, tests it, writes results.json; returns the results."""
+  """Trains every level (resuming from workdir/checkpoint.msgpack if an earlier run was interrupted), saves
+  the model, tests it, writes results.json; returns the results."""
   os.makedirs(workdir, exist_ok=True)
   task = tasks.get(task_name)
   start = time.time()
   metrics_path = os.path.join(workdir, "metrics.jsonl")
-  with open(metrics_path, "w") as metrics:
+  with open(metrics_path, "a") as metrics:
     def log(row):
       row = {**row, "seconds": round(time.time() - start, 2)}
       metrics.write(json.dumps(row) + "\n")
       metrics.flush()
       print(json.dumps(row), flush=True)
-    hierarchy, report = train.train_hierarchy(task.spec, demos, config, validate, log=log)
+    hierarchy, report = train.train_hierarchy(task.spec, demos, config, validate, log=log,
+                                              checkpoint_path=os.path.join(workdir, "checkpoint.msgpack"))
   checkpoint.save_hierarchy(workdir, task_name, hierarchy, config.hidden, config.tau_in_termination)
   test_results = test(hierarchy)
   results = {

@@ -9,16 +9,18 @@ lattice's top-level mode (one procedure, called once). After a level is trained,
 from __future__ import annotations
 
 import dataclasses
+import json
+import os
 import time
-from typing import Callable
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from flax import nnx
+from flax import nnx, serialization
 
-from php_jax import lattice, views
+from php_jax import checkpoint, lattice, views
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.demos import validate as validate_demos
 from php_jax.hierarchy import HierarchySpec
@@ -110,19 +112,37 @@ def decode(model: LevelModel, view: views.LevelView, capacity: int, method: str,
   return np.asarray(paths.procedure), np.asarray(paths.counter)
 
 
+class LevelProgress(NamedTuple):
+  """Where a level's training stands, for checkpoints: after `iteration` updates."""
+  iteration: int
+  params: Any
+  opt_state: Any
+  best_params: Any          # the kept snapshot (the current params until a validation score exists)
+  best_iteration: int | None
+  best_score: float | None
+  losses: list
+
+
 def train_level(model: LevelModel, view: views.LevelView, capacity: int, config: TrainConfig,
                 on_eval: Callable[[int, float], float | None] | None = None,
-                log: Callable[[dict], None] = print) -> dict:
+                log: Callable[[dict], None] = print, resume: LevelProgress | None = None,
+                save: Callable[[LevelProgress], None] | None = None) -> LevelProgress:
   """Full-batch Adam on one level's EG loss. Updates `model` in place.
 
-  on_eval(iteration, loss) is called every config.eval_every iterations and at the end; if it returns a
-  score, the earliest snapshot with the highest score is kept (else the final iterate).
-  Returns {"losses": [...], "best_iteration": int | None, "best_score": float | None}.
+  Every config.eval_every iterations and at the end: on_eval(iteration, loss) may return a validation
+  score (the earliest snapshot with the highest score is kept, else the final iterate), then save(progress)
+  is called (before logging). resume continues from a saved LevelProgress.
   """
   batch = _device_view(view)
   graphdef, params, rest = nnx.split(model, nnx.Param, ...)
   optimizer = optax.adam(config.learning_rate)
   opt_state = optimizer.init(params)
+  progress = LevelProgress(0, params, opt_state, params, None, None, [])
+  if resume is not None:
+    treedef = jax.tree.structure((params, opt_state, params))
+    params, opt_state, best_params = jax.tree.unflatten(treedef, jax.tree.leaves(
+        (resume.params, resume.opt_state, resume.best_params)))
+    progress = resume._replace(params=params, opt_state=opt_state, best_params=best_params)
 
   @jax.jit
   def update(params, opt_state):
@@ -132,19 +152,24 @@ def train_level(model: LevelModel, view: views.LevelView, capacity: int, config:
     updates, opt_state = optimizer.update(grads, opt_state, params)
     return optax.apply_updates(params, updates), opt_state, loss
 
-  losses, best = [], {"best_iteration": None, "best_score": None, "params": None}
-  for iteration in range(1, config.iterations + 1):
+  params, opt_state = progress.params, progress.opt_state
+  for iteration in range(progress.iteration + 1, config.iterations + 1):
     params, opt_state, loss = update(params, opt_state)
     if iteration % config.eval_every == 0 or iteration == config.iterations:
       loss = float(loss)
-      losses.append((iteration, loss))
       nnx.update(model, params)
       score = on_eval(iteration, loss) if on_eval else None
+      improved = score is not None and (progress.best_score is None or score > progress.best_score)
+      progress = LevelProgress(
+          iteration, params, opt_state,
+          params if improved or progress.best_iteration is None else progress.best_params,
+          iteration if improved else progress.best_iteration,
+          score if improved else progress.best_score, progress.losses + [[iteration, loss]])
+      if save:
+        save(progress)
       log({"iteration": iteration, "loss": loss, **({"validation": score} if score is not None else {})})
-      if score is not None and (best["best_score"] is None or score > best["best_score"]):
-        best = {"best_iteration": iteration, "best_score": score, "params": jax.tree.map(jnp.copy, params)}
-  nnx.update(model, best["params"] if best["params"] is not None else params)
-  return {"losses": losses, "best_iteration": best["best_iteration"], "best_score": best["best_score"]}
+  nnx.update(model, progress.best_params)
+  return progress
 
 
 def _capacity(view: views.LevelView, level: int, config: TrainConfig) -> int:
@@ -179,41 +204,106 @@ def make_hierarchy(spec: HierarchySpec, config: TrainConfig) -> PHPHierarchy:
                       rngs=nnx.Rngs(config.seed))
 
 
+def _leaves(tree) -> dict:
+  return {str(i): np.asarray(x) for i, x in enumerate(jax.tree.leaves(tree))}
+
+
+def _unflatten(template, leaves: dict):
+  return jax.tree.unflatten(jax.tree.structure(template), [jnp.asarray(leaves[str(i)]) for i in range(len(leaves))])
+
+
 def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConfig,
                     validate: Callable[[PHPHierarchy], float] | None = None,
-                    log: Callable[[dict], None] = print) -> tuple[PHPHierarchy, dict]:
+                    log: Callable[[dict], None] = print,
+                    checkpoint_path: str | None = None) -> tuple[PHPHierarchy, dict]:
   """Trains every level from the lowest to the root. validate(hierarchy) → validation accuracy, used to pick
-  the root level's snapshot. Returns the hierarchy and a report (per level: losses, capacity, decoding
-  agreement with the supervisor on weak demonstrations, wall time)."""
+  the root level's snapshot. With checkpoint_path, progress is saved there atomically every eval_every
+  iterations and an interrupted run resumes from it, ending with the same result as an uninterrupted one.
+  Returns the hierarchy and a report (per level: losses, capacity, decoding agreement with the supervisor on
+  weak demonstrations, wall time)."""
   if config.decode not in DECODERS:
     raise ValueError(f"decode must be one of {DECODERS}; got {config.decode!r}")
   validate_demos(demos, spec)  # malformed annotations are refused, naming the demonstration and step
   hierarchy = make_hierarchy(spec, config)
+  saved = _read_checkpoint(checkpoint_path)
+  report, decoded = {}, {}
+  if saved is not None:
+    meta, state = saved
+    nnx.update(hierarchy, _unflatten(nnx.state(hierarchy, nnx.Param), state["hierarchy"]))
+    report = {int(k): v for k, v in meta["report"].items()}
+    decoded = {int(k): (np.asarray(v["procedures"]), np.asarray(v["counters"])) for k, v in state["decoded"].items()}
+    log({"resumed": True, "level": meta["level"], "iteration": meta["iteration"]})
   view = views.lowest_view(demos, spec.num_levels)
-  report = {}
   for level in range(spec.num_levels - 1, -1, -1):
     start = time.time()
     capacity = _capacity(view, level, config)
-    root = None
+    if level not in report:
+      root = None
+      if level > 0:
+        rngs = nnx.Rngs(config.seed + 1000 + level)
+        num = spec.num_procs(level)
+        root = (RootLSTM(spec.obs_dim, num, config.root_hidden, rngs=rngs) if config.root == "lstm"
+                else RootMLP(spec.obs_dim, num, (config.root_hidden,), rngs=rngs))
+      model = LevelModel(hierarchy.levels[level], root)
+      resume = _progress_from(saved, model) if saved is not None and saved[0]["level"] == level else None
+      on_eval = (lambda it, loss: validate(hierarchy)) if (level == 0 and validate) else None
+      log({"level": level, "capacity": capacity, "view_length": int(view.length.max())})
+
+      def save(progress, level=level):
+        _write_checkpoint(checkpoint_path, hierarchy, level, progress, report, decoded)
+
+      progress = train_level(model, view, capacity, config, on_eval,
+                             log=lambda row, level=level: log({"level": level, **row}), resume=resume,
+                             save=save if checkpoint_path else None)
+      entry = {"capacity": capacity, "losses": progress.losses, "best_iteration": progress.best_iteration,
+               "validation": progress.best_score}
+      if level > 0:
+        key = jax.random.fold_in(jax.random.key(config.seed), level)
+        procs, taus = decode(model, view, capacity, config.decode, key)
+        decoded[level] = (np.where(view.strong[:, None], view.procedures, procs),
+                          np.where(view.strong[:, None], view.counters, taus))
+        entry["decoding_agreement"] = agreement(demos, view, level, *decoded[level])
+      entry["seconds"] = time.time() - start
+      report[level] = entry
+      if checkpoint_path:  # the level is complete: its result survives a restart
+        _write_checkpoint(checkpoint_path, hierarchy, level - 1, None, report, decoded)
     if level > 0:
-      rngs = nnx.Rngs(config.seed + 1000 + level)
-      num = spec.num_procs(level)
-      root = (RootLSTM(spec.obs_dim, num, config.root_hidden, rngs=rngs) if config.root == "lstm"
-              else RootMLP(spec.obs_dim, num, (config.root_hidden,), rngs=rngs))
-    model = LevelModel(hierarchy.levels[level], root)
-    on_eval = (lambda it, loss: validate(hierarchy)) if (level == 0 and validate) else None
-    log({"level": level, "capacity": capacity, "view_length": int(view.length.max())})
-    result = train_level(model, view, capacity, config, on_eval,
-                         log=lambda row, level=level: log({"level": level, **row}))
-    entry = {"capacity": capacity, "losses": result["losses"], "best_iteration": result["best_iteration"],
-             "validation": result["best_score"]}
-    if level > 0:
-      key = jax.random.fold_in(jax.random.key(config.seed), level)
-      procs, taus = decode(model, view, capacity, config.decode, key)
-      procs = np.where(view.strong[:, None], view.procedures, procs)
-      taus = np.where(view.strong[:, None], view.counters, taus)
-      entry["decoding_agreement"] = agreement(demos, view, level, procs, taus)
-      view = views.view_above(demos, view, level, procs, taus)
-    entry["seconds"] = time.time() - start
-    report[level] = entry
+      view = views.view_above(demos, view, level, *decoded[level])
   return hierarchy, report
+
+
+def _progress_from(saved, model: LevelModel) -> LevelProgress:
+  """The saved in-progress level's LevelProgress, shaped like a fresh optimizer for `model`."""
+  meta, state = saved
+  params = nnx.state(model, nnx.Param)
+  template = (params, optax.adam(0.0).init(params), params)
+  restored = _unflatten(template, state["progress"])
+  p = meta["progress"]
+  return LevelProgress(p["iteration"], *restored, p["best_iteration"], p["best_score"],
+                       [list(x) for x in p["losses"]])
+
+
+def _write_checkpoint(path, hierarchy, level, progress: LevelProgress | None, report, decoded) -> None:
+  """One file: the hierarchy's parameters, the level in progress (or the next level, not started), decodings."""
+  meta = {"level": level, "iteration": progress.iteration if progress else 0, "report": report,
+          "progress": None if progress is None else {
+              "iteration": progress.iteration, "best_iteration": progress.best_iteration,
+              "best_score": progress.best_score, "losses": progress.losses}}
+  state = {"hierarchy": _leaves(nnx.state(hierarchy, nnx.Param)),
+           "progress": {} if progress is None else _leaves((progress.params, progress.opt_state,
+                                                              progress.best_params)),
+           "decoded": {str(k): {"procedures": v[0], "counters": v[1]} for k, v in decoded.items()},
+           "meta": json.dumps(meta)}
+  checkpoint.write_atomically(path, serialization.msgpack_serialize(state))
+
+
+def _read_checkpoint(path):
+  """(meta, state) from a checkpoint file, or None if there is none."""
+  if not path or not os.path.isfile(path):
+    return None
+  with open(path, "rb") as f:
+    state = serialization.msgpack_restore(f.read())
+  meta = json.loads(state["meta"])
+  if meta["progress"] is None:  # saved between levels: the next level starts fresh
+    meta["level"] = None
+  return meta, state

@@ -108,3 +108,38 @@ def test_nanocraft_run_solves_held_out_episodes_and_evaluate_loads_it(tmp_path):
                                f"--policy={workdir}", f"--problems={sums}", f"--out={out}"],
                               capture_output=True, text=True, timeout=300)
   assert wrong_task.returncode == 2 and "holds a nanocraft model" in wrong_task.stderr
+
+
+class _Interrupt(Exception):
+  pass
+
+
+def test_interrupted_training_resumes_to_the_same_result(tmp_path):
+  problems = datasets.nanocraft_problems(3, 8)
+  demos = datasets.oracle_demonstrations(NANOCRAFT, datasets.nanocraft_states(problems), 4,
+                                         nanocraft.ORACLE_STEP_BUDGET)
+  config = train.TrainConfig(iterations=60, eval_every=20, hidden=(8,), root="mlp", root_hidden=8,
+                             learning_rate=1e-2, decode="sample", seed=5)
+  validation = datasets.nanocraft_problems(4, 8)
+
+  def validate(h):
+    return float(np.mean([o["correct"] for o in evaluation.solve_nanocraft(h, NANOCRAFT.spec, validation)]))
+
+  def run(path, stop_at=None):
+    def log(row):
+      if stop_at and (row.get("level"), row.get("iteration")) == stop_at:
+        raise _Interrupt
+    return train.train_hierarchy(NANOCRAFT.spec, demos, config, validate, log=log, checkpoint_path=path)
+
+  reference, ref_report = run(str(tmp_path / "uninterrupted.msgpack"))
+  path = str(tmp_path / "interrupted.msgpack")
+  for stop_at in [(1, 40), (0, 60)]:  # mid-level, then at the root level's last iteration
+    with pytest.raises(_Interrupt):
+      run(path, stop_at)
+  resumed, report = run(path)
+  for a, b in zip(jax.tree.leaves(nnx.state(reference, nnx.Param)), jax.tree.leaves(nnx.state(resumed, nnx.Param))):
+    np.testing.assert_array_equal(a, b)
+  for level in range(3):
+    assert report[level]["losses"] == ref_report[level]["losses"]
+    assert report[level]["best_iteration"] == ref_report[level]["best_iteration"]
+    assert report[level].get("decoding_agreement") == ref_report[level].get("decoding_agreement")
