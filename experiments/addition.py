@@ -7,7 +7,6 @@ accuracy on fresh problems at each --test_lengths (seeds disjoint from training 
 """
 from __future__ import annotations
 
-import numpy as np
 from absl import app, flags
 
 from experiments import training
@@ -19,17 +18,6 @@ _NUM_TEST = flags.DEFINE_integer("num_test", 100, "Test problems per length.")
 DEFAULT_TAU_IN_TERMINATION = (False, True, True)  # add's ψ needs no counter; add1's and the lowest's do
 
 
-def random_problems(seed: int, lengths, per_length: int) -> list[tuple[str, str]]:
-  rng = np.random.default_rng(seed)
-  return [tuple("".join(map(str, rng.integers(0, 10, n))) for _ in range(2))
-          for n in lengths for _ in range(per_length)]
-
-
-def accuracy(hierarchy, problems) -> float:
-  task = tasks.get("addition")
-  return float(np.mean([o["correct"] for o in evaluation.solve_addition(hierarchy, task.spec, problems)]))
-
-
 def main(argv):
   del argv
   seed, task = training.SEED.value, tasks.get("addition")
@@ -37,14 +25,15 @@ def main(argv):
   strong = training.strong_mask(len(problems), training.NUM_STRONG.value, seed)
   demos = datasets.oracle_demonstrations(task, datasets.addition_states(problems), 0,
                                          addition.oracle_step_budget(10))._replace(strong=strong)
-  validation = random_problems(seed + 10_000, range(1, 11),
-                               max(1, training.NUM_VALIDATION.value // 10))
+  validation = datasets.random_addition_problems(seed + 10_000, range(1, 11),
+                                                max(1, training.NUM_VALIDATION.value // 10))
   lengths = [int(n) for n in _TEST_LENGTHS.value]
-  test = lambda h: {str(n): accuracy(h, random_problems(seed + 20_000 + n, [n], _NUM_TEST.value))
-                    for n in lengths}
+  test_sets = {n: datasets.random_addition_problems(seed + 20_000 + n, [n], _NUM_TEST.value)
+               for n in lengths}
+  test = lambda h: {str(n): evaluation.accuracy(h, task.spec, problems) for n, problems in test_sets.items()}
   training.train_and_evaluate(
       "addition", demos, training.config_from_flags(DEFAULT_TAU_IN_TERMINATION), training.WORKDIR.value,
-      validate=lambda h: accuracy(h, validation), test=test,
+      validate=lambda h: evaluation.accuracy(h, task.spec, validation), test=test,
       extra={"seed": seed, "num_demos": len(problems), "num_strong": int(strong.sum()),
              "num_test": _NUM_TEST.value})
 

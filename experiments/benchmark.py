@@ -139,9 +139,7 @@ def bench_estep():
 
 def bench_rollout():
   task = tasks.get("addition")
-  rng = np.random.default_rng(0)
-  problems = [tuple("".join(map(str, rng.integers(0, 10, _DIGITS.value))) for _ in range(2))
-              for _ in range(_PROBLEMS.value)]
+  problems = datasets.random_addition_problems(0, [_DIGITS.value], _PROBLEMS.value)
   states = datasets.addition_states(problems)
   keys = jax.random.split(jax.random.key(0), len(problems))
   budget = addition.oracle_step_budget(_DIGITS.value)

@@ -52,8 +52,7 @@ def main(argv):
   except (problem_files.ProblemFileError, OSError, ValueError) as e:
     print(f"error: {e}", file=sys.stderr)
     sys.exit(2)
-  solve = evaluation.solve_addition if task.name == "addition" else evaluation.solve_nanocraft
-  outcomes = solve(policy, task.spec, problems, batch_size=_BATCH_SIZE.value)
+  outcomes = evaluation.SOLVERS[task.name](policy, task.spec, problems, batch_size=_BATCH_SIZE.value)
   write_lines_atomically(_OUT.value, outcomes)
   correct = sum(o["correct"] for o in outcomes)
   print(f"{task.name}: {correct}/{len(outcomes)} correct -> {_OUT.value}")

@@ -7,7 +7,6 @@ accuracy on --num_test fresh episodes (a seed disjoint from training and validat
 """
 from __future__ import annotations
 
-import numpy as np
 from absl import app, flags
 
 from experiments import training
@@ -17,11 +16,6 @@ from php_jax.envs import nanocraft
 _NUM_DEMOS = flags.DEFINE_integer("num_demos", 64, "Demonstrations in the training set.")
 _NUM_TEST = flags.DEFINE_integer("num_test", 1000, "Fresh test episodes.")
 DEFAULT_TAU_IN_TERMINATION = (True, True, True)
-
-
-def accuracy(hierarchy, problems) -> float:
-  task = tasks.get("nanocraft")
-  return float(np.mean([o["correct"] for o in evaluation.solve_nanocraft(hierarchy, task.spec, problems)]))
 
 
 def main(argv):
@@ -35,7 +29,8 @@ def main(argv):
   test_problems = datasets.nanocraft_problems(seed + 20_000, _NUM_TEST.value)
   training.train_and_evaluate(
       "nanocraft", demos, training.config_from_flags(DEFAULT_TAU_IN_TERMINATION), training.WORKDIR.value,
-      validate=lambda h: accuracy(h, validation), test=lambda h: {"accuracy": accuracy(h, test_problems)},
+      validate=lambda h: evaluation.accuracy(h, task.spec, validation),
+      test=lambda h: {"accuracy": evaluation.accuracy(h, task.spec, test_problems)},
       extra={"seed": seed, "num_demos": len(problems), "num_strong": int(strong.sum()),
              "num_test": _NUM_TEST.value})
 

@@ -35,6 +35,13 @@ def addition_problems(seed: int, per_length: int = 16, lengths=ADDITION_LENGTHS,
   raise RuntimeError(f"no problem set covering all 200 columns in {max_tries} draws; add problems")
 
 
+def random_addition_problems(seed: int, lengths, per_length: int) -> list[tuple[str, str]]:
+  """per_length uniformly random problems for each number of digits in lengths (no coverage constraint)."""
+  rng = np.random.default_rng(seed)
+  return [tuple("".join(map(str, rng.integers(0, 10, n))) for _ in range(2))
+          for n in lengths for _ in range(per_length)]
+
+
 def addition_states(problems: list[tuple[str, str]], width: int | None = None) -> addition.State:
   """Batched start states [B, ...] on a common tape width (default: fits the longest problem)."""
   width = width or addition.width_for(max(len(a) for a, _ in problems))

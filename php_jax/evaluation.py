@@ -69,3 +69,12 @@ def solve_nanocraft(policy: Policy, spec: HierarchySpec, problems: list[NanoCraf
                        "terminated": bool(r.terminated), "valid": bool(r.valid), "steps": int(r.length),
                        "correct": bool(r.terminated) and bool(nanocraft.solved(r.final_state))}
   return outcomes
+
+
+SOLVERS = {"addition": solve_addition, "nanocraft": solve_nanocraft}
+
+
+def accuracy(policy: Policy, spec: HierarchySpec, problems: list) -> float:
+  """Fraction of problems solved completely correctly (spec.name picks the task)."""
+  outcomes = SOLVERS[spec.name](policy, spec, problems)
+  return float(np.mean([o["correct"] for o in outcomes]))
