@@ -41,7 +41,8 @@ class TrainConfig:
   strong_weight: float = 1.0        # weight on strongly supervised demonstrations' loss
   decode: str = "sample"            # how weak views are decoded for the level above (the paper sampled)
   capacity: int = 8                 # counter capacity C below the root level when nothing is annotated
-  eval_every: int = 100             # root-level snapshot interval (validation rollouts)
+  eval_every: int = 100             # logging, checkpoint and root-snapshot interval
+  length_buckets: int = 4           # views are batched by length into this many buckets
   seed: int = 0
 
 
@@ -79,9 +80,27 @@ def view_log_likelihoods(model: LevelModel, batch: views.LevelView, capacity: in
   return jax.vmap(one)(batch.observations, batch.actions, batch.procedures, batch.counters, batch.length)
 
 
-def level_loss(model: LevelModel, batch: views.LevelView, capacity: int, strong_weight: float) -> jax.Array:
-  weights = jnp.where(batch.strong, strong_weight, 1.0)
-  return -jnp.sum(weights * view_log_likelihoods(model, batch, capacity)) / batch.length.shape[0]
+def level_loss(model: LevelModel, buckets: list[views.LevelView], capacity: int, strong_weight: float) -> jax.Array:
+  """−(w_strong Σ_strong log P(ζ, ξ) + Σ_weak log P(ξ)) / N over the views of every length bucket."""
+  total, count = 0.0, 0
+  for batch in buckets:
+    weights = jnp.where(batch.strong, strong_weight, 1.0)
+    total = total - jnp.sum(weights * view_log_likelihoods(model, batch, capacity))
+    count += batch.length.shape[0]
+  return total / count
+
+
+def length_buckets(view: views.LevelView, num_buckets: int) -> list[views.LevelView]:
+  """The views sorted by length into up to num_buckets groups of similar size, each trimmed to its longest
+  view: the networks run on far fewer padding cells than in one batch padded to the longest view."""
+  order = np.argsort(view.length, kind="stable")
+  buckets = []
+  for group in np.array_split(order, min(num_buckets, len(order))):
+    width = int(view.length[group].max())
+    buckets.append(views.LevelView(
+        view.observations[group, :width + 1], view.actions[group, :width], view.procedures[group, :width],
+        view.counters[group, :width], view.length[group], view.times[group, :width], view.strong[group]))
+  return buckets
 
 
 def _device_view(view: views.LevelView) -> views.LevelView:
@@ -133,7 +152,7 @@ def train_level(model: LevelModel, view: views.LevelView, capacity: int, config:
   score (the earliest snapshot with the highest score is kept, else the final iterate), then save(progress)
   is called (before logging). resume continues from a saved LevelProgress.
   """
-  batch = _device_view(view)
+  buckets = [_device_view(b) for b in length_buckets(view, config.length_buckets)]
   graphdef, params, rest = nnx.split(model, nnx.Param, ...)
   optimizer = optax.adam(config.learning_rate)
   opt_state = optimizer.init(params)
@@ -147,7 +166,7 @@ def train_level(model: LevelModel, view: views.LevelView, capacity: int, config:
   @jax.jit
   def update(params, opt_state):
     def loss_of(p):
-      return level_loss(nnx.merge(graphdef, p, rest), batch, capacity, config.strong_weight)
+      return level_loss(nnx.merge(graphdef, p, rest), buckets, capacity, config.strong_weight)
     loss, grads = jax.value_and_grad(loss_of)(params)
     updates, opt_state = optimizer.update(grads, opt_state, params)
     return optax.apply_updates(params, updates), opt_state, loss
