@@ -156,12 +156,7 @@ def train_level(model: LevelModel, view: views.LevelView, capacity: int, config:
   graphdef, params, rest = nnx.split(model, nnx.Param, ...)
   optimizer = optax.adam(config.learning_rate)
   opt_state = optimizer.init(params)
-  progress = LevelProgress(0, params, opt_state, params, None, None, [])
-  if resume is not None:
-    treedef = jax.tree.structure((params, opt_state, params))
-    params, opt_state, best_params = jax.tree.unflatten(treedef, jax.tree.leaves(
-        (resume.params, resume.opt_state, resume.best_params)))
-    progress = resume._replace(params=params, opt_state=opt_state, best_params=best_params)
+  progress = resume if resume is not None else LevelProgress(0, params, opt_state, params, None, None, [])
 
   @jax.jit
   def update(params, opt_state):
@@ -250,7 +245,8 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
     meta, state = saved
     nnx.update(hierarchy, _unflatten(nnx.state(hierarchy, nnx.Param), state["hierarchy"]))
     report = {int(k): v for k, v in meta["report"].items()}
-    decoded = {int(k): (np.asarray(v["procedures"]), np.asarray(v["counters"])) for k, v in state["decoded"].items()}
+    decoded = {int(k): (np.asarray(v["procedures"]), np.asarray(v["counters"]))
+               for k, v in state["decoded"].items()}
     log({"resumed": True, "level": meta["level"], "iteration": meta["iteration"]})
   view = views.lowest_view(demos, spec.num_levels)
   for level in range(spec.num_levels - 1, -1, -1):
