@@ -9,9 +9,7 @@ atomically, so it is either complete or absent.
 from __future__ import annotations
 
 import json
-import os
 import sys
-import tempfile
 
 from absl import app, flags
 
@@ -35,14 +33,6 @@ def load_policy(task: tasks.Task, policy: str):
   return hierarchy
 
 
-def write_lines_atomically(path: str, rows) -> None:
-  directory = os.path.dirname(os.path.abspath(path))
-  with tempfile.NamedTemporaryFile("w", dir=directory, delete=False, suffix=".tmp") as f:
-    for row in rows:
-      f.write(json.dumps(row) + "\n")
-  os.replace(f.name, path)
-
-
 def main(argv):
   del argv
   task = tasks.get(_TASK.value)
@@ -53,7 +43,7 @@ def main(argv):
     print(f"error: {e}", file=sys.stderr)
     sys.exit(2)
   outcomes = evaluation.SOLVERS[task.name](policy, task.spec, problems, batch_size=_BATCH_SIZE.value)
-  write_lines_atomically(_OUT.value, outcomes)
+  checkpoint.write_atomically(_OUT.value, "".join(json.dumps(o) + "\n" for o in outcomes).encode())
   correct = sum(o["correct"] for o in outcomes)
   print(f"{task.name}: {correct}/{len(outcomes)} correct -> {_OUT.value}")
 

@@ -23,6 +23,8 @@ def _width_bucket(num_digits: int) -> int:
 
 def _run_batches(policy, spec, env, states_of, items, batch_size, max_steps):
   """Rolls out items in fixed-size batches (the last padded by repetition); yields (item, rollout row)."""
+  if not items:
+    return
   keys = jax.random.split(jax.random.key(0), batch_size)
   for start in range(0, len(items), batch_size):
     chunk = items[start:start + batch_size]

@@ -41,6 +41,12 @@ def test_nanocraft_file_solved(tmp_path):
                                                                     "correct"}
 
 
+def test_empty_file_gives_empty_output(tmp_path):
+  proc, out = _evaluate(tmp_path, "nanocraft", [""])
+  assert proc.returncode == 0, proc.stderr
+  assert out.read_text() == ""
+
+
 def test_malformed_line_exits_2_with_line_number_and_writes_nothing(tmp_path):
   proc, out = _evaluate(tmp_path, "addition", ['{"a": "12", "b": "34"}', '{"a": "12", "b": "3"}'])
   assert proc.returncode == 2
