@@ -22,7 +22,8 @@ HIDDEN = flags.DEFINE_list("hidden", ["64", "64"], "Hidden layer sizes of every 
 ROOT = flags.DEFINE_enum("root", "lstm", ["lstm", "mlp"], "Root network standing in for untrained levels.")
 TAU_IN_TERMINATION = flags.DEFINE_list("tau_in_termination", None,
                                        "Per level (root first), whether ψ sees τ: e.g. 0,1,1. Default: task's.")
-STRONG_WEIGHT = flags.DEFINE_float("strong_weight", 1.0, "Weight on the strongly supervised loss.")
+STRONG_WEIGHT = flags.DEFINE_float("strong_weight", None, "Weight on the strongly supervised loss; default: "
+                                   "balanced, num_weak / num_strong (at least 1).")
 DECODE = flags.DEFINE_enum("decode", "sample", list(train.DECODERS), "Decoding of weak views for the level above.")
 EVAL_EVERY = flags.DEFINE_integer("eval_every", 100, "Iterations between logged losses / root snapshots.")
 NUM_VALIDATION = flags.DEFINE_integer("num_validation", 50, "Validation problems (training distribution).")
@@ -52,6 +53,8 @@ def train_and_evaluate(task_name: str, demos: Demonstration, config: train.Train
   the model, tests it, writes results.json; returns the results."""
   os.makedirs(workdir, exist_ok=True)
   task = tasks.get(task_name)
+  if config.strong_weight is None:  # resolved here so that results.json records the number
+    config = dataclasses.replace(config, strong_weight=train.balanced_strong_weight(np.asarray(demos.strong)))
   start = time.time()
   metrics_path = os.path.join(workdir, "metrics.jsonl")
   with open(metrics_path, "a") as metrics:

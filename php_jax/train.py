@@ -38,7 +38,7 @@ class TrainConfig:
   root: str = "lstm"                # network standing in for untrained levels: "lstm" or "mlp"
   root_hidden: int = 64
   tau_in_termination: tuple[bool, ...] | None = None  # per level; None: all True
-  strong_weight: float = 1.0        # weight on strongly supervised demonstrations' loss
+  strong_weight: float | None = None  # weight on strongly supervised demonstrations' loss; None: balanced
   decode: str = "sample"            # how weak views are decoded for the level above (the paper sampled)
   capacity: int = 8                 # counter capacity C below the root level when nothing is annotated
   eval_every: int = 100             # logging, checkpoint and root-snapshot interval
@@ -213,6 +213,13 @@ def agreement(demos: Demonstration, view: views.LevelView, level: int, procedure
   return float(match / total) if total else None
 
 
+def balanced_strong_weight(strong) -> float:
+  """num_weak / num_strong (at least 1): strong and weak demonstrations then weigh the same in the loss, so
+  a few annotated ones are not outvoted by many weak ones pulling towards another hierarchy (paper §5.2)."""
+  num_strong = int(np.sum(strong))
+  return max(1.0, (len(strong) - num_strong) / num_strong) if num_strong else 1.0
+
+
 def make_hierarchy(spec: HierarchySpec, config: TrainConfig) -> PHPHierarchy:
   return PHPHierarchy(spec, hidden=config.hidden, tau_in_termination=config.tau_in_termination,
                       rngs=nnx.Rngs(config.seed))
@@ -238,6 +245,8 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
   if config.decode not in DECODERS:
     raise ValueError(f"decode must be one of {DECODERS}; got {config.decode!r}")
   validate_demos(demos, spec)  # malformed annotations are refused, naming the demonstration and step
+  if config.strong_weight is None:
+    config = dataclasses.replace(config, strong_weight=balanced_strong_weight(np.asarray(demos.strong)))
   hierarchy = make_hierarchy(spec, config)
   saved = _read_checkpoint(checkpoint_path)
   report, decoded = {}, {}
