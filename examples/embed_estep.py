@@ -28,7 +28,7 @@ def make_demonstrations(key, num_demos=32, num_steps=24):
   first coordinate says which one the root calls next. Returns observations [B, T, 2], actions [B, T], length [B]."""
   def one(key):
     choices = jax.random.bernoulli(key, 0.5, (num_steps,)).astype(jnp.int32)
-    actions, obs, calls = [], [], []
+    actions, obs = [], []
     for c in choices.tolist():
       body = [0, 1] if c == 0 else [2, 2, 2]
       for i, a in enumerate(body):

@@ -76,7 +76,7 @@ def validate(batch: Demonstration, spec) -> None:
   Raises ValueError naming the demonstration and step of the first problem: shapes, lengths over capacity,
   actions or procedure ids out of range, or annotated stacks that break the call-stack semantics.
   """
-  obs, actions = np.asarray(batch.observations), np.asarray(batch.actions)
+  actions = np.asarray(batch.actions)
   procs, taus = np.asarray(batch.procedures), np.asarray(batch.counters)
   lengths, strong = np.asarray(batch.length), np.asarray(batch.strong)
   num_demos, num_steps = actions.shape[:2]

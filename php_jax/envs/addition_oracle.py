@@ -2,7 +2,6 @@
 (level, procedure, τ, observation): add → add1 → {write, carry, lshift} → elementary actions."""
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 from flax import struct
 
