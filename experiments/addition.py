@@ -16,6 +16,7 @@ from php_jax.envs import addition
 _TEST_LENGTHS = flags.DEFINE_list("test_lengths", ["20", "100"], "Digits of the test problems.")
 _NUM_TEST = flags.DEFINE_integer("num_test", 100, "Test problems per length.")
 DEFAULT_TAU_IN_TERMINATION = (False, True, True)  # add's ψ needs no counter; add1's and the lowest's do
+DEFAULT_HIDDEN = (64, 64)
 
 
 def main(argv):
@@ -32,7 +33,8 @@ def main(argv):
                for n in lengths}
   test = lambda h: {str(n): evaluation.accuracy(h, task.spec, problems) for n, problems in test_sets.items()}
   training.train_and_evaluate(
-      "addition", demos, training.config_from_flags(DEFAULT_TAU_IN_TERMINATION), training.WORKDIR.value,
+      "addition", demos, training.config_from_flags(DEFAULT_TAU_IN_TERMINATION, DEFAULT_HIDDEN),
+      training.WORKDIR.value,
       validate=lambda h: evaluation.accuracy(h, task.spec, validation), test=test,
       extra={"seed": seed, "num_demos": len(problems), "num_strong": int(strong.sum()),
              "num_test": _NUM_TEST.value})

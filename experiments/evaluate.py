@@ -2,9 +2,9 @@ r"""Runs a hierarchy on a file of problems and writes one JSON outcome line per 
 
   python -m experiments.evaluate --task=addition --policy=oracle --problems=IN.jsonl --out=OUT.jsonl
 
---policy is `oracle` (the supervisor) or a training workdir holding a saved model. A malformed problem line
-is reported with its line number and exit status 2 before anything runs; the output file is written
-atomically, so it is either complete or absent.
+--policy is `oracle` (the supervisor) or a training workdir holding a saved model (PHP or flat LSTM). A
+malformed problem line is reported with its line number and exit status 2 before anything runs; the output
+file is written atomically, so it is either complete or absent.
 """
 from __future__ import annotations
 
@@ -24,13 +24,13 @@ _BATCH_SIZE = flags.DEFINE_integer("batch_size", 64, "Problems rolled out togeth
 
 
 def load_policy(task: tasks.Task, policy: str):
-  """The oracle, or the trained hierarchy saved in a workdir (which must be for the same task)."""
+  """The oracle, or the model (PHP hierarchy or flat LSTM baseline) saved in a workdir for the same task."""
   if policy == "oracle":
     return task.oracle
-  saved_task, hierarchy = checkpoint.load_hierarchy(policy)
+  saved_task, model = checkpoint.load_policy(policy)
   if saved_task != task.name:
     raise ValueError(f"--policy={policy!r} holds a {saved_task} model, not {task.name}")
-  return hierarchy
+  return model
 
 
 def main(argv):

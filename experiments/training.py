@@ -9,8 +9,9 @@ from typing import Callable
 
 import numpy as np
 from absl import flags
+from flax import nnx
 
-from php_jax import checkpoint, tasks, train
+from php_jax import checkpoint, flat_lstm, tasks, train
 from php_jax.demos import Demonstration
 
 WORKDIR = flags.DEFINE_string("workdir", None, "Directory for results.json, metrics.jsonl and the model.")
@@ -18,7 +19,8 @@ NUM_STRONG = flags.DEFINE_integer("num_strong", 1, "Strongly supervised (call-st
 SEED = flags.DEFINE_integer("seed", 0, "Seed for data, initialisation and decoding.")
 ITERATIONS = flags.DEFINE_integer("iterations", 2000, "Adam iterations per level (the paper: 2000).")
 LEARNING_RATE = flags.DEFINE_float("learning_rate", 3e-3, "Adam learning rate.")
-HIDDEN = flags.DEFINE_list("hidden", ["64", "64"], "Hidden layer sizes of every operation/termination MLP.")
+HIDDEN = flags.DEFINE_list("hidden", None, "Hidden layer sizes of every operation/termination MLP. Default: "
+                           "the task's.")
 ROOT = flags.DEFINE_enum("root", "lstm", ["lstm", "mlp"], "Root network standing in for untrained levels.")
 TAU_IN_TERMINATION = flags.DEFINE_list("tau_in_termination", None,
                                        "Per level (root first), whether ψ sees τ: e.g. 0,1,1. Default: task's.")
@@ -26,14 +28,18 @@ STRONG_WEIGHT = flags.DEFINE_float("strong_weight", None, "Weight on the strongl
                                    "balanced, num_weak / num_strong (at least 1).")
 DECODE = flags.DEFINE_enum("decode", "sample", list(train.DECODERS), "Decoding of weak views for the level above.")
 EVAL_EVERY = flags.DEFINE_integer("eval_every", 100, "Iterations between logged losses / root snapshots.")
+MODEL = flags.DEFINE_enum("model", "php", ["php", "flat_lstm"],
+                          "php: the hierarchy by level-wise EG; flat_lstm: the behaviour-cloning baseline.")
+LSTM_HIDDEN = flags.DEFINE_integer("lstm_hidden", 128, "Hidden units of the flat LSTM baseline.")
 NUM_VALIDATION = flags.DEFINE_integer("num_validation", 50, "Validation problems (training distribution).")
 
 
-def config_from_flags(default_tau: tuple[bool, ...]) -> train.TrainConfig:
+def config_from_flags(default_tau: tuple[bool, ...], default_hidden: tuple[int, ...]) -> train.TrainConfig:
   tau = (tuple(v.lower() in ("1", "true", "yes") for v in TAU_IN_TERMINATION.value)
          if TAU_IN_TERMINATION.value else default_tau)
   return train.TrainConfig(iterations=ITERATIONS.value, learning_rate=LEARNING_RATE.value,
-                           hidden=tuple(int(h) for h in HIDDEN.value), root=ROOT.value,
+                           hidden=tuple(int(h) for h in HIDDEN.value) if HIDDEN.value else default_hidden,
+                           root=ROOT.value,
                            tau_in_termination=tau, strong_weight=STRONG_WEIGHT.value, decode=DECODE.value,
                            eval_every=EVAL_EVERY.value, seed=SEED.value)
 
@@ -49,8 +55,9 @@ def strong_mask(num_demos: int, num_strong: int, seed: int) -> np.ndarray:
 
 def train_and_evaluate(task_name: str, demos: Demonstration, config: train.TrainConfig, workdir: str,
                        validate: Callable, test: Callable[[object], dict], extra: dict) -> dict:
-  """Trains every level (resuming from workdir/checkpoint.msgpack if an earlier run was interrupted), saves
-  the model, tests it, writes results.json; returns the results."""
+  """Trains the --model (a PHP hierarchy level by level, resuming from workdir/checkpoint.msgpack if an
+  earlier run was interrupted; or the flat LSTM baseline), saves it, tests it, writes results.json; returns
+  the results."""
   os.makedirs(workdir, exist_ok=True)
   task = tasks.get(task_name)
   if config.strong_weight is None:  # resolved here so that results.json records the number
@@ -63,15 +70,29 @@ def train_and_evaluate(task_name: str, demos: Demonstration, config: train.Train
       metrics.write(json.dumps(row) + "\n")
       metrics.flush()
       print(json.dumps(row), flush=True)
-    hierarchy, report = train.train_hierarchy(task.spec, demos, config, validate, log=log,
-                                              checkpoint_path=os.path.join(workdir, "checkpoint.msgpack"))
-  checkpoint.save_hierarchy(workdir, task_name, hierarchy, config.hidden, config.tau_in_termination)
-  test_results = test(hierarchy)
-  results = {
-      "task": task_name, "config": dataclasses.asdict(config), **extra,
-      "levels": {str(level): {k: v for k, v in entry.items() if k != "losses"} | {
-          "final_loss": entry["losses"][-1][1] if entry["losses"] else None} for level, entry in report.items()},
-      "test": test_results, "wall_seconds": round(time.time() - start, 1)}
+    if MODEL.value == "flat_lstm":
+      model, trained = _train_flat_lstm(task, demos, config, validate, log)
+      checkpoint.save_flat_lstm(workdir, task_name, model)
+    else:
+      model, report = train.train_hierarchy(task.spec, demos, config, validate, log=log,
+                                            checkpoint_path=os.path.join(workdir, "checkpoint.msgpack"))
+      checkpoint.save_hierarchy(workdir, task_name, model, config.hidden, config.tau_in_termination)
+      trained = {"levels": {str(level): {k: v for k, v in entry.items() if k != "losses"} | {
+          "final_loss": entry["losses"][-1][1] if entry["losses"] else None} for level, entry in report.items()}}
+  test_results = test(model)
+  results = {"task": task_name, "model": MODEL.value, "config": dataclasses.asdict(config), **extra, **trained,
+             "test": test_results, "wall_seconds": round(time.time() - start, 1)}
   checkpoint.write_atomically(os.path.join(workdir, "results.json"), json.dumps(results, indent=1).encode())
   print(json.dumps({"test": test_results, "wall_seconds": results["wall_seconds"]}), flush=True)
   return results
+
+
+def _train_flat_lstm(task, demos: Demonstration, config: train.TrainConfig, validate, log):
+  """The baseline on the same demonstrations' elementary actions (annotations unused), same iterations,
+  learning rate, seed and snapshot rule."""
+  policy = flat_lstm.FlatLSTMPolicy(task.spec.obs_dim, task.spec.action_sizes, LSTM_HIDDEN.value,
+                                    rngs=nnx.Rngs(config.seed))
+  report = flat_lstm.train(policy, demos, config.iterations, config.learning_rate, config.eval_every,
+                           on_eval=lambda iteration: validate(policy), log=log)
+  return policy, {"flat_lstm": {"hidden": LSTM_HIDDEN.value, "best_iteration": report["best_iteration"],
+                                "validation": report["validation"], "final_loss": report["losses"][-1][1]}}

@@ -1,5 +1,6 @@
-"""Saving and loading trained hierarchies: parameters as msgpack (flax.serialization), the architecture as
-JSON, each written atomically (a temporary file renamed into place), so a workdir never holds half a model."""
+"""Saving and loading trained models (PHP hierarchies and the flat LSTM baseline): parameters as msgpack
+(flax.serialization), the architecture as JSON, each written atomically (a temporary file renamed into
+place), so a workdir never holds half a model."""
 from __future__ import annotations
 
 import json
@@ -9,6 +10,7 @@ import tempfile
 from flax import nnx, serialization
 
 from php_jax import tasks
+from php_jax.flat_lstm import FlatLSTMPolicy
 from php_jax.model import PHPHierarchy
 
 MODEL_FILE, ARCHITECTURE_FILE = "model.msgpack", "model.json"
@@ -22,26 +24,39 @@ def write_atomically(path: str, data: bytes) -> None:
   os.replace(f.name, path)
 
 
-def save_hierarchy(workdir: str, task_name: str, hierarchy: PHPHierarchy, hidden, tau_in_termination) -> None:
-  """Writes workdir/model.json (task and architecture) and workdir/model.msgpack (parameters)."""
-  params = nnx.to_pure_dict(nnx.state(hierarchy, nnx.Param))
+def _save(workdir: str, model, architecture: dict) -> None:
+  params = nnx.to_pure_dict(nnx.state(model, nnx.Param))
   write_atomically(os.path.join(workdir, MODEL_FILE), serialization.msgpack_serialize(params))
-  architecture = {"task": task_name, "hidden": list(hidden), "tau_in_termination": list(tau_in_termination)}
   write_atomically(os.path.join(workdir, ARCHITECTURE_FILE), json.dumps(architecture, indent=1).encode())
 
 
-def load_hierarchy(workdir: str) -> tuple[str, PHPHierarchy]:
-  """(task name, hierarchy) saved by save_hierarchy. Raises FileNotFoundError if workdir holds no model."""
+def save_hierarchy(workdir: str, task_name: str, hierarchy: PHPHierarchy, hidden, tau_in_termination) -> None:
+  """Writes workdir/model.json (task and architecture) and workdir/model.msgpack (parameters)."""
+  _save(workdir, hierarchy, {"task": task_name, "kind": "php", "hidden": list(hidden),
+                             "tau_in_termination": list(tau_in_termination)})
+
+
+def save_flat_lstm(workdir: str, task_name: str, policy: FlatLSTMPolicy) -> None:
+  """The flat LSTM baseline, in the same two files."""
+  _save(workdir, policy, {"task": task_name, "kind": "flat_lstm", "hidden": policy.hidden})
+
+
+def load_policy(workdir: str) -> tuple[str, PHPHierarchy | FlatLSTMPolicy]:
+  """(task name, model) saved by save_hierarchy or save_flat_lstm. Raises FileNotFoundError if workdir holds
+  no model."""
   arch_path, model_path = (os.path.join(workdir, f) for f in (ARCHITECTURE_FILE, MODEL_FILE))
   if not (os.path.isfile(arch_path) and os.path.isfile(model_path)):
     raise FileNotFoundError(f"no trained model in {workdir!r} (expected {ARCHITECTURE_FILE} and {MODEL_FILE})")
   with open(arch_path) as f:
     architecture = json.load(f)
   task = tasks.get(architecture["task"])
-  hierarchy = PHPHierarchy(task.spec, hidden=tuple(architecture["hidden"]),
-                           tau_in_termination=tuple(architecture["tau_in_termination"]), rngs=nnx.Rngs(0))
-  state = nnx.state(hierarchy, nnx.Param)
+  if architecture.get("kind", "php") == "flat_lstm":
+    model = FlatLSTMPolicy(task.spec.obs_dim, task.spec.action_sizes, architecture["hidden"], rngs=nnx.Rngs(0))
+  else:
+    model = PHPHierarchy(task.spec, hidden=tuple(architecture["hidden"]),
+                         tau_in_termination=tuple(architecture["tau_in_termination"]), rngs=nnx.Rngs(0))
+  state = nnx.state(model, nnx.Param)
   with open(model_path, "rb") as f:
     nnx.replace_by_pure_dict(state, serialization.msgpack_restore(f.read()))
-  nnx.update(hierarchy, state)
-  return task.name, hierarchy
+  nnx.update(model, state)
+  return task.name, model

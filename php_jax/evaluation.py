@@ -10,7 +10,7 @@ from collections import defaultdict
 import jax
 import numpy as np
 
-from php_jax import datasets, executor
+from php_jax import datasets, executor, flat_lstm
 from php_jax.envs import addition, nanocraft
 from php_jax.hierarchy import HierarchySpec, Policy
 
@@ -21,6 +21,13 @@ def _width_bucket(num_digits: int) -> int:
   return max(8, 1 << (addition.width_for(num_digits) - 1).bit_length())
 
 
+def _rollout(policy, spec, env, states, keys, max_steps) -> executor.Rollout:
+  """A hierarchy (oracle or PHP) runs in the stack-machine executor; the flat LSTM baseline in its own loop."""
+  if isinstance(policy, flat_lstm.FlatLSTMPolicy):
+    return flat_lstm.rollout_batch(policy, env, states, max_steps)
+  return executor.rollout_batch(policy, spec, env, states, keys, max_steps, record=False)
+
+
 def _run_batches(policy, spec, env, states_of, items, batch_size, max_steps):
   """Rolls out items in fixed-size batches (the last padded by repetition); yields (item, rollout row)."""
   if not items:
@@ -29,8 +36,7 @@ def _run_batches(policy, spec, env, states_of, items, batch_size, max_steps):
   for start in range(0, len(items), batch_size):
     chunk = items[start:start + batch_size]
     padded = chunk + [chunk[0]] * (batch_size - len(chunk))
-    rollouts = jax.device_get(executor.rollout_batch(policy, spec, env, states_of(padded), keys,
-                                                     max_steps, record=False))
+    rollouts = jax.device_get(_rollout(policy, spec, env, states_of(padded), keys, max_steps))
     for i, item in enumerate(chunk):
       yield item, jax.tree.map(lambda x, i=i: x[i], rollouts)
 

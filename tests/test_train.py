@@ -73,12 +73,12 @@ def test_checkpoint_round_trip(tmp_path):
   config = train.TrainConfig(hidden=(16,), tau_in_termination=(True, False, True), seed=3)
   hierarchy = train.make_hierarchy(NANOCRAFT.spec, config)
   checkpoint.save_hierarchy(str(tmp_path), "nanocraft", hierarchy, config.hidden, config.tau_in_termination)
-  name, loaded = checkpoint.load_hierarchy(str(tmp_path))
+  name, loaded = checkpoint.load_policy(str(tmp_path))
   assert name == "nanocraft" and loaded.levels[1].tau_in_termination is False
   for a, b in zip(jax.tree.leaves(nnx.state(hierarchy, nnx.Param)), jax.tree.leaves(nnx.state(loaded, nnx.Param))):
     np.testing.assert_array_equal(a, b)
   with pytest.raises(FileNotFoundError, match="no trained model"):
-    checkpoint.load_hierarchy(str(tmp_path / "empty"))
+    checkpoint.load_policy(str(tmp_path / "empty"))
 
 
 def test_nanocraft_run_solves_held_out_episodes_and_evaluate_loads_it(tmp_path):

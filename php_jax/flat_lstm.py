@@ -1,0 +1,137 @@
+"""The flat baseline a user would pick instead of PHPs: an LSTM policy trained by behaviour cloning on the
+demonstrations' elementary actions (call stacks ignored), run in the same environments on the same problems.
+
+At each step t the LSTM reads o_t and the previous action, then either stops (the episode ends, as when a
+PHP root returns) or emits an action, one categorical per action factor. Training maximises
+Σ_t<T [log p(a_t | o_≤t) + log p(continue)] + log p(stop at T), full-batch Adam, with the same snapshot rule as
+PHP training: the earliest snapshot with the best validation accuracy.
+"""
+from __future__ import annotations
+
+import functools
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import nnx
+
+from php_jax import executor
+from php_jax.demos import Demonstration
+
+
+class FlatLSTMPolicy(nnx.Module):
+  """An LSTM over (o_t, one-hot a_{t−1}) with a factorized action head and a stop logit."""
+
+  def __init__(self, obs_dim: int, action_sizes: tuple[int, ...], hidden: int = 128, *, rngs: nnx.Rngs):
+    self.action_sizes = tuple(action_sizes)
+    self.hidden = hidden
+    self.cell = nnx.LSTMCell(obs_dim + sum(action_sizes), hidden, rngs=rngs)
+    self.head = nnx.Linear(hidden, sum(action_sizes) + 1, rngs=rngs)
+
+  def initial_carry(self, dtype=jnp.float32):
+    zeros = jnp.zeros(self.hidden, dtype)
+    return zeros, zeros
+
+  def step(self, carry, obs: jax.Array, prev_action: jax.Array):
+    """obs [D], prev_action [F] int (−1 before the first action) → (carry, [log-probs per factor], stop logit)."""
+    previous = [jax.nn.one_hot(prev_action[f], n) for f, n in enumerate(self.action_sizes)]
+    carry, h = self.cell(carry, jnp.concatenate([obs, *previous]))
+    out = self.head(h)
+    splits = np.cumsum(self.action_sizes)[:-1]
+    factors = [jax.nn.log_softmax(part) for part in jnp.split(out[:-1], splits)]
+    return carry, factors, out[-1]
+
+  def log_likelihood(self, observations: jax.Array, actions: jax.Array, length: jax.Array) -> jax.Array:
+    """log p(actions, stop at `length` | observations). observations [T+1, D], actions [T, F], length [] → []."""
+    num_steps = actions.shape[0]
+    previous = jnp.concatenate([jnp.full((1, actions.shape[1]), -1, actions.dtype), actions])  # [T+1, F]
+    targets = jnp.concatenate([actions, jnp.zeros((1, actions.shape[1]), actions.dtype)])
+
+    def body(carry, inputs):
+      obs, prev, target, t = inputs
+      carry, factors, stop = self.step(carry, obs, prev)
+      log_action = sum(lp[target[f]] for f, lp in enumerate(factors))
+      term = jnp.where(t < length, log_action + jax.nn.log_sigmoid(-stop), jax.nn.log_sigmoid(stop))
+      return carry, jnp.where(t <= length, term, 0.0)
+
+    _, terms = jax.lax.scan(body, self.initial_carry(observations.dtype),
+                            (observations, previous, targets, jnp.arange(num_steps + 1)))
+    return jnp.sum(terms)
+
+
+def _act(policy: FlatLSTMPolicy, env, machine):
+  """One decision of one episode: stop, or act. machine = (state, carry, previous action)."""
+  state, carry, previous = machine
+  carry, factors, stop_logit = policy.step(carry, env.observe(state), previous)
+  action = jnp.stack([jnp.argmax(lp) for lp in factors]).astype(jnp.int32)
+  return (env.step(state, action), carry, action), stop_logit > 0
+
+
+@functools.partial(jax.jit, static_argnames=("env", "max_steps"))
+def rollout_batch(policy: FlatLSTMPolicy, env, states, max_steps: int) -> executor.Rollout:
+  """Greedy episodes from a batch of start states [B, ...] until each stops, fails or spends max_steps
+  actions; the same outcome fields as the hierarchy executor's (nothing recorded)."""
+  batch = jax.tree.leaves(states)[0].shape[0]
+  carry = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), policy.initial_carry())
+  previous = jnp.full((batch, len(policy.action_sizes)), -1, jnp.int32)
+  act = jax.vmap(lambda m: _act(policy, env, m))
+
+  def body(loop):
+    t, machines, done, stopped, length = loop
+    advanced, stop = act(machines)
+    moving = ~done & ~stop
+
+    def keep(new, old):
+      return jnp.where(moving.reshape((batch,) + (1,) * (new.ndim - 1)), new, old)
+
+    machines = jax.tree.map(keep, advanced, machines)
+    stopped = stopped | (~done & stop)
+    done = done | stop | machines[0].failed
+    return t + 1, machines, done, stopped, length + moving
+
+  def cond(loop):
+    return (loop[0] <= max_steps) & ~jnp.all(loop[2])
+
+  init = (jnp.int32(0), (states, carry, previous), jnp.zeros(batch, bool), jnp.zeros(batch, bool),
+          jnp.zeros(batch, jnp.int32))
+  _, (final, _, _), _, stopped, length = jax.lax.while_loop(cond, body, init)
+  valid = ~final.failed
+  return executor.Rollout(final, None, None, None, None, length=length, terminated=stopped & valid,
+                          valid=valid)
+
+
+def train(policy: FlatLSTMPolicy, demos: Demonstration, iterations: int, learning_rate: float,
+          eval_every: int = 100, on_eval: Callable[[int], float] | None = None,
+          log: Callable[[dict], None] = print) -> dict:
+  """Behaviour cloning: full-batch Adam on −mean log p(demonstration). Updates `policy` in place; keeps the
+  earliest snapshot with the best on_eval() score (else the final one). Returns a report."""
+  observations, actions = jnp.asarray(demos.observations), jnp.asarray(demos.actions)
+  length = jnp.asarray(demos.length)
+  graphdef, params, rest = nnx.split(policy, nnx.Param, ...)
+  optimizer = optax.adam(learning_rate)
+  opt_state = optimizer.init(params)
+
+  @jax.jit
+  def update(params, opt_state):
+    def loss_of(p):
+      model = nnx.merge(graphdef, p, rest)
+      return -jnp.mean(jax.vmap(model.log_likelihood)(observations, actions, length))
+    loss, grads = jax.value_and_grad(loss_of)(params)
+    updates, opt_state = optimizer.update(grads, opt_state, params)
+    return optax.apply_updates(params, updates), opt_state, loss
+
+  best = (None, None, params)  # (score, iteration, params)
+  losses = []
+  for iteration in range(1, iterations + 1):
+    params, opt_state, loss = update(params, opt_state)
+    if iteration % eval_every == 0 or iteration == iterations:
+      nnx.update(policy, params)
+      score = on_eval(iteration) if on_eval else None
+      if score is not None and (best[0] is None or score > best[0]):
+        best = (score, iteration, params)
+      losses.append([iteration, float(loss)])
+      log({"iteration": iteration, "loss": float(loss), **({"validation": score} if score is not None else {})})
+  nnx.update(policy, best[2] if best[0] is not None else params)
+  return {"losses": losses, "best_iteration": best[1], "validation": best[0]}

@@ -1,0 +1,85 @@
+"""The flat LSTM baseline, the sweep runner's grid and the plot command."""
+import json
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from experiments import sweep
+from php_jax import checkpoint, datasets, evaluation, flat_lstm, tasks
+from php_jax.envs import nanocraft
+
+NANOCRAFT = tasks.get("nanocraft")
+
+
+def _demos(num=8, seed=3):
+  problems = datasets.nanocraft_problems(seed, num)
+  return problems, datasets.oracle_demonstrations(NANOCRAFT, datasets.nanocraft_states(problems), 0,
+                                                  nanocraft.ORACLE_STEP_BUDGET)
+
+
+def test_flat_lstm_log_likelihood_matches_stepping_by_hand():
+  _, demos = _demos(2)
+  policy = flat_lstm.FlatLSTMPolicy(5, (5,), 16, rngs=nnx.Rngs(0))
+  obs, actions, n = demos.observations[0], demos.actions[0], int(demos.length[0])
+  carry, expected, previous = policy.initial_carry(), 0.0, jnp.array([-1])
+  for t in range(n + 1):
+    carry, factors, stop = policy.step(carry, jnp.asarray(obs[t]), previous)
+    if t < n:
+      expected += float(factors[0][actions[t, 0]] + jax.nn.log_sigmoid(-stop))
+      previous = jnp.asarray(actions[t])
+    else:
+      expected += float(jax.nn.log_sigmoid(stop))
+  got = policy.log_likelihood(jnp.asarray(obs), jnp.asarray(actions), jnp.asarray(n))
+  np.testing.assert_allclose(got, expected, rtol=1e-5)
+
+
+def test_flat_lstm_clones_its_training_demonstrations_and_survives_saving(tmp_path):
+  problems, demos = _demos(8)
+  policy = flat_lstm.FlatLSTMPolicy(5, (5,), 32, rngs=nnx.Rngs(1))
+  report = flat_lstm.train(policy, demos, iterations=400, learning_rate=1e-2, eval_every=100, log=lambda r: None)
+  assert report["losses"][-1][1] < 0.05 * report["losses"][0][1]
+  outcomes = evaluation.solve_nanocraft(policy, NANOCRAFT.spec, problems)
+  assert np.mean([o["correct"] for o in outcomes]) >= 0.75  # its own training problems
+  checkpoint.save_flat_lstm(str(tmp_path), "nanocraft", policy)
+  name, loaded = checkpoint.load_policy(str(tmp_path))
+  assert name == "nanocraft" and isinstance(loaded, flat_lstm.FlatLSTMPolicy)
+  assert evaluation.solve_nanocraft(loaded, NANOCRAFT.spec, problems) == outcomes
+
+
+def test_sweep_grid_is_the_product_without_impossible_combinations():
+  combos = sweep.parse_grid(["num_demos=16,64", "num_strong=1,32", "seed=1"])
+  assert combos == [{"num_demos": "16", "num_strong": "1", "seed": "1"},
+                    {"num_demos": "64", "num_strong": "1", "seed": "1"},
+                    {"num_demos": "64", "num_strong": "32", "seed": "1"}]
+  assert sweep.run_name(combos[0]) == "num_demos=16,num_strong=1,seed=1"
+  with pytest.raises(ValueError, match="name=value"):
+    sweep.parse_grid(["num_demos"])
+
+
+def test_plot_draws_the_figure_and_tables(tmp_path):
+  runs = tmp_path / "runs"
+  for i, (model, total, strong, acc) in enumerate([("php", 16, 1, 0.5), ("php", 16, 1, 0.7), ("php", 16, 4, 1.0),
+                                                   ("flat_lstm", 16, 0, 0.2)]):
+    (runs / str(i)).mkdir(parents=True)
+    (runs / str(i) / "results.json").write_text(json.dumps(
+        {"task": "nanocraft", "model": model, "num_demos": total, "num_strong": strong, "test": {"accuracy": acc}}))
+  for seed, accs in enumerate([(1.0, 1.0), (1.0, 0.99)]):
+    (runs / f"add{seed}").mkdir()
+    (runs / f"add{seed}" / "results.json").write_text(json.dumps(
+        {"task": "addition", "num_strong": 3, "test": {"500": accs[0], "1000": accs[1]}}))
+  out = tmp_path / "out"
+  proc = subprocess.run([sys.executable, "-m", "experiments.plot", f"--runs={runs}", f"--out={out}"],
+                        capture_output=True, text=True, timeout=300)
+  assert proc.returncode == 0, proc.stderr[-2000:]
+  assert "| php | 16 | 1 | 2 | 0.600 | 0.500 | 0.700 |" in (out / "nanocraft.md").read_text()
+  assert "| php | 3 | 1.000 (2/2) | 0.995 (1/2) |" in (out / "addition.md").read_text()
+  for png in ("nanocraft.png", "addition.png"):
+    assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+  empty = subprocess.run([sys.executable, "-m", "experiments.plot", f"--runs={tmp_path / 'none'}",
+                          f"--out={out}"], capture_output=True, text=True, timeout=300)
+  assert empty.returncode == 2 and "no results.json" in empty.stderr
