@@ -3,9 +3,10 @@ r"""Figures and tables from the results.json files of training runs (e.g. those 
   python -m experiments.plot --runs=runs/nc_sweep --out=results
 
 NanoCraft (paper Figure 2): test accuracy against the number of strongly supervised demonstrations, one line
-per total number of demonstrations (PHP solid, flat LSTM dashed), mean over trials with min–max bars →
-OUT/nanocraft.png and OUT/nanocraft.md. Addition (paper Table 2): per model and number of strong traces, the
-mean accuracy at each test length and in how many seeds it is 100% → OUT/addition.png and OUT/addition.md.
+per total number of demonstrations (the flat LSTM, which ignores annotations, as a dashed level), mean over
+trials with min–max bars → OUT/nanocraft.png and OUT/nanocraft.md. Addition (paper Table 2): per model and
+number of strong traces, the mean accuracy at each test length and in how many seeds it is 100% →
+OUT/addition.png and OUT/addition.md.
 """
 from __future__ import annotations
 
@@ -39,11 +40,14 @@ def load_results(directories: list[str]) -> list[dict]:
 
 
 def nanocraft_groups(results: list[dict]) -> dict[tuple[str, int, int], list[float]]:
-  """(model, num_demos, num_strong) → test accuracies of its trials."""
+  """(model, num_demos, num_strong) → test accuracies of its trials (num_strong 0 for the flat LSTM, which
+  uses actions only)."""
   groups = defaultdict(list)
   for r in results:
     if r["task"] == "nanocraft":
-      groups[(r.get("model", "php"), r["num_demos"], r["num_strong"])].append(r["test"]["accuracy"])
+      model = r.get("model", "php")
+      strong = r["num_strong"] if model == "php" else 0
+      groups[(model, r["num_demos"], strong)].append(r["test"]["accuracy"])
   return dict(sorted(groups.items()))
 
 
@@ -86,8 +90,10 @@ def nanocraft_figure(groups, path: str) -> None:
     lines[(model, total)].append((strong, np.mean(accs), min(accs), max(accs)))
   for (model, total), points in sorted(lines.items()):
     x, mean, low, high = map(np.array, zip(*sorted(points)))
-    ax.errorbar(x, mean, yerr=[mean - low, high - mean], marker="o", capsize=3,
-                linestyle="-" if model == "php" else "--", label=f"{model.upper()}-{total}")
+    if model == "php":
+      ax.errorbar(x, mean, yerr=[mean - low, high - mean], marker="o", capsize=3, label=f"PHP-{total}")
+    else:  # actions only: one level across the axis
+      ax.axhline(mean[0], linestyle="--", color="gray", label=f"flat LSTM-{total} ({mean[0]:.3f})")
   ax.set_xscale("log", base=2)
   ax.set_xlabel("strongly supervised demonstrations")
   ax.set_ylabel("test accuracy")
