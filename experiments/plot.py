@@ -30,12 +30,12 @@ _OUT = flags.DEFINE_string("out", "results", "Output directory for the PNG and M
 
 
 def load_results(directories: list[str]) -> list[dict]:
-  """Every results.json below the directories, with its path under "path"."""
+  """Every results.json below the directories."""
   results = []
   for directory in directories:
     for path in sorted(glob.glob(os.path.join(directory, "**", "results.json"), recursive=True)):
       with open(path) as f:
-        results.append({**json.load(f), "path": path})
+        results.append(json.load(f))
   return results
 
 

@@ -81,7 +81,7 @@ def rollout_batch(policy: FlatLSTMPolicy, env, states, max_steps: int) -> execut
   def body(loop):
     t, machines, done, stopped, length = loop
     advanced, stop = act(machines)
-    moving = ~done & ~stop
+    moving = ~done & ~stop & (t < max_steps)  # the last pass only decides whether to stop
 
     def keep(new, old):
       return jnp.where(moving.reshape((batch,) + (1,) * (new.ndim - 1)), new, old)
@@ -122,7 +122,7 @@ def train(policy: FlatLSTMPolicy, demos: Demonstration, iterations: int, learnin
     updates, opt_state = optimizer.update(grads, opt_state, params)
     return optax.apply_updates(params, updates), opt_state, loss
 
-  best = (None, None, params)  # (score, iteration, params)
+  best = (None, None, None)  # (score, iteration, params) of the kept snapshot
   losses = []
   for iteration in range(1, iterations + 1):
     params, opt_state, loss = update(params, opt_state)
