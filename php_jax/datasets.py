@@ -35,6 +35,28 @@ def addition_problems(seed: int, per_length: int = 16, lengths=ADDITION_LENGTHS,
   raise RuntimeError(f"no problem set covering all 200 columns in {max_tries} draws; add problems")
 
 
+def covering_addition_problems(seed: int, digits: int) -> list[tuple[str, str]]:
+  """A small set of `digits`-digit problems in which every one of the 200 (digit1, digit2, carry-in) columns
+  occurs: built column by column from the lowest, each time taking a not yet covered column whose carry-in
+  is the running carry (any column with that carry-in once none is left). Deterministic in seed."""
+  if digits < 2:
+    raise ValueError(f"digits must be at least 2 (a 1-digit sum has no carry-in); got {digits}")
+  rng = np.random.default_rng(seed)
+  missing = {(d1, d2, c) for d1 in range(10) for d2 in range(10) for c in range(2)}
+  problems = []
+  while missing:
+    columns, carry = [], 0
+    for _ in range(digits):
+      options = sorted(t for t in missing if t[2] == carry) or [(d1, d2, carry) for d1 in range(10)
+                                                                for d2 in range(10)]
+      d1, d2, _ = options[rng.integers(len(options))]
+      missing.discard((d1, d2, carry))
+      columns.append((d1, d2))
+      carry = (d1 + d2 + carry) // 10
+    problems.append(tuple("".join(str(col[i]) for col in reversed(columns)) for i in range(2)))
+  return problems
+
+
 def random_addition_problems(seed: int, lengths, per_length: int) -> list[tuple[str, str]]:
   """per_length uniformly random problems for each number of digits in lengths (no coverage constraint)."""
   rng = np.random.default_rng(seed)

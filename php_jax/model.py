@@ -19,7 +19,10 @@ class ProcedureMLPs(nnx.Module):
   """K independent ReLU MLPs over concat(obs, τ), evaluated for every procedure at once.
 
   The first layer is split into an observation part, computed once per observation, and a τ part added per
-  counter, so a [N observations × M counters] grid costs N + M first-layer products, not N × M.
+  counter, so a [N observations × M counters] grid costs N + M first-layer products, not N × M. Activations
+  are laid out [K, N·M, H] and the output [K, out_dim, N, M]: plain batched matmuls, and per-output slabs
+  that the heads reduce over without touching a short minor axis (on the CPU each of these roughly halves
+  the gradient's time against [N, K, M, out_dim]).
   """
 
   def __init__(self, num_procs: int, obs_dim: int, hidden: tuple[int, ...], out_dim: int, *,
@@ -30,14 +33,21 @@ class ProcedureMLPs(nnx.Module):
     self.biases = nnx.List([nnx.Param(jnp.zeros((num_procs, n_out))) for n_out in sizes[1:]])
 
   def __call__(self, obs: jax.Array, tau: jax.Array) -> jax.Array:
-    """obs: [N, obs_dim]; tau: [M] float → [N, K, M, out_dim]."""
+    """obs: [N, obs_dim]; tau: [M] float → [K, out_dim, N, M]."""
     first = self.kernels[0][...]
-    from_obs = jnp.einsum("nd,kdh->nkh", obs, first[:, :-1])
-    from_tau = tau[:, None, None] * first[None, :, -1]                      # [M, K, H]
-    x = from_obs[:, :, None, :] + jnp.swapaxes(from_tau, 0, 1)[None] + self.biases[0][...][None, :, None]
-    for kernel, bias in zip(list(self.kernels)[1:], list(self.biases)[1:]):
-      x = jnp.einsum("nkmh,khj->nkmj", jax.nn.relu(x), kernel[...]) + bias[...][None, :, None]
-    return x
+    num_procs, num_obs, num_taus = first.shape[0], obs.shape[0], tau.shape[0]
+    from_obs = jnp.einsum("nd,kdh->knh", obs, first[:, :-1])
+    from_tau = tau[None, :, None] * first[:, -1][:, None, :] + self.biases[0][...][:, None, :]  # [K, M, H]
+    x = (from_obs[:, :, None, :] + from_tau[:, None, :, :]).reshape(num_procs, num_obs * num_taus, -1)
+    batched = ((0,), (0,))
+    for kernel, bias in zip(list(self.kernels)[1:-1], list(self.biases)[1:-1]):
+      x = jax.lax.dot_general(jax.nn.relu(x), kernel[...], (((2,), (1,)), batched)) + bias[...][:, None]
+    if len(self.kernels) == 1:
+      out = jnp.swapaxes(x, 1, 2)
+    else:
+      out = (jax.lax.dot_general(self.kernels[-1][...], jax.nn.relu(x), (((1,), (2,)), batched))
+             + self.biases[-1][...][:, :, None])
+    return out.reshape(num_procs, -1, num_obs, num_taus)
 
 
 class PHPLevel(nnx.Module):
@@ -57,22 +67,27 @@ class PHPLevel(nnx.Module):
 
   def op_log_probs(self, obs: jax.Array, tau: jax.Array) -> list[jax.Array]:
     """Per factor f: [N, K, M, op_sizes[f]] log-probabilities (the factorized action head)."""
-    logits = self.operation(obs, tau)
+    logits = jnp.transpose(self.operation(obs, tau), (2, 0, 3, 1))
     splits = np.cumsum(self.op_sizes)[:-1]
     return [jax.nn.log_softmax(part, axis=-1) for part in jnp.split(logits, splits, axis=-1)]
 
   def log_op(self, obs: jax.Array, tau: jax.Array, ops: jax.Array) -> jax.Array:
     """log η_h^τ(ops_n | obs_n) for every procedure and counter. obs [N, D], tau [M], ops [N, F] → [N, K, M]."""
-    total = 0.0
-    for f, log_probs in enumerate(self.op_log_probs(obs, tau)):
-      index = jnp.broadcast_to(ops[:, None, None, f:f + 1], log_probs.shape[:-1] + (1,))
-      total = total + jnp.take_along_axis(log_probs, index, axis=-1)[..., 0]
-    return total
+    logits = self.operation(obs, tau)                                     # [K, Σ op_sizes, N, M]
+    total, start = 0.0, 0
+    for f, size in enumerate(self.op_sizes):
+      part = logits[:, start:start + size]
+      # The chosen logit by a one-hot product: unlike a gather, its gradient is not a scatter.
+      chosen = jnp.sum(part * jax.nn.one_hot(ops[:, f], size, dtype=part.dtype).T[None, :, :, None], axis=1)
+      peak = jax.lax.stop_gradient(jnp.max(part, axis=1))
+      log_norm = jnp.log(jnp.sum(jnp.exp(part - peak[:, None]), axis=1)) + peak
+      total, start = total + chosen - log_norm, start + size
+    return jnp.transpose(total, (1, 0, 2))
 
   def termination_logits(self, obs: jax.Array, tau: jax.Array) -> jax.Array:
     """logit of ψ_h^τ(1 | obs). obs [N, D], tau [M] → [N, K, M]; log ψ(1) = log σ(z), log ψ(0) = log σ(−z)."""
     tau = tau if self.tau_in_termination else jnp.zeros_like(tau)
-    return self.termination(obs, tau)[..., 0]
+    return jnp.transpose(self.termination(obs, tau)[:, 0], (1, 0, 2))
 
 
 class RootMLP(nnx.Module):

@@ -26,9 +26,9 @@ def test_split_first_layer_equals_plain_mlp_on_concatenated_input():
   obs = jax.random.normal(jax.random.key(1), (5, 44))
   tau = jnp.arange(4.0)
   grid = level.operation(obs, tau)
-  assert grid.shape == (5, 3, 4, 16)
+  assert grid.shape == (3, 16, 5, 4)
   for n, k, m in [(0, 0, 0), (4, 2, 3), (2, 1, 1)]:
-    np.testing.assert_allclose(grid[n, k, m], _plain_mlp(level.operation, k, obs[n], tau[m]), atol=1e-5)
+    np.testing.assert_allclose(grid[k, :, n, m], _plain_mlp(level.operation, k, obs[n], tau[m]), atol=1e-5)
 
 
 def test_factorized_head_is_a_distribution_over_all_actions():

@@ -99,6 +99,17 @@ def test_addition_data_set_constraints():
   assert problems != datasets.addition_problems(seed=4)
 
 
+@pytest.mark.parametrize("digits", [2, 3, 5])
+def test_covering_addition_problems_cover_every_column(digits):
+  problems = datasets.covering_addition_problems(seed=digits, digits=digits)
+  assert all(len(a) == len(b) == digits for a, b in problems)
+  assert len(set().union(*(datasets.column_triples(a, b) for a, b in problems))) == 200
+  assert len(problems) <= 1.2 * 200 / (digits - 1)  # few problems: mostly new columns above the lowest
+  assert problems == datasets.covering_addition_problems(seed=digits, digits=digits)
+  with pytest.raises(ValueError, match="at least 2"):
+    datasets.covering_addition_problems(seed=0, digits=1)
+
+
 def test_column_triples():
   assert datasets.column_triples("19", "05") == {(9, 5, 0), (1, 0, 1)}
 

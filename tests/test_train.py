@@ -112,6 +112,22 @@ def test_nanocraft_run_solves_held_out_episodes_and_evaluate_loads_it(tmp_path):
   assert wrong_task.returncode == 2 and "holds a nanocraft model" in wrong_task.stderr
 
 
+def test_small_addition_run_solves_longer_problems_and_decodes_the_supervisors_segmentation():
+  """Trained on 5-digit sums (strong: a set covering all 200 columns; weak: 10 random sums of 1–5 digits),
+  the hierarchy adds 20-digit numbers, and decoding the weak demonstrations recovers the supervisor's stacks."""
+  strong = datasets.covering_addition_problems(0, 5)
+  problems = strong + datasets.random_addition_problems(1, range(1, 6), 2)
+  demos = _addition_demos(problems, num_strong=len(strong))
+  config = train.TrainConfig(iterations=600, eval_every=100, hidden=(32,), root="mlp", root_hidden=32,
+                             learning_rate=1e-2, tau_in_termination=(False, True, True), decode="viterbi")
+  validation = datasets.random_addition_problems(2, range(1, 6), 4)
+  hierarchy, report = train.train_hierarchy(ADDITION.spec, demos, config,
+                                            lambda h: evaluation.accuracy(h, ADDITION.spec, validation),
+                                            log=lambda row: None)
+  assert report[2]["decoding_agreement"] >= 0.95 and report[1]["decoding_agreement"] >= 0.95, report
+  assert evaluation.accuracy(hierarchy, ADDITION.spec, datasets.random_addition_problems(3, [20], 20)) == 1.0
+
+
 class _Interrupt(Exception):
   pass
 
