@@ -14,10 +14,9 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 from flax import nnx
 
-from php_jax import executor
+from php_jax import executor, fitting
 from php_jax.demos import Demonstration
 
 
@@ -109,29 +108,7 @@ def train(policy: FlatLSTMPolicy, demos: Demonstration, iterations: int, learnin
   earliest snapshot with the best on_eval() score (else the final one). Returns a report."""
   observations, actions = jnp.asarray(demos.observations), jnp.asarray(demos.actions)
   length = jnp.asarray(demos.length)
-  graphdef, params, rest = nnx.split(policy, nnx.Param, ...)
-  optimizer = optax.adam(learning_rate)
-  opt_state = optimizer.init(params)
-
-  @jax.jit
-  def update(params, opt_state):
-    def loss_of(p):
-      model = nnx.merge(graphdef, p, rest)
-      return -jnp.mean(jax.vmap(model.log_likelihood)(observations, actions, length))
-    loss, grads = jax.value_and_grad(loss_of)(params)
-    updates, opt_state = optimizer.update(grads, opt_state, params)
-    return optax.apply_updates(params, updates), opt_state, loss
-
-  best = (None, None, None)  # (score, iteration, params) of the kept snapshot
-  losses = []
-  for iteration in range(1, iterations + 1):
-    params, opt_state, loss = update(params, opt_state)
-    if iteration % eval_every == 0 or iteration == iterations:
-      nnx.update(policy, params)
-      score = on_eval(iteration) if on_eval else None
-      if score is not None and (best[0] is None or score > best[0]):
-        best = (score, iteration, params)
-      losses.append([iteration, float(loss)])
-      log({"iteration": iteration, "loss": float(loss), **({"validation": score} if score is not None else {})})
-  nnx.update(policy, best[2] if best[0] is not None else params)
-  return {"losses": losses, "best_iteration": best[1], "validation": best[0]}
+  progress = fitting.fit(
+      policy, lambda model: -jnp.mean(jax.vmap(model.log_likelihood)(observations, actions, length)),
+      iterations, learning_rate, eval_every, on_eval=(lambda it, loss: on_eval(it)) if on_eval else None, log=log)
+  return {"losses": progress.losses, "best_iteration": progress.best_iteration, "validation": progress.best_score}

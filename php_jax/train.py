@@ -12,7 +12,7 @@ import dataclasses
 import json
 import os
 import time
-from typing import Any, Callable, NamedTuple
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -20,7 +20,7 @@ import numpy as np
 import optax
 from flax import nnx, serialization
 
-from php_jax import checkpoint, lattice, views
+from php_jax import checkpoint, fitting, lattice, views
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.demos import validate as validate_demos
 from php_jax.hierarchy import HierarchySpec
@@ -131,59 +131,15 @@ def decode(model: LevelModel, view: views.LevelView, capacity: int, method: str,
   return np.asarray(paths.procedure), np.asarray(paths.counter)
 
 
-class LevelProgress(NamedTuple):
-  """Where a level's training stands, for checkpoints: after `iteration` updates."""
-  iteration: int
-  params: Any
-  opt_state: Any
-  best_params: Any          # the kept snapshot (the current params until a validation score exists)
-  best_iteration: int | None
-  best_score: float | None
-  losses: list
-
-
 def train_level(model: LevelModel, view: views.LevelView, capacity: int, config: TrainConfig,
                 on_eval: Callable[[int, float], float | None] | None = None,
-                log: Callable[[dict], None] = print, resume: LevelProgress | None = None,
-                save: Callable[[LevelProgress], None] | None = None) -> LevelProgress:
-  """Full-batch Adam on one level's EG loss. Updates `model` in place.
-
-  Every config.eval_every iterations and at the end: on_eval(iteration, loss) may return a validation
-  score (the earliest snapshot with the highest score is kept, else the final iterate), then save(progress)
-  is called (before logging). resume continues from a saved LevelProgress.
-  """
+                log: Callable[[dict], None] = print, resume: fitting.Progress | None = None,
+                save: Callable[[fitting.Progress], None] | None = None) -> fitting.Progress:
+  """Full-batch Adam on one level's EG loss over its views in length buckets (`fitting.fit`: snapshots,
+  saving, resuming). Updates `model` in place."""
   buckets = [_device_view(b) for b in length_buckets(view, config.length_buckets)]
-  graphdef, params, rest = nnx.split(model, nnx.Param, ...)
-  optimizer = optax.adam(config.learning_rate)
-  opt_state = optimizer.init(params)
-  progress = resume if resume is not None else LevelProgress(0, params, opt_state, params, None, None, [])
-
-  @jax.jit
-  def update(params, opt_state):
-    def loss_of(p):
-      return level_loss(nnx.merge(graphdef, p, rest), buckets, capacity, config.strong_weight)
-    loss, grads = jax.value_and_grad(loss_of)(params)
-    updates, opt_state = optimizer.update(grads, opt_state, params)
-    return optax.apply_updates(params, updates), opt_state, loss
-
-  params, opt_state = progress.params, progress.opt_state
-  for iteration in range(progress.iteration + 1, config.iterations + 1):
-    params, opt_state, loss = update(params, opt_state)
-    if iteration % config.eval_every == 0 or iteration == config.iterations:
-      loss = float(loss)
-      nnx.update(model, params)
-      score = on_eval(iteration, loss) if on_eval else None
-      improved = score is not None and (progress.best_score is None or score > progress.best_score)
-      progress = LevelProgress(
-          iteration, params, opt_state,
-          params if improved or progress.best_iteration is None else progress.best_params,
-          iteration if improved else progress.best_iteration,
-          score if improved else progress.best_score, progress.losses + [[iteration, loss]])
-      if save:
-        save(progress)
-      log({"iteration": iteration, "loss": loss, **({"validation": score} if score is not None else {})})
-  nnx.update(model, progress.best_params)
-  return progress
+  return fitting.fit(model, lambda m: level_loss(m, buckets, capacity, config.strong_weight), config.iterations,
+                     config.learning_rate, config.eval_every, on_eval, log, resume, save)
 
 
 def _capacity(view: views.LevelView, level: int, config: TrainConfig) -> int:
@@ -296,18 +252,18 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
   return hierarchy, report
 
 
-def _progress_from(saved, model: LevelModel) -> LevelProgress:
-  """The saved in-progress level's LevelProgress, shaped like a fresh optimizer for `model`."""
+def _progress_from(saved, model: LevelModel) -> fitting.Progress:
+  """The saved in-progress level's Progress, shaped like a fresh optimizer for `model`."""
   meta, state = saved
   params = nnx.state(model, nnx.Param)
   template = (params, optax.adam(0.0).init(params), params)
   restored = _unflatten(template, state["progress"])
   p = meta["progress"]
-  return LevelProgress(p["iteration"], *restored, p["best_iteration"], p["best_score"],
+  return fitting.Progress(p["iteration"], *restored, p["best_iteration"], p["best_score"],
                        [list(x) for x in p["losses"]])
 
 
-def _write_checkpoint(path, hierarchy, level, progress: LevelProgress | None, report, decoded) -> None:
+def _write_checkpoint(path, hierarchy, level, progress: fitting.Progress | None, report, decoded) -> None:
   """One file: the hierarchy's parameters, the level in progress (or the next level, not started), decodings."""
   meta = {"level": level, "iteration": progress.iteration if progress else 0, "report": report,
           "progress": None if progress is None else {

@@ -1,0 +1,61 @@
+"""Full-batch Adam with the project's snapshot rule and resumable progress: the loop that both the PHP
+levels (php_jax.train) and the flat LSTM baseline (php_jax.flat_lstm) train with."""
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple
+
+import jax
+import optax
+from flax import nnx
+
+
+class Progress(NamedTuple):
+  """Where a fit stands, for checkpoints: after `iteration` updates."""
+  iteration: int
+  params: Any
+  opt_state: Any
+  best_params: Any          # the kept snapshot (the current params until a validation score exists)
+  best_iteration: int | None
+  best_score: float | None
+  losses: list
+
+
+def fit(model: nnx.Module, loss_fn: Callable[[nnx.Module], jax.Array], iterations: int, learning_rate: float,
+        eval_every: int, on_eval: Callable[[int, float], float | None] | None = None,
+        log: Callable[[dict], None] = print, resume: Progress | None = None,
+        save: Callable[[Progress], None] | None = None) -> Progress:
+  """Full-batch Adam on loss_fn(model) []. Updates `model` in place to the kept snapshot.
+
+  Every eval_every iterations and at the end: on_eval(iteration, loss) may return a validation score (the
+  earliest snapshot with the highest score is kept, else the final iterate), then save(progress) is called
+  (before logging). resume continues from a saved Progress.
+  """
+  graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+  optimizer = optax.adam(learning_rate)
+  progress = resume if resume is not None else Progress(0, params, optimizer.init(params), params, None, None,
+                                                        [])
+
+  @jax.jit
+  def update(params, opt_state):
+    loss, grads = jax.value_and_grad(lambda p: loss_fn(nnx.merge(graphdef, p, rest)))(params)
+    updates, opt_state = optimizer.update(grads, opt_state, params)
+    return optax.apply_updates(params, updates), opt_state, loss
+
+  params, opt_state = progress.params, progress.opt_state
+  for iteration in range(progress.iteration + 1, iterations + 1):
+    params, opt_state, loss = update(params, opt_state)
+    if iteration % eval_every == 0 or iteration == iterations:
+      loss = float(loss)
+      nnx.update(model, params)
+      score = on_eval(iteration, loss) if on_eval else None
+      improved = score is not None and (progress.best_score is None or score > progress.best_score)
+      progress = Progress(
+          iteration, params, opt_state,
+          params if improved or progress.best_iteration is None else progress.best_params,
+          iteration if improved else progress.best_iteration,
+          score if improved else progress.best_score, progress.losses + [[iteration, loss]])
+      if save:
+        save(progress)
+      log({"iteration": iteration, "loss": loss, **({"validation": score} if score is not None else {})})
+  nnx.update(model, progress.best_params)
+  return progress
