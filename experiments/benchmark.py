@@ -2,6 +2,7 @@ r"""Benchmarks as commands: ratios against baselines measured in the same proces
 
   python -m experiments.benchmark estep     # E-step: ours vs a plain log-space scan vs dynamax's smoother
   python -m experiments.benchmark rollout   # oracle rollouts: elementary steps per second
+  python -m experiments.benchmark train_step --hidden=64  # one EG iteration at addition's lowest level, split
 
 estep times values + marginals for B demonstrations of T steps (vmapped, jitted) at the sizes of issue 3,
 checks that the three agree on log P(ξ), and prints lattice cells (B·T·K·C) per second and ratios.
@@ -17,9 +18,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from absl import app, flags
+from flax import nnx
 
 import php_jax
-from php_jax import datasets, executor, tasks
+from php_jax import datasets, executor, tasks, train, views
 from php_jax.envs import addition
 
 _SIZES = flags.DEFINE_string(
@@ -30,6 +32,9 @@ _DYNAMAX_MAX_BYTES = flags.DEFINE_float("dynamax_max_gb", 4.0, "Skip dynamax abo
 _OUT = flags.DEFINE_string("out", None, "Optional JSON file for the results.")
 _DIGITS = flags.DEFINE_integer("digits", 1000, "rollout: digits per addition problem.")
 _PROBLEMS = flags.DEFINE_integer("problems", 100, "rollout: number of problems.")
+_HIDDEN = flags.DEFINE_list("hidden", ["64"], "train_step: hidden layer sizes of the PHP networks.")
+_ROOT = flags.DEFINE_enum("root", "lstm", ["lstm", "mlp"], "train_step: root network.")
+_NUM_STRONG = flags.DEFINE_integer("num_strong", 3, "train_step: annotated traces of the 160.")
 
 
 def _median_seconds(fn, *args) -> float:
@@ -158,8 +163,49 @@ def bench_rollout():
   return rows
 
 
+def bench_train_step():
+  """Where one training iteration's time goes at addition's lowest level (the costliest level: 160 views in
+  length buckets): the jitted gradient of the whole EG loss against the same loss with the lattice replaced
+  by a plain sum of its inputs (the networks alone) and against the root network alone."""
+  task = tasks.get("addition")
+  problems = datasets.addition_problems(1)
+  demos = datasets.oracle_demonstrations(task, datasets.addition_states(problems), _NUM_STRONG.value,
+                                         addition.oracle_step_budget(10))
+  view = views.lowest_view(demos, task.spec.num_levels)
+  config = train.TrainConfig(hidden=tuple(int(h) for h in _HIDDEN.value), root=_ROOT.value,
+                             strong_weight=train.balanced_strong_weight(demos.strong))
+  level = task.spec.num_levels - 1
+  model = train.LevelModel(train.make_hierarchy(task.spec, config).levels[level],
+                           train.make_root(task.spec, level, config))
+  buckets = [train._device_view(b) for b in train.length_buckets(view, config.length_buckets)]
+  capacity = train._capacity(view, level, config)
+  graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+
+  def networks_only(m):  # the lattice's inputs, summed where finite: the same networks, no E-step
+    total = 0.0
+    for b in buckets:
+      inputs = jax.vmap(lambda *a: train.lattice_inputs(m, *a, capacity))(
+          b.observations, b.actions, b.procedures, b.counters, b.length)
+      total = total + sum(jnp.sum(jnp.where(jnp.isfinite(x), x, 0.0)) for x in inputs)
+    return total
+
+  losses = {"EG loss (networks + lattice)": lambda m: train.level_loss(m, buckets, capacity, config.strong_weight),
+            "networks only": networks_only,
+            "root network only": lambda m: sum(jnp.sum(jax.vmap(m.root)(b.observations[:, :-1])) for b in buckets)}
+  print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}); addition level {level}: "
+        f"{len(problems)} views in {len(buckets)} buckets, C = {capacity}, hidden {config.hidden}, root {config.root}")
+  rows, first = [], None
+  for name, loss in losses.items():
+    grad = jax.jit(jax.value_and_grad(lambda p, loss=loss: loss(nnx.merge(graphdef, p, rest))))
+    seconds = _median_seconds(grad, params)
+    first = first or seconds
+    rows.append({"what": name, "ms": seconds * 1e3, "fraction_of_full": seconds / first})
+    print(f"{name:>30}: {seconds * 1e3:8.1f} ms per gradient  ({seconds / first:.2f} of the full loss)")
+  return rows
+
+
 def main(argv):
-  commands = {"estep": bench_estep, "rollout": bench_rollout}
+  commands = {"estep": bench_estep, "rollout": bench_rollout, "train_step": bench_train_step}
   if len(argv) != 2 or argv[1] not in commands:
     raise app.UsageError(f"usage: python -m experiments.benchmark {{{'|'.join(commands)}}} [--flags]")
   rows = commands[argv[1]]()

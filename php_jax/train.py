@@ -181,6 +181,16 @@ def make_hierarchy(spec: HierarchySpec, config: TrainConfig) -> PHPHierarchy:
                       rngs=nnx.Rngs(config.seed))
 
 
+def make_root(spec: HierarchySpec, level: int, config: TrainConfig) -> nnx.Module | None:
+  """The root network standing in for the untrained levels above `level` (None for the root level)."""
+  if level == 0:
+    return None
+  rngs = nnx.Rngs(config.seed + 1000 + level)
+  if config.root == "lstm":
+    return RootLSTM(spec.obs_dim, spec.num_procs(level), config.root_hidden, rngs=rngs)
+  return RootMLP(spec.obs_dim, spec.num_procs(level), (config.root_hidden,), rngs=rngs)
+
+
 def _leaves(tree) -> dict:
   return {str(i): np.asarray(x) for i, x in enumerate(jax.tree.leaves(tree))}
 
@@ -218,13 +228,7 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
     start = time.time()
     capacity = _capacity(view, level, config)
     if level not in report:
-      root = None
-      if level > 0:
-        rngs = nnx.Rngs(config.seed + 1000 + level)
-        num = spec.num_procs(level)
-        root = (RootLSTM(spec.obs_dim, num, config.root_hidden, rngs=rngs) if config.root == "lstm"
-                else RootMLP(spec.obs_dim, num, (config.root_hidden,), rngs=rngs))
-      model = LevelModel(hierarchy.levels[level], root)
+      model = LevelModel(hierarchy.levels[level], make_root(spec, level, config))
       resume = _progress_from(saved, model) if saved is not None and saved[0]["level"] == level else None
       on_eval = (lambda it, loss: validate(hierarchy)) if (level == 0 and validate) else None
       log({"level": level, "capacity": capacity, "view_length": int(view.length.max())})

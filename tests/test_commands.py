@@ -28,6 +28,10 @@ def test_benchmark_commands_run_and_cross_check(tmp_path):
                          "--min_time=0"], capture_output=True, text=True, timeout=300, cwd=ROOT)
   assert proc.returncode == 0, proc.stderr
   assert "steps/s" in proc.stdout
+  proc = subprocess.run([sys.executable, "-m", "experiments.benchmark", "train_step", "--hidden=8", "--root=mlp",
+                         "--min_time=0"], capture_output=True, text=True, timeout=300, cwd=ROOT)
+  assert proc.returncode == 0, proc.stderr
+  assert "networks only" in proc.stdout and "of the full loss" in proc.stdout
 
 
 def test_benchmark_rejects_unknown_command():
