@@ -90,9 +90,13 @@ def nanocraft_figure(groups, path: str) -> None:
     lines[(model, total)].append((strong, np.mean(accs), min(accs), max(accs)))
   for (model, total), points in sorted(lines.items()):
     x, mean, low, high = map(np.array, zip(*sorted(points)))
-    if model == "php":
-      ax.errorbar(x, mean, yerr=[mean - low, high - mean], marker="o", capsize=3, label=f"PHP-{total}")
-    else:  # actions only: one level across the axis
+    if model == "php" and np.any(x > 0):
+      annotated = x > 0
+      ax.errorbar(x[annotated], mean[annotated], yerr=[(mean - low)[annotated], (high - mean)[annotated]],
+                  marker="o", capsize=3, label=f"PHP-{total}")
+    if model == "php" and x[0] == 0:  # weak only: no place on the log axis, one level across it
+      ax.axhline(mean[0], linestyle=":", color="black", label=f"PHP-{total}, weak only ({mean[0]:.3f})")
+    elif model != "php":  # actions only: one level across the axis
       ax.axhline(mean[0], linestyle="--", color="gray", label=f"flat LSTM-{total} ({mean[0]:.3f})")
   ax.set_xscale("log", base=2)
   ax.set_xlabel("strongly supervised demonstrations")

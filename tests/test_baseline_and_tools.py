@@ -64,7 +64,7 @@ def test_sweep_grid_is_the_product_without_impossible_combinations():
 def test_plot_draws_the_figure_and_tables(tmp_path):
   runs = tmp_path / "runs"
   for i, (model, total, strong, acc) in enumerate([("php", 16, 1, 0.5), ("php", 16, 1, 0.7), ("php", 16, 4, 1.0),
-                                                   ("flat_lstm", 16, 0, 0.2)]):
+                                                   ("php", 16, 0, 0.3), ("flat_lstm", 16, 0, 0.2)]):
     (runs / str(i)).mkdir(parents=True)
     (runs / str(i) / "results.json").write_text(json.dumps(
         {"task": "nanocraft", "model": model, "num_demos": total, "num_strong": strong, "test": {"accuracy": acc}}))
@@ -77,6 +77,7 @@ def test_plot_draws_the_figure_and_tables(tmp_path):
                         capture_output=True, text=True, timeout=300)
   assert proc.returncode == 0, proc.stderr[-2000:]
   assert "| php | 16 | 1 | 2 | 0.600 | 0.500 | 0.700 |" in (out / "nanocraft.md").read_text()
+  assert "| php | 16 | 0 | 1 | 0.300 |" in (out / "nanocraft.md").read_text()  # weak only
   assert "| php | 3 | 1.000 (2/2) | 0.995 (1/2) |" in (out / "addition.md").read_text()
   for png in ("nanocraft.png", "addition.png"):
     assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
