@@ -16,7 +16,7 @@ from php_jax.envs import addition
 _TEST_LENGTHS = flags.DEFINE_list("test_lengths", ["20", "100"], "Digits of the test problems.")
 _NUM_TEST = flags.DEFINE_integer("num_test", 100, "Test problems per length.")
 DEFAULT_TAU_IN_TERMINATION = (False, True, True)  # add's ψ needs no counter; add1's and the lowest's do
-DEFAULT_HIDDEN = (64,)  # one layer: as accurate as (64, 64) here and about twice as fast
+DEFAULT_HIDDEN = (64,)  # one layer: solved every test length with 1, 3, 10 strong; twice as fast as (64, 64)
 
 
 def main(argv):

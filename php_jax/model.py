@@ -21,8 +21,8 @@ class ProcedureMLPs(nnx.Module):
   The first layer is split into an observation part, computed once per observation, and a τ part added per
   counter, so a [N observations × M counters] grid costs N + M first-layer products, not N × M. Activations
   are laid out [K, N·M, H] and the output [K, out_dim, N, M]: plain batched matmuls, and per-output slabs
-  that the heads reduce over without touching a short minor axis (on the CPU each of these roughly halves
-  the gradient's time against [N, K, M, out_dim]).
+  that the heads reduce over without touching a short minor axis (on the CPU, at addition's lowest level
+  with hidden (32,), this cut a training gradient from 123 to 103 ms; BUILD.md).
   """
 
   def __init__(self, num_procs: int, obs_dim: int, hidden: tuple[int, ...], out_dim: int, *,
