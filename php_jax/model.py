@@ -79,9 +79,7 @@ class PHPLevel(nnx.Module):
       part = logits[:, start:start + size]
       # The chosen logit by a one-hot product: unlike a gather, its gradient is not a scatter.
       chosen = jnp.sum(part * jax.nn.one_hot(ops[:, f], size, dtype=part.dtype).T[None, :, :, None], axis=1)
-      peak = jax.lax.stop_gradient(jnp.max(part, axis=1))
-      log_norm = jnp.log(jnp.sum(jnp.exp(part - peak[:, None]), axis=1)) + peak
-      total, start = total + chosen - log_norm, start + size
+      total, start = total + chosen - jax.nn.logsumexp(part, axis=1), start + size
     return jnp.transpose(total, (1, 0, 2))
 
   def termination_logits(self, obs: jax.Array, tau: jax.Array) -> jax.Array:
