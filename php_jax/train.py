@@ -9,6 +9,7 @@ lattice's top-level mode (one procedure, called once). After a level is trained,
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import os
 import time
@@ -151,11 +152,13 @@ def _capacity(view: views.LevelView, level: int, config: TrainConfig) -> int:
   return int(annotated.max()) + 1 if annotated.size else config.capacity
 
 
-def agreement(demos: Demonstration, view: views.LevelView, level: int, procedures, counters) -> float | None:
-  """Fraction of weak demonstrations' elementary steps whose decoded (procedure, counter) at `level` equals
-  the supervisor's (None if no weak demonstration carries the supervisor's stack)."""
+def agreement_counts(demos: Demonstration, view: views.LevelView, level: int, procedures, counters):
+  """[K, K] counts of weak demonstrations' elementary steps decoded as procedure i at `level` whose
+  supervisor's procedure is j, with equal counters (None if no weak demonstration carries the supervisor's
+  stack), and the number of such steps."""
   true_procs, true_taus = np.asarray(demos.procedures), np.asarray(demos.counters)
-  match = total = 0
+  num_procs = int(max(true_procs[..., level].max(), np.max(procedures))) + 1
+  counts, total = np.zeros((num_procs, num_procs), np.int64), 0
   for b in np.flatnonzero(~view.strong):
     n_elem = int(demos.length[b])
     if np.any(true_procs[b, :n_elem, level] == UNKNOWN):
@@ -163,10 +166,33 @@ def agreement(demos: Demonstration, view: views.LevelView, level: int, procedure
     bounds = list(view.times[b, :view.length[b]]) + [n_elem]
     for k in range(view.length[b]):
       steps = slice(bounds[k], bounds[k + 1])
-      match += np.sum((true_procs[b, steps, level] == procedures[b, k])
-                      & (true_taus[b, steps, level] == counters[b, k]))
+      same_tau = true_taus[b, steps, level] == counters[b, k]
+      np.add.at(counts[procedures[b, k]], true_procs[b, steps, level][same_tau], 1)
       total += bounds[k + 1] - bounds[k]
-  return float(match / total) if total else None
+  return (counts, total) if total else (None, 0)
+
+
+def agreement(demos: Demonstration, view: views.LevelView, level: int, procedures, counters) -> float | None:
+  """Fraction of weak demonstrations' elementary steps whose decoded (procedure, counter) at `level` equals
+  the supervisor's (None if no weak demonstration carries the supervisor's stack)."""
+  counts, total = agreement_counts(demos, view, level, procedures, counters)
+  return None if counts is None else float(np.trace(counts) / total)
+
+
+def relabelled_agreement(demos: Demonstration, view: views.LevelView, level: int, procedures,
+                         counters) -> float | None:
+  """agreement() under the renaming of decoded procedures that maximises it: how close the segmentation is
+  to the supervisor's when the procedures' ids are arbitrary (weak-only training). Brute force over the
+  K! renamings (K ≤ 8)."""
+  counts, total = agreement_counts(demos, view, level, procedures, counters)
+  if counts is None:
+    return None
+  num_procs = len(counts)
+  if num_procs > 8:
+    raise ValueError(f"relabelled_agreement enumerates K! renamings; K = {num_procs} is over 8")
+  rows = np.arange(num_procs)
+  best = max(counts[rows, list(perm)].sum() for perm in itertools.permutations(range(num_procs)))
+  return float(best / total)
 
 
 def balanced_strong_weight(strong) -> float:
@@ -247,6 +273,7 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
         decoded[level] = (np.where(view.strong[:, None], view.procedures, procs),
                           np.where(view.strong[:, None], view.counters, taus))
         entry["decoding_agreement"] = agreement(demos, view, level, *decoded[level])
+        entry["relabelled_agreement"] = relabelled_agreement(demos, view, level, *decoded[level])
       entry["seconds"] = time.time() - start
       report[level] = entry
       if checkpoint_path:  # the level is complete: its result survives a restart

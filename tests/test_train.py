@@ -61,6 +61,18 @@ def test_decoding_agreement_is_one_for_the_truth_and_lower_otherwise():
   assert train.agreement(demos, view, 2, *wrong) < 1.0
 
 
+def test_relabelled_agreement_ignores_procedure_ids_but_not_segmentation():
+  demos = _addition_demos([("19", "25"), ("7", "8"), ("5", "6")], num_strong=0)
+  view = views.lowest_view(demos, 3)
+  procs, taus = np.asarray(demos.procedures)[:, :, 2], np.asarray(demos.counters)[:, :, 2]
+  renamed = np.array([2, 0, 1])[procs]  # write, carry, lshift under other ids
+  assert train.agreement(demos, view, 2, renamed, taus) < 0.5
+  assert train.relabelled_agreement(demos, view, 2, renamed, taus) == 1.0
+  merged = np.zeros_like(procs)  # every call decoded as one procedure: no renaming recovers the three
+  counts, total = train.agreement_counts(demos, view, 2, merged, taus)
+  assert train.relabelled_agreement(demos, view, 2, merged, taus) == counts.max() / total < 1.0
+
+
 def test_training_refuses_malformed_demonstrations():
   demos = _addition_demos([("19", "25")], num_strong=1)
   counters = np.array(demos.counters)
