@@ -96,61 +96,52 @@ def _forward_scan(log_root, log_op, log_stop, log_cont, length, semiring_max: bo
   """α recursion over flattened cells, renormalised every step.
 
   The carry is (continuing cells' log-mass [S], pending log stop mass []), both relative to the running
-  scale; step t pushes with log η_⊥(· | o_t) itself, so the scan reads the raw inputs (no shifted copies).
-  The carry runs on through padding: every output there is masked afterwards.
+  scale; step t pushes with log η_⊥(· | o_t) itself. The stop and continue scores of the emission are
+  summed once outside the scan and read by index (scanning over them as xs would make vmap transpose
+  them time-major first, a full copy each). The carry runs on through padding.
 
   Returns:
-    alphas: [T, S] log α_t relative to the scale at t (before emitting a_t).
-    stop_total: [T] log of the stop mass at t, relative to the same scale (max-product: the best stop).
     log_increments: [T] summing to log P(ξ) (max-product: the best path's log-probability).
-    best_stop: [T] the best stopping cell (max-product only).
+    stops: [T, S] sum-product: the stop filter q_t = P(h_t, τ_t | o_{0:t+1}, a_{0:t}, stop at t) over
+      flat cells, the final-state posterior at t = length-1, zero on padding and where no stop is
+      possible. [T] max-product: the best stopping cell.
   """
   num_steps, num_procs, capacity = log_op.shape
   is_push = _is_push(num_procs, capacity)
   can_continue = jnp.arange(num_procs * capacity) % capacity < capacity - 1
+  op_stop = (log_op + log_stop).reshape(num_steps, -1)
+  op_cont = jnp.where(can_continue, (log_op + log_cont).reshape(num_steps, -1), -jnp.inf)
 
-  def step(carry, xs):
+  def step(carry, t):
     continuing, pending = carry
-    log_root, log_op, log_stop, log_cont = xs
-    pushed = jnp.broadcast_to((log_root + pending)[:, None], (num_procs, capacity)).reshape(-1)
+    pushed = jnp.broadcast_to((log_root[t] + pending)[:, None], (num_procs, capacity)).reshape(-1)
     alpha = jnp.where(is_push, pushed, continuing)
-    emit = alpha + log_op.reshape(-1)
-    stop_scores = emit + log_stop.reshape(-1)
-    cont_scores = jnp.where(can_continue, emit + log_cont.reshape(-1), -jnp.inf)
+    stop_scores = alpha + op_stop[t]
+    cont_scores = alpha + op_cont[t]
     if semiring_max:
-      best = jnp.argmax(stop_scores).astype(jnp.int32)
-      stop_total = stop_scores[best]
+      stops = jnp.argmax(stop_scores).astype(jnp.int32)
+      stop_total = stop_scores[stops]
     else:
       peak = _finite_or_zero(jnp.max(stop_scores))
-      stop_total = jnp.log(jnp.sum(jnp.exp(stop_scores - peak))) + peak
+      weights = jnp.exp(stop_scores - peak)
+      total = jnp.sum(weights)
+      stop_total = jnp.log(total) + peak
+      used = (t < length) & (total > 0)  # dividing keeps the smoother's mass exactly 1
+      stops = jnp.where(used, weights / jnp.where(used, total, 1.0), 0.0)
     scale = _finite_or_zero(jnp.maximum(jnp.max(cont_scores), stop_total))
     carry = (_shift(cont_scores, 1, -jnp.inf) - scale, stop_total - scale)
-    return carry, (alpha, stop_total, scale) + ((best,) if semiring_max else ())
+    increment = jnp.where(t == length - 1, stop_total, jnp.where(t < length - 1, scale, 0.0))
+    return carry, (increment, stops)
 
   init = (jnp.full(num_procs * capacity, -jnp.inf, log_op.dtype), jnp.zeros((), log_op.dtype))
-  _, (alphas, stop_total, scale, *best) = jax.lax.scan(step, init, (log_root, log_op, log_stop, log_cont))
-  t = jnp.arange(num_steps)
-  log_increments = jnp.where(t == length - 1, stop_total, jnp.where(t < length - 1, scale, 0.0))
-  return (alphas, stop_total, log_increments, *best)
+  _, (log_increments, stops) = jax.lax.scan(step, init, jnp.arange(num_steps))
+  return log_increments, stops
 
 
 def _forward_filter(log_root, log_op, log_stop, log_cont, length):
-  """Sum-product forward pass.
-
-  Returns:
-    log_likelihood: [].
-    stop_filter: [T, S] q_t = P(h_t, τ_t | o_{0:t+1}, a_{0:t}, stop at t) over flat cells; the final-state
-      posterior at t = length-1; zero on padding and where no stop is possible.
-  """
-  num_steps = log_op.shape[0]
-  alphas, log_stop_mass, log_increments = _forward_scan(log_root, log_op, log_stop, log_cont, length,
-                                                        semiring_max=False)
-  used = (jnp.arange(num_steps) < length) & jnp.isfinite(log_stop_mass)
-  safe_mass = jnp.where(used, log_stop_mass, 0.0)[:, None]
-  stop_scores = alphas + (log_op + log_stop).reshape(num_steps, -1)
-  weights = jnp.where(used[:, None], jnp.exp(stop_scores - safe_mass), 0.0)
-  total = jnp.sum(weights, axis=1, keepdims=True)  # ≈ 1; dividing keeps the smoother's mass exactly 1
-  return jnp.sum(log_increments), weights / jnp.where(total > 0, total, 1.0)
+  """Sum-product forward pass: (log_likelihood [], stop filter q [T, S], as in _forward_scan)."""
+  log_increments, stop_filter = _forward_scan(log_root, log_op, log_stop, log_cont, length, semiring_max=False)
+  return jnp.sum(log_increments), stop_filter
 
 
 def _backward_smoother(stop_filter, length, capacity):
@@ -165,14 +156,12 @@ def _backward_smoother(stop_filter, length, capacity):
   def shift_down(v):  # out[h, τ] = v[h, τ+1], zero at τ = C-1
     return jnp.where(is_last, 0.0, _shift(v, -1, 0.0))
 
-  def step(v_next, xs):
-    t, q = xs
+  def step(v_next, t):
     pushed_next = jnp.where(t == length - 1, 1.0, jnp.sum(v_next[::capacity]))  # Σ_h v_{t+1}(h, 0)
-    v = shift_down(v_next) + pushed_next * q
+    v = shift_down(v_next) + pushed_next * stop_filter[t]
     return v, v
 
-  _, v = jax.lax.scan(step, jnp.zeros_like(stop_filter[0]),
-                      (jnp.arange(stop_filter.shape[0]), stop_filter), reverse=True)
+  _, v = jax.lax.scan(step, jnp.zeros_like(stop_filter[0]), jnp.arange(stop_filter.shape[0]), reverse=True)
   w = shift_down(jnp.concatenate([v[1:], jnp.zeros_like(v[:1])]))
   return v, w
 
@@ -244,8 +233,7 @@ def viterbi(log_root, log_op, log_stop, log_cont, length=None) -> LatticePath:
 @jax.jit
 def _viterbi(log_root, log_op, log_stop, log_cont, length):
   num_steps, _, capacity = log_op.shape
-  _, _, log_increments, best_stop = _forward_scan(log_root, log_op, log_stop, log_cont, length,
-                                                  semiring_max=True)
+  log_increments, best_stop = _forward_scan(log_root, log_op, log_stop, log_cont, length, semiring_max=True)
 
   def backtrack(state_next, xs):
     t, best = xs
