@@ -4,6 +4,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import subprocess
 import time
 from typing import Callable
 
@@ -81,10 +82,23 @@ def train_and_evaluate(task_name: str, demos: Demonstration, config: train.Train
           "final_loss": entry["losses"][-1][1] if entry["losses"] else None} for level, entry in report.items()}}
   test_results = test(model)
   results = {"task": task_name, "model": MODEL.value, "config": dataclasses.asdict(config), **extra, **trained,
-             "test": test_results, "wall_seconds": round(time.time() - start, 1)}
+             "test": test_results, "wall_seconds": round(time.time() - start, 1), "commit": code_version()}
   checkpoint.write_atomically(os.path.join(workdir, "results.json"), json.dumps(results, indent=1).encode())
   print(json.dumps({"test": test_results, "wall_seconds": results["wall_seconds"]}), flush=True)
   return results
+
+
+def code_version() -> str | None:
+  """The git commit that ran, with "+dirty" if php_jax/ or experiments/ had uncommitted changes; None
+  outside a git checkout."""
+  root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+  try:
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True)
+    status = subprocess.run(["git", "status", "--porcelain", "--", "php_jax", "experiments"], cwd=root,
+                            capture_output=True, text=True, check=True)
+  except (OSError, subprocess.CalledProcessError):
+    return None
+  return head.stdout.strip() + ("+dirty" if status.stdout.strip() else "")
 
 
 def _train_flat_lstm(task, demos: Demonstration, config: train.TrainConfig, validate, log):

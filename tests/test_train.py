@@ -106,6 +106,7 @@ def test_nanocraft_run_solves_held_out_episodes_and_evaluate_loads_it(tmp_path):
   results = json.loads((workdir / "results.json").read_text())
   assert results["test"]["accuracy"] >= 0.8, results["test"]
   assert set(results["levels"]) == {"0", "1", "2"} and results["levels"]["0"]["best_iteration"] is not None
+  assert results["commit"] is None or len(results["commit"].removesuffix("+dirty")) == 40  # provenance
   assert (workdir / "metrics.jsonl").read_text().count("\n") > 10
   problems = tmp_path / "p.jsonl"
   problems.write_text("".join(json.dumps({"x": x, "y": y, "w": w, "h": h, "preplaced": pre}) + "\n"
