@@ -2,6 +2,8 @@ r"""Runs a training experiment over a grid of flag values, one workdir per combi
 
   python -m experiments.sweep --task=nanocraft --workdir=runs/nc_sweep \
       --grid=num_demos=16,32,64 --grid=num_strong=1,2,4,8,16,32,64 --grid=seed=1,2,3,4,5 -- --iterations=2000
+  python -m experiments.sweep --task=nanocraft --workdir=runs/nc_hparams \
+      --grid=num_demos=64 --grid=num_strong=8 --grid='tau_in_termination=1,1,1|1,0,1|1,1,0' --grid=seed=1
 
 Each combination runs `python -m experiments.<task> --workdir=WORKDIR/<name=value,...> --name=value ...`
 followed by the flags after `--` (the same for every run). A combination whose results.json exists is
@@ -26,20 +28,22 @@ _PARALLEL = flags.DEFINE_integer("parallel", 1, "Runs at a time.")
 
 
 def parse_grid(entries: list[str]) -> list[dict[str, str]]:
-  """['a=1,2', 'b=x'] → [{'a': '1', 'b': 'x'}, {'a': '2', 'b': 'x'}], without num_strong > num_demos."""
+  """['a=1,2', 'b=x'] → [{'a': '1', 'b': 'x'}, {'a': '2', 'b': 'x'}], without num_strong > num_demos.
+  Values that are themselves lists are separated by '|' instead: 'tau_in_termination=1,1,1|1,0,1'."""
   axes = []
   for entry in entries:
     name, sep, values = entry.partition("=")
     if not sep or not name or not values:
-      raise ValueError(f"--grid={entry!r}: expected name=value[,value...]")
-    axes.append([(name, v) for v in values.split(",")])
+      raise ValueError(f"--grid={entry!r}: expected name=value[,value...] or name=list[|list...]")
+    axes.append([(name, v) for v in values.split("|" if "|" in values else ",")])
   combos = [dict(c) for c in itertools.product(*axes)]
   return [c for c in combos
           if not ("num_strong" in c and "num_demos" in c and int(c["num_strong"]) > int(c["num_demos"]))]
 
 
 def run_name(combo: dict[str, str]) -> str:
-  return ",".join(f"{k}={v}" for k, v in combo.items()) or "default"
+  """{'num_demos': '64', 'tau_in_termination': '1,0,1'} → 'num_demos=64,tau_in_termination=1:0:1'."""
+  return ",".join(f"{k}={v.replace(',', ':')}" for k, v in combo.items()) or "default"
 
 
 def _run(task: str, workdir: str, combo: dict[str, str], extra: list[str]) -> tuple[str, int]:

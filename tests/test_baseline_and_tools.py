@@ -57,6 +57,9 @@ def test_sweep_grid_is_the_product_without_impossible_combinations():
                     {"num_demos": "64", "num_strong": "1", "seed": "1"},
                     {"num_demos": "64", "num_strong": "32", "seed": "1"}]
   assert sweep.run_name(combos[0]) == "num_demos=16,num_strong=1,seed=1"
+  lists = sweep.parse_grid(["tau_in_termination=1,1,1|1,0,1", "seed=1,2"])
+  assert [c["tau_in_termination"] for c in lists] == ["1,1,1", "1,1,1", "1,0,1", "1,0,1"]
+  assert sweep.run_name(lists[2]) == "tau_in_termination=1:0:1,seed=1"
   with pytest.raises(ValueError, match="name=value"):
     sweep.parse_grid(["num_demos"])
 
