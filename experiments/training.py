@@ -63,7 +63,7 @@ def train_and_evaluate(task_name: str, demos: Demonstration, config: train.Train
   task = tasks.get(task_name)
   if config.strong_weight is None:  # resolved here so that results.json records the number
     config = dataclasses.replace(config, strong_weight=train.balanced_strong_weight(np.asarray(demos.strong)))
-  start = time.time()
+  start, commit = time.time(), code_version()  # the code as it was when the run started
   metrics_path = os.path.join(workdir, "metrics.jsonl")
   with open(metrics_path, "a") as metrics:
     def log(row):
@@ -82,7 +82,7 @@ def train_and_evaluate(task_name: str, demos: Demonstration, config: train.Train
           "final_loss": entry["losses"][-1][1] if entry["losses"] else None} for level, entry in report.items()}}
   test_results = test(model)
   results = {"task": task_name, "model": MODEL.value, "config": dataclasses.asdict(config), **extra, **trained,
-             "test": test_results, "wall_seconds": round(time.time() - start, 1), "commit": code_version()}
+             "test": test_results, "wall_seconds": round(time.time() - start, 1), "commit": commit}
   checkpoint.write_atomically(os.path.join(workdir, "results.json"), json.dumps(results, indent=1).encode())
   print(json.dumps({"test": test_results, "wall_seconds": results["wall_seconds"]}), flush=True)
   return results
