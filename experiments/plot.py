@@ -4,7 +4,8 @@ r"""Figures and tables from the results.json files of training runs (e.g. those 
 
 NanoCraft (paper Figure 2): test accuracy against the number of strongly supervised demonstrations, one line
 per total number of demonstrations (the flat LSTM, which ignores annotations, as a dashed level), mean over
-trials with min–max bars → OUT/nanocraft.png and OUT/nanocraft.md. Addition (paper Table 2): per model and
+trials with min–max bars → OUT/nanocraft.png and OUT/nanocraft.md (which adds the mean decoding agreement
+with the supervisor at level 1, by exact procedure ids and up to a renaming of them). Addition (paper Table 2): per model and
 number of strong traces, the mean accuracy at each test length and in how many seeds it is 100% →
 OUT/addition.png and OUT/addition.md.
 """
@@ -51,6 +52,18 @@ def nanocraft_groups(results: list[dict]) -> dict[tuple[str, int, int], list[flo
   return dict(sorted(groups.items()))
 
 
+def nanocraft_agreements(results: list[dict]) -> dict[tuple[str, int, int], list[tuple[float, float]]]:
+  """(model, num_demos, num_strong) → per trial (exact, relabelled) decoding agreement at level 1, the level
+  whose segmentation decides the root's training data (trials without weak demonstrations left out)."""
+  groups = defaultdict(list)
+  for r in results:
+    level1 = r.get("levels", {}).get("1", {})
+    if r["task"] == "nanocraft" and level1.get("decoding_agreement") is not None:
+      exact = level1["decoding_agreement"]
+      groups[("php", r["num_demos"], r["num_strong"])].append((exact, level1.get("relabelled_agreement", exact)))
+  return dict(groups)
+
+
 def addition_groups(results: list[dict]) -> dict[tuple[str, int], dict[str, list[float]]]:
   """(model, num_strong) → test length → accuracies of its seeds."""
   groups = defaultdict(lambda: defaultdict(list))
@@ -61,12 +74,18 @@ def addition_groups(results: list[dict]) -> dict[tuple[str, int], dict[str, list
   return {k: dict(v) for k, v in sorted(groups.items())}
 
 
-def nanocraft_markdown(groups) -> str:
-  lines = ["| model | demonstrations | strong | trials | accuracy mean | min | max |",
-           "| --- | --- | --- | --- | --- | --- | --- |"]
-  for (model, total, strong), accs in groups.items():
+def nanocraft_markdown(groups, agreements=None) -> str:
+  agreements = agreements or {}
+  lines = ["| model | demonstrations | strong | trials | accuracy mean | min | max | "
+           "level-1 agreement mean: exact ids, up to renaming |",
+           "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+  for key, accs in groups.items():
+    model, total, strong = key
+    agree = agreements.get(key)
+    agree_text = (f"{np.mean([a for a, _ in agree]):.3f}, {np.mean([r for _, r in agree]):.3f}" if agree
+                  else "–")
     lines.append(f"| {model} | {total} | {strong} | {len(accs)} | {np.mean(accs):.3f} | {min(accs):.3f} | "
-                 f"{max(accs):.3f} |")
+                 f"{max(accs):.3f} | {agree_text} |")
   return "\n".join(lines) + "\n"
 
 
@@ -133,7 +152,7 @@ def main(argv):
   nanocraft, addition = nanocraft_groups(results), addition_groups(results)
   outputs = {}
   if nanocraft:
-    outputs["nanocraft.md"] = nanocraft_markdown(nanocraft).encode()
+    outputs["nanocraft.md"] = nanocraft_markdown(nanocraft, nanocraft_agreements(results)).encode()
   if addition:
     outputs["addition.md"] = addition_markdown(addition).encode()
   os.makedirs(_OUT.value, exist_ok=True)

@@ -69,8 +69,10 @@ def test_plot_draws_the_figure_and_tables(tmp_path):
   for i, (model, total, strong, acc) in enumerate([("php", 16, 1, 0.5), ("php", 16, 1, 0.7), ("php", 16, 4, 1.0),
                                                    ("php", 16, 0, 0.3), ("flat_lstm", 16, 0, 0.2)]):
     (runs / str(i)).mkdir(parents=True)
+    levels = {"1": {"decoding_agreement": acc / 2, "relabelled_agreement": acc}} if model == "php" else {}
     (runs / str(i) / "results.json").write_text(json.dumps(
-        {"task": "nanocraft", "model": model, "num_demos": total, "num_strong": strong, "test": {"accuracy": acc}}))
+        {"task": "nanocraft", "model": model, "num_demos": total, "num_strong": strong, "test": {"accuracy": acc},
+         "levels": levels}))
   for seed, accs in enumerate([(1.0, 1.0), (1.0, 0.99)]):
     (runs / f"add{seed}").mkdir()
     (runs / f"add{seed}" / "results.json").write_text(json.dumps(
@@ -79,8 +81,9 @@ def test_plot_draws_the_figure_and_tables(tmp_path):
   proc = subprocess.run([sys.executable, "-m", "experiments.plot", f"--runs={runs}", f"--out={out}"],
                         capture_output=True, text=True, timeout=300)
   assert proc.returncode == 0, proc.stderr[-2000:]
-  assert "| php | 16 | 1 | 2 | 0.600 | 0.500 | 0.700 |" in (out / "nanocraft.md").read_text()
+  assert "| php | 16 | 1 | 2 | 0.600 | 0.500 | 0.700 | 0.300, 0.600 |" in (out / "nanocraft.md").read_text()
   assert "| php | 16 | 0 | 1 | 0.300 |" in (out / "nanocraft.md").read_text()  # weak only
+  assert "| flat_lstm | 16 | 0 | 1 | 0.200 | 0.200 | 0.200 | – |" in (out / "nanocraft.md").read_text()
   assert "| php | 3 | 1.000 (2/2) | 0.995 (1/2) |" in (out / "addition.md").read_text()
   for png in ("nanocraft.png", "addition.png"):
     assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
