@@ -183,13 +183,11 @@ def relabelled_agreement(demos: Demonstration, view: views.LevelView, level: int
                          counters) -> float | None:
   """agreement() under the renaming of decoded procedures that maximises it: how close the segmentation is
   to the supervisor's when the procedures' ids are arbitrary (weak-only training). Brute force over the
-  K! renamings (K ≤ 8)."""
+  K! renamings, so None (not measured) above K = 8, as when no weak demonstration carries the stack."""
   counts, total = agreement_counts(demos, view, level, procedures, counters)
-  if counts is None:
+  num_procs = 0 if counts is None else len(counts)
+  if not 0 < num_procs <= 8:
     return None
-  num_procs = len(counts)
-  if num_procs > 8:
-    raise ValueError(f"relabelled_agreement enumerates K! renamings; K = {num_procs} is over 8")
   rows = np.arange(num_procs)
   best = max(counts[rows, list(perm)].sum() for perm in itertools.permutations(range(num_procs)))
   return float(best / total)

@@ -71,6 +71,7 @@ def test_relabelled_agreement_ignores_procedure_ids_but_not_segmentation():
   merged = np.zeros_like(procs)  # every call decoded as one procedure: no renaming recovers the three
   counts, total = train.agreement_counts(demos, view, 2, merged, taus)
   assert train.relabelled_agreement(demos, view, 2, merged, taus) == counts.max() / total < 1.0
+  assert train.relabelled_agreement(demos, view, 2, procs + 6, taus) is None  # 9 ids: 9! renamings, not tried
 
 
 def test_training_refuses_malformed_demonstrations():
