@@ -53,14 +53,15 @@ def nanocraft_groups(results: list[dict]) -> dict[tuple[str, int, int], list[flo
 
 
 def nanocraft_agreements(results: list[dict]) -> dict[tuple[str, int, int], list[tuple[float, float]]]:
-  """(model, num_demos, num_strong) → per trial (exact, relabelled) decoding agreement at level 1, the level
-  whose segmentation decides the root's training data (trials without weak demonstrations left out)."""
+  """(model, num_demos, num_strong) → per trial (exact, relabelled or None where not measured) decoding
+  agreement at level 1, the level whose segmentation decides the root's training data (trials without weak
+  demonstrations left out)."""
   groups = defaultdict(list)
   for r in results:
     level1 = r.get("levels", {}).get("1", {})
     if r["task"] == "nanocraft" and level1.get("decoding_agreement") is not None:
-      exact = level1["decoding_agreement"]
-      groups[("php", r["num_demos"], r["num_strong"])].append((exact, level1.get("relabelled_agreement", exact)))
+      groups[("php", r["num_demos"], r["num_strong"])].append(
+          (level1["decoding_agreement"], level1.get("relabelled_agreement")))
   return dict(groups)
 
 
@@ -82,8 +83,10 @@ def nanocraft_markdown(groups, agreements=None) -> str:
   for key, accs in groups.items():
     model, total, strong = key
     agree = agreements.get(key)
-    agree_text = (f"{np.mean([a for a, _ in agree]):.3f}, {np.mean([r for _, r in agree]):.3f}" if agree
-                  else "–")
+    relabelled = [r for _, r in agree or [] if r is not None]
+    agree_text = (f"{np.mean([a for a, _ in agree]):.3f}, "
+                  + (f"{np.mean(relabelled):.3f}" + (f" ({len(relabelled)} of {len(agree)} trials)" if len(relabelled) < len(agree)
+                                                     else "") if relabelled else "–")) if agree else "–"
     lines.append(f"| {model} | {total} | {strong} | {len(accs)} | {np.mean(accs):.3f} | {min(accs):.3f} | "
                  f"{max(accs):.3f} | {agree_text} |")
   return "\n".join(lines) + "\n"
