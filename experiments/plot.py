@@ -83,10 +83,13 @@ def nanocraft_markdown(groups, agreements=None) -> str:
   for key, accs in groups.items():
     model, total, strong = key
     agree = agreements.get(key)
-    relabelled = [r for _, r in agree or [] if r is not None]
-    agree_text = (f"{np.mean([a for a, _ in agree]):.3f}, "
-                  + (f"{np.mean(relabelled):.3f}" + (f" ({len(relabelled)} of {len(agree)} trials)" if len(relabelled) < len(agree)
-                                                     else "") if relabelled else "–")) if agree else "–"
+    agree_text = "–"
+    if agree:
+      relabelled = [r for _, r in agree if r is not None]
+      agree_text = f"{np.mean([a for a, _ in agree]):.3f}, "
+      agree_text += f"{np.mean(relabelled):.3f}" if relabelled else "–"
+      if 0 < len(relabelled) < len(agree):
+        agree_text += f" ({len(relabelled)} of {len(agree)} trials)"
     lines.append(f"| {model} | {total} | {strong} | {len(accs)} | {np.mean(accs):.3f} | {min(accs):.3f} | "
                  f"{max(accs):.3f} | {agree_text} |")
   return "\n".join(lines) + "\n"
