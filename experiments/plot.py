@@ -3,11 +3,11 @@ r"""Figures and tables from the results.json files of training runs (e.g. those 
   python -m experiments.plot --runs=runs/nc_sweep --out=results
 
 NanoCraft (paper Figure 2): test accuracy against the number of strongly supervised demonstrations, one line
-per total number of demonstrations (the flat LSTM, which ignores annotations, as a dashed level), mean over
-trials with min–max bars → OUT/nanocraft.png and OUT/nanocraft.md (which adds the mean decoding agreement
-with the supervisor at level 1, by exact procedure ids and up to a renaming of them). Addition (paper Table 2): per model and
-number of strong traces, the mean accuracy at each test length and in how many seeds it is 100% →
-OUT/addition.png and OUT/addition.md.
+per total number of demonstrations (the flat LSTM, which ignores annotations, as a dashed level in the same
+colour; weak-only PHP runs as a dotted one), mean over trials with min–max bars → OUT/nanocraft.png and
+OUT/nanocraft.md (which adds the mean decoding agreement with the supervisor at level 1, by exact procedure
+ids and up to a renaming of them). Addition (paper Table 2): per model and number of strong traces, the mean
+accuracy at each test length and in how many seeds it is 100% → OUT/addition.png and OUT/addition.md.
 """
 from __future__ import annotations
 
@@ -113,21 +113,24 @@ def nanocraft_figure(groups, path: str) -> None:
   lines = defaultdict(list)
   for (model, total, strong), accs in groups.items():
     lines[(model, total)].append((strong, np.mean(accs), min(accs), max(accs)))
+  totals = sorted({total for _, total in lines})
+  color = {total: f"C{i}" for i, total in enumerate(totals)}  # a data-set size keeps its colour throughout
   for (model, total), points in sorted(lines.items()):
     x, mean, low, high = map(np.array, zip(*sorted(points)))
     if model == "php" and np.any(x > 0):
       annotated = x > 0
       ax.errorbar(x[annotated], mean[annotated], yerr=[(mean - low)[annotated], (high - mean)[annotated]],
-                  marker="o", capsize=3, label=f"PHP-{total}")
+                  marker="o", capsize=3, color=color[total], label=f"PHP-{total}")
     if model == "php" and x[0] == 0:  # weak only: no place on the log axis, one level across it
-      ax.axhline(mean[0], linestyle=":", color="black", label=f"PHP-{total}, weak only ({mean[0]:.3f})")
+      ax.axhline(mean[0], linestyle=":", color=color[total], label=f"PHP-{total}, weak only ({mean[0]:.3f})")
     elif model != "php":  # actions only: one level across the axis
-      ax.axhline(mean[0], linestyle="--", color="gray", label=f"flat LSTM-{total} ({mean[0]:.3f})")
+      ax.axhline(mean[0], linestyle="--", color=color[total], alpha=0.6,
+                 label=f"flat LSTM-{total} ({mean[0]:.3f})")
   ax.set_xscale("log", base=2)
   ax.set_xlabel("strongly supervised demonstrations")
   ax.set_ylabel("test accuracy")
   ax.set_ylim(0, 1.02)
-  ax.legend()
+  ax.legend(loc="upper left", fontsize=8)
   ax.grid(alpha=0.3)
   fig.tight_layout()
   fig.savefig(path, dpi=120)
