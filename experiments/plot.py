@@ -84,12 +84,12 @@ def nanocraft_markdown(groups, agreements=None) -> str:
     model, total, strong = key
     agree = agreements.get(key)
     agree_text = "–"
-    if agree:
-      relabelled = [r for _, r in agree if r is not None]
-      agree_text = f"{np.mean([a for a, _ in agree]):.3f}, "
-      agree_text += f"{np.mean(relabelled):.3f}" if relabelled else "–"
-      if 0 < len(relabelled) < len(agree):
-        agree_text += f" ({len(relabelled)} of {len(agree)} trials)"
+    if agree:  # both means over the trials that measured the relabelled one, when some did
+      measured = [(a, r) for a, r in agree if r is not None] or agree
+      agree_text = f"{np.mean([a for a, _ in measured]):.3f}, "
+      agree_text += f"{np.mean([r for _, r in measured]):.3f}" if measured[0][1] is not None else "–"
+      if len(measured) < len(agree):
+        agree_text += f" ({len(measured)} of {len(agree)} trials)"
     lines.append(f"| {model} | {total} | {strong} | {len(accs)} | {np.mean(accs):.3f} | {min(accs):.3f} | "
                  f"{max(accs):.3f} | {agree_text} |")
   return "\n".join(lines) + "\n"
