@@ -29,6 +29,8 @@ STRONG_WEIGHT = flags.DEFINE_float("strong_weight", None, "Weight on the strongl
                                    "balanced, num_weak / num_strong (at least 1).")
 DECODE = flags.DEFINE_enum("decode", "sample", list(train.DECODERS), "Decoding of weak views for the level above.")
 EVAL_EVERY = flags.DEFINE_integer("eval_every", 100, "Iterations between logged losses / root snapshots.")
+SNAPSHOT = flags.DEFINE_enum("snapshot", "earliest", ["earliest", "latest"],
+                             "Root snapshot kept among those with the best validation accuracy.")
 MODEL = flags.DEFINE_enum("model", "php", ["php", "flat_lstm"],
                           "php: the hierarchy by level-wise EG; flat_lstm: the behaviour-cloning baseline.")
 LSTM_HIDDEN = flags.DEFINE_integer("lstm_hidden", 128, "Hidden units of the flat LSTM baseline.")
@@ -42,7 +44,7 @@ def config_from_flags(default_tau: tuple[bool, ...], default_hidden: tuple[int, 
                            hidden=tuple(int(h) for h in HIDDEN.value) if HIDDEN.value else default_hidden,
                            root=ROOT.value,
                            tau_in_termination=tau, strong_weight=STRONG_WEIGHT.value, decode=DECODE.value,
-                           eval_every=EVAL_EVERY.value, seed=SEED.value)
+                           eval_every=EVAL_EVERY.value, snapshot=SNAPSHOT.value, seed=SEED.value)
 
 
 def strong_mask(num_demos: int, num_strong: int, seed: int) -> np.ndarray:

@@ -9,6 +9,9 @@ import optax
 from flax import nnx
 
 
+SNAPSHOT_RULES = ("earliest", "latest")  # which of the equally best-validated snapshots fit keeps
+
+
 class Progress(NamedTuple):
   """Where a fit stands, for checkpoints: after `iteration` updates."""
   iteration: int
@@ -23,13 +26,16 @@ class Progress(NamedTuple):
 def fit(model: nnx.Module, loss_fn: Callable[[nnx.Module], jax.Array], iterations: int, learning_rate: float,
         eval_every: int, on_eval: Callable[[int, float], float | None] | None = None,
         log: Callable[[dict], None] = print, resume: Progress | None = None,
-        save: Callable[[Progress], None] | None = None) -> Progress:
+        save: Callable[[Progress], None] | None = None, snapshot: str = "earliest") -> Progress:
   """Full-batch Adam on loss_fn(model) []. Updates `model` in place to the kept snapshot.
 
   Every eval_every iterations and at the end: on_eval(iteration, loss) may return a validation score (the
-  earliest snapshot with the highest score is kept, else the final iterate), then save(progress) is called
-  (before logging). resume continues from a saved Progress.
+  snapshot with the highest score is kept, the earliest or the latest among equals as `snapshot` says;
+  without scores, the final iterate), then save(progress) is called (before logging). resume continues from
+  a saved Progress.
   """
+  if snapshot not in SNAPSHOT_RULES:
+    raise ValueError(f"snapshot must be one of {SNAPSHOT_RULES}; got {snapshot!r}")
   graphdef, params, rest = nnx.split(model, nnx.Param, ...)
   optimizer = optax.adam(learning_rate)
   progress = resume if resume is not None else Progress(0, params, optimizer.init(params), params, None, None,
@@ -48,7 +54,8 @@ def fit(model: nnx.Module, loss_fn: Callable[[nnx.Module], jax.Array], iteration
       loss = float(loss)
       nnx.update(model, params)
       score = on_eval(iteration, loss) if on_eval else None
-      improved = score is not None and (progress.best_score is None or score > progress.best_score)
+      improved = score is not None and (progress.best_score is None or score > progress.best_score
+                                        or (snapshot == "latest" and score == progress.best_score))
       progress = Progress(
           iteration, params, opt_state,
           params if improved or progress.best_iteration is None else progress.best_params,

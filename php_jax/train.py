@@ -43,6 +43,7 @@ class TrainConfig:
   decode: str = "sample"            # how weak views are decoded for the level above (the paper sampled)
   capacity: int = 8                 # counter capacity C below the root level when nothing is annotated
   eval_every: int = 100             # logging, checkpoint and root-snapshot interval
+  snapshot: str = "earliest"        # root snapshot among the equally best-validated: "earliest" or "latest"
   length_buckets: int = 4           # views are batched by length into this many buckets
   seed: int = 0
 
@@ -140,7 +141,7 @@ def train_level(model: LevelModel, view: views.LevelView, capacity: int, config:
   saving, resuming). Updates `model` in place."""
   buckets = [_device_view(b) for b in length_buckets(view, config.length_buckets)]
   return fitting.fit(model, lambda m: level_loss(m, buckets, capacity, config.strong_weight), config.iterations,
-                     config.learning_rate, config.eval_every, on_eval, log, resume, save)
+                     config.learning_rate, config.eval_every, on_eval, log, resume, save, config.snapshot)
 
 
 def _capacity(view: views.LevelView, level: int, config: TrainConfig) -> int:

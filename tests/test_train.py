@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from php_jax import checkpoint, datasets, evaluation, lattice, tasks, train, views
+from php_jax import checkpoint, datasets, evaluation, fitting, lattice, tasks, train, views
 from php_jax.envs import addition, nanocraft
 
 ADDITION = tasks.get("addition")
@@ -175,3 +175,21 @@ def test_interrupted_training_resumes_to_the_same_result(tmp_path):
     assert report[level]["losses"] == ref_report[level]["losses"]
     assert report[level]["best_iteration"] == ref_report[level]["best_iteration"]
     assert report[level].get("decoding_agreement") == ref_report[level].get("decoding_agreement")
+
+
+@pytest.mark.parametrize("rule, kept", [("earliest", 20), ("latest", 30)])
+def test_fit_keeps_the_earliest_or_latest_of_the_best_validated_snapshots(rule, kept):
+  model = nnx.Linear(2, 1, rngs=nnx.Rngs(0))
+  scores = iter([0.5, 1.0, 1.0, 0.9])
+  snapshots = {}
+
+  def on_eval(iteration, loss):
+    snapshots[iteration] = np.asarray(model.kernel[...]).copy()
+    return next(scores)
+
+  progress = fitting.fit(model, lambda m: jnp.sum(m(jnp.ones((1, 2))) ** 2), 40, 0.1, 10, on_eval,
+                         log=lambda row: None, snapshot=rule)
+  assert progress.best_iteration == kept and progress.best_score == 1.0
+  np.testing.assert_array_equal(model.kernel[...], snapshots[kept])
+  with pytest.raises(ValueError, match="snapshot must be one of"):
+    fitting.fit(model, lambda m: jnp.sum(m(jnp.ones((1, 2)))), 1, 0.1, 1, snapshot="best")
