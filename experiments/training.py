@@ -12,7 +12,7 @@ import numpy as np
 from absl import flags
 from flax import nnx
 
-from php_jax import checkpoint, flat_lstm, tasks, train
+from php_jax import checkpoint, fitting, flat_lstm, tasks, train
 from php_jax.demos import Demonstration
 
 WORKDIR = flags.DEFINE_string("workdir", None, "Directory for results.json, metrics.jsonl and the model.")
@@ -29,7 +29,7 @@ STRONG_WEIGHT = flags.DEFINE_float("strong_weight", None, "Weight on the strongl
                                    "balanced, num_weak / num_strong (at least 1).")
 DECODE = flags.DEFINE_enum("decode", "sample", list(train.DECODERS), "Decoding of weak views for the level above.")
 EVAL_EVERY = flags.DEFINE_integer("eval_every", 100, "Iterations between logged losses / root snapshots.")
-SNAPSHOT = flags.DEFINE_enum("snapshot", "earliest", ["earliest", "latest"],
+SNAPSHOT = flags.DEFINE_enum("snapshot", "earliest", list(fitting.SNAPSHOT_RULES),
                              "Root snapshot kept among those with the best validation accuracy.")
 MODEL = flags.DEFINE_enum("model", "php", ["php", "flat_lstm"],
                           "php: the hierarchy by level-wise EG; flat_lstm: the behaviour-cloning baseline.")
