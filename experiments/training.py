@@ -30,7 +30,8 @@ STRONG_WEIGHT = flags.DEFINE_float("strong_weight", None, "Weight on the strongl
 DECODE = flags.DEFINE_enum("decode", "sample", list(train.DECODERS), "Decoding of weak views for the level above.")
 EVAL_EVERY = flags.DEFINE_integer("eval_every", 100, "Iterations between logged losses / root snapshots.")
 SNAPSHOT = flags.DEFINE_enum("snapshot", "earliest", list(fitting.SNAPSHOT_RULES),
-                             "Root snapshot kept among those with the best validation accuracy.")
+                             "Snapshot kept among those with the best validation accuracy (the PHP root level's, or "
+                             "the flat LSTM's).")
 MODEL = flags.DEFINE_enum("model", "php", ["php", "flat_lstm"],
                           "php: the hierarchy by level-wise EG; flat_lstm: the behaviour-cloning baseline.")
 LSTM_HIDDEN = flags.DEFINE_integer("lstm_hidden", 128, "Hidden units of the flat LSTM baseline.")
@@ -109,6 +110,6 @@ def _train_flat_lstm(task, demos: Demonstration, config: train.TrainConfig, vali
   policy = flat_lstm.FlatLSTMPolicy(task.spec.obs_dim, task.spec.action_sizes, LSTM_HIDDEN.value,
                                     rngs=nnx.Rngs(config.seed))
   report = flat_lstm.train(policy, demos, config.iterations, config.learning_rate, config.eval_every,
-                           on_eval=lambda iteration: validate(policy), log=log)
+                           on_eval=lambda iteration: validate(policy), log=log, snapshot=config.snapshot)
   return policy, {"flat_lstm": {"hidden": LSTM_HIDDEN.value, "best_iteration": report["best_iteration"],
                                 "validation": report["validation"], "final_loss": report["losses"][-1][1]}}
