@@ -176,8 +176,7 @@ def agreement_counts(demos: Demonstration, view: views.LevelView, level: int, pr
 def agreement(demos: Demonstration, view: views.LevelView, level: int, procedures, counters) -> float | None:
   """Fraction of weak demonstrations' elementary steps whose decoded (procedure, counter) at `level` equals
   the supervisor's (None if no weak demonstration carries the supervisor's stack)."""
-  counts, total = agreement_counts(demos, view, level, procedures, counters)
-  return None if counts is None else float(np.trace(counts) / total)
+  return _exact_fraction(*agreement_counts(demos, view, level, procedures, counters))
 
 
 def relabelled_agreement(demos: Demonstration, view: views.LevelView, level: int, procedures,
@@ -185,7 +184,14 @@ def relabelled_agreement(demos: Demonstration, view: views.LevelView, level: int
   """agreement() under the renaming of decoded procedures that maximises it: how close the segmentation is
   to the supervisor's when the procedures' ids are arbitrary (weak-only training). Brute force over the
   K! renamings, so None (not measured) above K = 8, as when no weak demonstration carries the stack."""
-  counts, total = agreement_counts(demos, view, level, procedures, counters)
+  return _relabelled_fraction(*agreement_counts(demos, view, level, procedures, counters))
+
+
+def _exact_fraction(counts, total: int) -> float | None:
+  return None if counts is None else float(np.trace(counts) / total)
+
+
+def _relabelled_fraction(counts, total: int) -> float | None:
   num_procs = 0 if counts is None else len(counts)
   if not 0 < num_procs <= 8:
     return None
@@ -271,8 +277,9 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
         procs, taus = decode(model, view, capacity, config.decode, key)
         decoded[level] = (np.where(view.strong[:, None], view.procedures, procs),
                           np.where(view.strong[:, None], view.counters, taus))
-        entry["decoding_agreement"] = agreement(demos, view, level, *decoded[level])
-        entry["relabelled_agreement"] = relabelled_agreement(demos, view, level, *decoded[level])
+        counts = agreement_counts(demos, view, level, *decoded[level])  # counted once for both measures
+        entry["decoding_agreement"] = _exact_fraction(*counts)
+        entry["relabelled_agreement"] = _relabelled_fraction(*counts)
       entry["seconds"] = time.time() - start
       report[level] = entry
       if checkpoint_path:  # the level is complete: its result survives a restart
