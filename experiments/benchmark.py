@@ -177,8 +177,8 @@ def bench_train_step():
   level = task.spec.num_levels - 1
   model = train.LevelModel(train.make_hierarchy(task.spec, config).levels[level],
                            train.make_root(task.spec, level, config))
-  buckets = [train._device_view(b) for b in train.length_buckets(view, config.length_buckets)]
-  capacity = train._capacity(view, level, config)
+  buckets = [train.device_view(b) for b in train.length_buckets(view, config.length_buckets)]
+  capacity = train.level_capacity(view, level, config)
   graphdef, params, rest = nnx.split(model, nnx.Param, ...)
 
   def networks_only(m):  # the lattice's inputs, summed where finite: the same networks, no E-step

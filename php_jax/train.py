@@ -105,7 +105,7 @@ def length_buckets(view: views.LevelView, num_buckets: int) -> list[views.LevelV
   return buckets
 
 
-def _device_view(view: views.LevelView) -> views.LevelView:
+def device_view(view: views.LevelView) -> views.LevelView:
   """The view as device arrays, with annotations only on strong demonstrations."""
   strong = view.strong[:, None]
   return views.LevelView(
@@ -117,7 +117,7 @@ def _device_view(view: views.LevelView) -> views.LevelView:
 
 def decode(model: LevelModel, view: views.LevelView, capacity: int, method: str, key: jax.Array):
   """Each view's most likely / sampled frames at this level: (procedures, counters) [B, T] numpy."""
-  batch = _device_view(view)
+  batch = device_view(view)
 
   def one(obs, act, proc, tau, n, k):
     inputs = lattice_inputs(model, obs, act, proc, tau, n, capacity)
@@ -139,12 +139,12 @@ def train_level(model: LevelModel, view: views.LevelView, capacity: int, config:
                 save: Callable[[fitting.Progress], None] | None = None) -> fitting.Progress:
   """Full-batch Adam on one level's EG loss over its views in length buckets (`fitting.fit`: snapshots,
   saving, resuming). Updates `model` in place."""
-  buckets = [_device_view(b) for b in length_buckets(view, config.length_buckets)]
+  buckets = [device_view(b) for b in length_buckets(view, config.length_buckets)]
   return fitting.fit(model, lambda m: level_loss(m, buckets, capacity, config.strong_weight), config.iterations,
                      config.learning_rate, config.eval_every, on_eval, log, resume, save, config.snapshot)
 
 
-def _capacity(view: views.LevelView, level: int, config: TrainConfig) -> int:
+def level_capacity(view: views.LevelView, level: int, config: TrainConfig) -> int:
   """The root level needs its whole view; below, the longest annotated call (the cells the networks are
   evaluated on scale with C), or config.capacity when nothing is annotated."""
   if level == 0:
@@ -257,7 +257,7 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
   view = views.lowest_view(demos, spec.num_levels)
   for level in range(spec.num_levels - 1, -1, -1):
     start = time.time()
-    capacity = _capacity(view, level, config)
+    capacity = level_capacity(view, level, config)
     if level not in report:
       model = LevelModel(hierarchy.levels[level], make_root(spec, level, config))
       resume = _progress_from(saved, model) if saved is not None and saved[0]["level"] == level else None

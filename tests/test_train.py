@@ -40,9 +40,9 @@ def test_level_loss_is_the_complete_data_log_likelihood_for_strong_views():
   view = views.lowest_view(demos, 3)
   model = train.LevelModel(train.make_hierarchy(ADDITION.spec, train.TrainConfig(hidden=(16,))).levels[2],
                            train.RootMLP(44, 3, (8,), rngs=nnx.Rngs(0)))
-  batch = train._device_view(view)
+  batch = train.device_view(view)
   loss = train.level_loss(model, [batch], 4, strong_weight=1.0)
-  split = train.level_loss(model, [train._device_view(b) for b in train.length_buckets(view, 2)], 4, 1.0)
+  split = train.level_loss(model, [train.device_view(b) for b in train.length_buckets(view, 2)], 4, 1.0)
   np.testing.assert_allclose(split, loss, rtol=1e-6)
   direct = []
   for b in range(2):
