@@ -27,6 +27,8 @@ TAU_IN_TERMINATION = flags.DEFINE_list("tau_in_termination", None,
                                        "Per level (root first), whether ψ sees τ: e.g. 0,1,1. Default: task's.")
 STRONG_WEIGHT = flags.DEFINE_float("strong_weight", None, "Weight on the strongly supervised loss; default: "
                                    "balanced, num_weak / num_strong (at least 1).")
+STRONG_WARMUP = flags.DEFINE_integer("strong_warmup", 0, "Per level, Adam iterations on the strongly supervised "
+                                     "demonstrations alone before --iterations on all of them.")
 DECODE = flags.DEFINE_enum("decode", "sample", list(train.DECODERS), "Decoding of weak views for the level above.")
 EVAL_EVERY = flags.DEFINE_integer("eval_every", 100, "Iterations between logged losses / root snapshots.")
 SNAPSHOT = flags.DEFINE_enum("snapshot", "earliest", list(fitting.SNAPSHOT_RULES),
@@ -44,7 +46,8 @@ def config_from_flags(default_tau: tuple[bool, ...], default_hidden: tuple[int, 
   return train.TrainConfig(iterations=ITERATIONS.value, learning_rate=LEARNING_RATE.value,
                            hidden=tuple(int(h) for h in HIDDEN.value) if HIDDEN.value else default_hidden,
                            root=ROOT.value,
-                           tau_in_termination=tau, strong_weight=STRONG_WEIGHT.value, decode=DECODE.value,
+                           tau_in_termination=tau, strong_weight=STRONG_WEIGHT.value,
+                           strong_warmup=STRONG_WARMUP.value, decode=DECODE.value,
                            eval_every=EVAL_EVERY.value, snapshot=SNAPSHOT.value, seed=SEED.value)
 
 

@@ -36,6 +36,11 @@ class LevelView(NamedTuple):
   strong: np.ndarray
 
 
+def select(view: LevelView, mask: np.ndarray) -> LevelView:
+  """The views where mask [B] is True."""
+  return LevelView(*(np.asarray(x)[mask] for x in view))
+
+
 def _pack(demos: Demonstration, level: int, times: list[np.ndarray], actions: list[np.ndarray]) -> LevelView:
   """Pads per-demonstration operation lists into a LevelView whose annotation is read at `level`."""
   obs, procs, taus = (np.asarray(x) for x in (demos.observations, demos.procedures, demos.counters))

@@ -1,4 +1,6 @@
 """Level views, the EG loss, decoding agreement, checkpoints, and end-to-end training."""
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -146,12 +148,13 @@ class _Interrupt(Exception):
   pass
 
 
-def test_interrupted_training_resumes_to_the_same_result(tmp_path):
+@pytest.mark.parametrize("warmup, stops", [(0, [(1, 40), (0, 60)]), (20, [(2, 20), (1, 60), (0, 80)])])
+def test_interrupted_training_resumes_to_the_same_result(tmp_path, warmup, stops):
   problems = datasets.nanocraft_problems(3, 8)
   demos = datasets.oracle_demonstrations(NANOCRAFT, datasets.nanocraft_states(problems), 4,
                                          nanocraft.ORACLE_STEP_BUDGET)
   config = train.TrainConfig(iterations=60, eval_every=20, hidden=(8,), root="mlp", root_hidden=8,
-                             learning_rate=1e-2, decode="sample", seed=5)
+                             learning_rate=1e-2, decode="sample", strong_warmup=warmup, seed=5)
   validation = datasets.nanocraft_problems(4, 8)
 
   def validate(h):
@@ -165,7 +168,7 @@ def test_interrupted_training_resumes_to_the_same_result(tmp_path):
 
   reference, ref_report = run(str(tmp_path / "uninterrupted.msgpack"))
   path = str(tmp_path / "interrupted.msgpack")
-  for stop_at in [(1, 40), (0, 60)]:  # mid-level, then at the root level's last iteration
+  for stop_at in stops:  # mid-level (at the end of the warmup), then at the root level's last iteration
     with pytest.raises(_Interrupt):
       run(path, stop_at)
   resumed, report = run(path)
@@ -175,6 +178,25 @@ def test_interrupted_training_resumes_to_the_same_result(tmp_path):
     assert report[level]["losses"] == ref_report[level]["losses"]
     assert report[level]["best_iteration"] == ref_report[level]["best_iteration"]
     assert report[level].get("decoding_agreement") == ref_report[level].get("decoding_agreement")
+
+
+def test_strong_warmup_fits_the_strong_views_alone_first():
+  problems = datasets.nanocraft_problems(3, 6)
+  demos = datasets.oracle_demonstrations(NANOCRAFT, datasets.nanocraft_states(problems), 2,
+                                         nanocraft.ORACLE_STEP_BUDGET)
+  view = views.lowest_view(demos, NANOCRAFT.spec.num_levels)
+  config = train.TrainConfig(iterations=0, hidden=(8,), root="mlp", root_hidden=8, strong_weight=2.0, seed=1)
+
+  def trained(part, **changes):
+    model = train.LevelModel(train.make_hierarchy(NANOCRAFT.spec, config).levels[2],
+                             train.make_root(NANOCRAFT.spec, 2, config))
+    train.train_level(model, part, 2, dataclasses.replace(config, **changes), log=lambda row: None)
+    return jax.tree.leaves(nnx.state(model, nnx.Param))
+
+  strong_only = trained(views.select(view, view.strong), iterations=30)
+  for a, b in zip(trained(view, strong_warmup=30), strong_only):
+    np.testing.assert_array_equal(a, b)  # the weak views played no part in the first 30 iterations
+  assert any(not np.array_equal(a, b) for a, b in zip(trained(view, strong_warmup=30, iterations=5), strong_only))
 
 
 @pytest.mark.parametrize("rule, kept", [("earliest", 20), ("latest", 30)])
