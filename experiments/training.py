@@ -27,8 +27,8 @@ TAU_IN_TERMINATION = flags.DEFINE_list("tau_in_termination", None,
                                        "Per level (root first), whether ψ sees τ: e.g. 0,1,1. Default: task's.")
 STRONG_WEIGHT = flags.DEFINE_float("strong_weight", None, "Weight on the strongly supervised loss; default: "
                                    "balanced, num_weak / num_strong (at least 1).")
-STRONG_WARMUP = flags.DEFINE_integer("strong_warmup", 0, "Per level, Adam iterations on the strongly supervised "
-                                     "demonstrations alone before --iterations on all of them.")
+STRONG_WARMUP = flags.DEFINE_integer("strong_warmup", 0, "Per level below the root, Adam iterations on the strongly "
+                                     "supervised demonstrations alone before --iterations on all of them.")
 DECODE = flags.DEFINE_enum("decode", "sample", list(train.DECODERS), "Decoding of weak views for the level above.")
 EVAL_EVERY = flags.DEFINE_integer("eval_every", 100, "Iterations between logged losses / root snapshots.")
 SNAPSHOT = flags.DEFINE_enum("snapshot", "earliest", list(fitting.SNAPSHOT_RULES),

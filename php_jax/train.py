@@ -40,7 +40,7 @@ class TrainConfig:
   root_hidden: int = 64
   tau_in_termination: tuple[bool, ...] | None = None  # per level; None: all True
   strong_weight: float | None = None  # weight on strongly supervised demonstrations' loss; None: balanced
-  strong_warmup: int = 0            # per level, iterations on the strong views alone before `iterations` on all
+  strong_warmup: int = 0            # below the root, iterations on the strong views alone before those on all
   decode: str = "sample"            # how weak views are decoded for the level above (the paper sampled)
   capacity: int = 8                 # counter capacity C below the root level when nothing is annotated
   eval_every: int = 100             # logging, checkpoint and root-snapshot interval
@@ -141,16 +141,17 @@ def train_level(model: LevelModel, view: views.LevelView, capacity: int, config:
   """Full-batch Adam on one level's EG loss over its views in length buckets (`fitting.fit`: snapshots,
   saving, resuming). Updates `model` in place.
 
-  With config.strong_warmup = W (and both kinds of view present), iterations 1..W fit the strong views alone
-  and W+1..W+config.iterations all of them: the weak views' posteriors then start from networks that follow
-  the annotated hierarchy instead of from random ones (paper §6: weak views can pull the fit towards
-  another hierarchy)."""
+  Below the root level, with config.strong_warmup = W (and both kinds of view present), iterations 1..W fit
+  the strong views alone and W+1..W+config.iterations all of them: the weak views' posteriors then start
+  from networks that follow the annotated hierarchy instead of from random ones (paper §6: weak views can
+  pull the fit towards another hierarchy). The root level's weak views have no latent choice (one procedure,
+  τ = step), so it has no warm-up."""
   def fit(part: views.LevelView, iterations: int, progress: fitting.Progress | None) -> fitting.Progress:
     buckets = [device_view(b) for b in length_buckets(part, config.length_buckets)]
     return fitting.fit(model, lambda m: level_loss(m, buckets, capacity, config.strong_weight), iterations,
                        config.learning_rate, config.eval_every, on_eval, log, progress, save, config.snapshot)
 
-  warmup = config.strong_warmup if 0 < view.strong.sum() < len(view.strong) else 0
+  warmup = config.strong_warmup if model.root is not None and 0 < view.strong.sum() < len(view.strong) else 0
   if warmup and (resume is None or resume.iteration < warmup):
     resume = fit(views.select(view, view.strong), warmup, resume)
   return fit(view, warmup + config.iterations, resume)

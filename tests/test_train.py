@@ -148,7 +148,7 @@ class _Interrupt(Exception):
   pass
 
 
-@pytest.mark.parametrize("warmup, stops", [(0, [(1, 40), (0, 60)]), (20, [(2, 20), (1, 60), (0, 80)])])
+@pytest.mark.parametrize("warmup, stops", [(0, [(1, 40), (0, 60)]), (20, [(2, 20), (1, 60), (0, 60)])])
 def test_interrupted_training_resumes_to_the_same_result(tmp_path, warmup, stops):
   problems = datasets.nanocraft_problems(3, 8)
   demos = datasets.oracle_demonstrations(NANOCRAFT, datasets.nanocraft_states(problems), 4,
