@@ -11,7 +11,6 @@ from absl import app, flags
 
 from experiments import training
 from php_jax import datasets, evaluation, tasks
-from php_jax.envs import addition
 
 _TEST_LENGTHS = flags.DEFINE_list("test_lengths", ["20", "100"], "Digits of the test problems.")
 _NUM_TEST = flags.DEFINE_integer("num_test", 100, "Test problems per length.")
@@ -22,10 +21,7 @@ DEFAULT_HIDDEN = (64,)  # one layer: solved every test length with 1, 3, 10 stro
 def main(argv):
   del argv
   seed, task = training.SEED.value, tasks.get("addition")
-  problems = datasets.addition_problems(seed)
-  strong = training.strong_mask(len(problems), training.NUM_STRONG.value, seed)
-  demos = datasets.oracle_demonstrations(task, datasets.addition_states(problems), 0,
-                                         addition.oracle_step_budget(10))._replace(strong=strong)
+  demos = training.addition_demos(seed, training.NUM_STRONG.value)
   validation = datasets.random_addition_problems(seed + 10_000, range(1, 11),
                                                 max(1, training.NUM_VALIDATION.value // 10))
   lengths = [int(n) for n in _TEST_LENGTHS.value]
@@ -36,7 +32,7 @@ def main(argv):
       "addition", demos, training.config_from_flags(DEFAULT_TAU_IN_TERMINATION, DEFAULT_HIDDEN),
       training.WORKDIR.value,
       validate=lambda h: evaluation.accuracy(h, task.spec, validation), test=test,
-      extra={"seed": seed, "num_demos": len(problems), "num_strong": int(strong.sum()),
+      extra={"seed": seed, "num_demos": len(demos.strong), "num_strong": int(demos.strong.sum()),
              "num_test": _NUM_TEST.value})
 
 

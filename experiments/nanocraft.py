@@ -11,7 +11,6 @@ from absl import app, flags
 
 from experiments import training
 from php_jax import datasets, evaluation, tasks
-from php_jax.envs import nanocraft
 
 _NUM_DEMOS = flags.DEFINE_integer("num_demos", 64, "Demonstrations in the training set.")
 _NUM_TEST = flags.DEFINE_integer("num_test", 1000, "Fresh test episodes.")
@@ -24,10 +23,7 @@ DEFAULT_HIDDEN = (32,)
 def main(argv):
   del argv
   seed, task = training.SEED.value, tasks.get("nanocraft")
-  problems = datasets.nanocraft_problems(seed, _NUM_DEMOS.value)
-  strong = training.strong_mask(len(problems), training.NUM_STRONG.value, seed)
-  demos = datasets.oracle_demonstrations(task, datasets.nanocraft_states(problems), 0,
-                                         nanocraft.ORACLE_STEP_BUDGET)._replace(strong=strong)
+  demos = training.nanocraft_demos(seed, _NUM_DEMOS.value, training.NUM_STRONG.value)
   validation = datasets.nanocraft_problems(seed + 10_000, training.NUM_VALIDATION.value)
   test_problems = datasets.nanocraft_problems(seed + 20_000, _NUM_TEST.value)
   training.train_and_evaluate(
@@ -35,7 +31,7 @@ def main(argv):
       training.WORKDIR.value,
       validate=lambda h: evaluation.accuracy(h, task.spec, validation),
       test=lambda h: {"accuracy": evaluation.accuracy(h, task.spec, test_problems)},
-      extra={"seed": seed, "num_demos": len(problems), "num_strong": int(strong.sum()),
+      extra={"seed": seed, "num_demos": len(demos.strong), "num_strong": int(demos.strong.sum()),
              "num_test": _NUM_TEST.value})
 
 

@@ -264,8 +264,7 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
     meta, state = saved
     nnx.update(hierarchy, _unflatten(nnx.state(hierarchy, nnx.Param), state["hierarchy"]))
     report = {int(k): v for k, v in meta["report"].items()}
-    decoded = {int(k): (np.asarray(v["procedures"]), np.asarray(v["counters"]))
-               for k, v in state["decoded"].items()}
+    decoded = read_decoded(checkpoint_path)
     log({"resumed": True, "level": meta["level"], "iteration": meta["iteration"]})
   view = views.lowest_view(demos, spec.num_levels)
   for level in range(spec.num_levels - 1, -1, -1):
@@ -325,6 +324,15 @@ def _write_checkpoint(path, hierarchy, level, progress: fitting.Progress | None,
            "decoded": {str(k): {"procedures": v[0], "counters": v[1]} for k, v in decoded.items()},
            "meta": json.dumps(meta)}
   checkpoint.write_atomically(path, serialization.msgpack_serialize(state))
+
+
+def read_decoded(path: str) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+  """The (procedures, counters) [B, T] per trained level > 0 saved in a training checkpoint: each level's
+  view of every demonstration, annotated where strong and decoded where weak."""
+  saved = _read_checkpoint(path)
+  if saved is None:
+    raise FileNotFoundError(f"no training checkpoint at {path}")
+  return {int(k): (np.asarray(v["procedures"]), np.asarray(v["counters"])) for k, v in saved[1]["decoded"].items()}
 
 
 def _read_checkpoint(path):
