@@ -21,7 +21,7 @@ DEFAULT_HIDDEN = (64,)  # one layer: solved every test length with 1, 3, 10 stro
 def main(argv):
   del argv
   seed, task = training.SEED.value, tasks.get("addition")
-  demos = training.addition_demos(seed, training.NUM_STRONG.value)
+  demos = datasets.addition_training_demos(seed, training.NUM_STRONG.value)
   validation = datasets.random_addition_problems(seed + 10_000, range(1, 11),
                                                 max(1, training.NUM_VALIDATION.value // 10))
   lengths = [int(n) for n in _TEST_LENGTHS.value]

@@ -23,7 +23,7 @@ DEFAULT_HIDDEN = (32,)
 def main(argv):
   del argv
   seed, task = training.SEED.value, tasks.get("nanocraft")
-  demos = training.nanocraft_demos(seed, _NUM_DEMOS.value, training.NUM_STRONG.value)
+  demos = datasets.nanocraft_training_demos(seed, _NUM_DEMOS.value, training.NUM_STRONG.value)
   validation = datasets.nanocraft_problems(seed + 10_000, training.NUM_VALIDATION.value)
   test_problems = datasets.nanocraft_problems(seed + 20_000, _NUM_TEST.value)
   training.train_and_evaluate(

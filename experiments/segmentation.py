@@ -1,6 +1,6 @@
 r"""Where a trained run's decoded hierarchy differs from the supervisor's, on its weak demonstrations.
 
-  python -m experiments.segmentation --workdir=runs/nc_sweep/num_demos=64,num_strong=8,seed=1 --level=1
+  python -m experiments.segmentation --run=runs/nc_sweep/num_demos=64,num_strong=8,seed=1 --level=1
 
 Rebuilds the run's training demonstrations from its results.json, reads the views decoded during training
 from its checkpoint, and prints per level: how many weak demonstrations the decoding got wrong, each wrong
@@ -17,10 +17,10 @@ import os
 import numpy as np
 from absl import app, flags
 
-from experiments import training
-from php_jax import tasks, train, views
+from php_jax import datasets, tasks, train, views
 from php_jax.demos import UNKNOWN
 
+_RUN = flags.DEFINE_string("run", None, "A training run's workdir (results.json, checkpoint.msgpack).")
 _LEVEL = flags.DEFINE_integer("level", None, "Level to report (default: every level below the root).")
 _SHOW = flags.DEFINE_integer("show", 3, "Wrong demonstrations printed side by side, per level.")
 
@@ -60,16 +60,20 @@ def level_report(demos, view: views.LevelView, level: int, procs, taus, names) -
 
 def main(argv):
   del argv
-  with open(os.path.join(training.WORKDIR.value, "results.json")) as f:
+  paths = [os.path.join(_RUN.value, name) for name in ("results.json", "checkpoint.msgpack")]
+  for path in paths:
+    if not os.path.isfile(path):
+      raise app.UsageError(f"{path} does not exist: --run must be a finished training run's workdir")
+  with open(paths[0]) as f:
     results = json.load(f)
   if results.get("model", "php") != "php":
-    raise app.UsageError(f"{training.WORKDIR.value} holds a {results['model']} run, which has no hierarchy to decode")
+    raise app.UsageError(f"{_RUN.value} holds a {results['model']} run, which has no hierarchy to decode")
   if results["task"] == "nanocraft":
-    demos = training.nanocraft_demos(results["seed"], results["num_demos"], results["num_strong"])
+    demos = datasets.nanocraft_training_demos(results["seed"], results["num_demos"], results["num_strong"])
   else:
-    demos = training.addition_demos(results["seed"], results["num_strong"])
+    demos = datasets.addition_training_demos(results["seed"], results["num_strong"])
   spec = tasks.get(results["task"]).spec
-  decoded = train.read_decoded(os.path.join(training.WORKDIR.value, "checkpoint.msgpack"))
+  decoded = train.read_decoded(paths[1])
   view = views.lowest_view(demos, spec.num_levels)
   for level in range(spec.num_levels - 1, 0, -1):
     if _LEVEL.value in (None, level):
@@ -82,5 +86,5 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  flags.mark_flags_as_required(["workdir"])
+  flags.mark_flags_as_required(["run"])
   app.run(main)

@@ -12,9 +12,8 @@ import numpy as np
 from absl import flags
 from flax import nnx
 
-from php_jax import checkpoint, datasets, fitting, flat_lstm, tasks, train
+from php_jax import checkpoint, fitting, flat_lstm, tasks, train
 from php_jax.demos import Demonstration
-from php_jax.envs import addition, nanocraft
 
 WORKDIR = flags.DEFINE_string("workdir", None, "Directory for results.json, metrics.jsonl and the model.")
 NUM_STRONG = flags.DEFINE_integer("num_strong", 1, "Strongly supervised (call-stack annotated) demonstrations.")
@@ -50,31 +49,6 @@ def config_from_flags(default_tau: tuple[bool, ...], default_hidden: tuple[int, 
                            tau_in_termination=tau, strong_weight=STRONG_WEIGHT.value,
                            strong_warmup=STRONG_WARMUP.value, decode=DECODE.value,
                            eval_every=EVAL_EVERY.value, snapshot=SNAPSHOT.value, seed=SEED.value)
-
-
-def strong_mask(num_demos: int, num_strong: int, seed: int) -> np.ndarray:
-  """Which demonstrations are strongly supervised: num_strong chosen at random (seeded)."""
-  if not 0 <= num_strong <= num_demos:
-    raise ValueError(f"--num_strong must be in 0..{num_demos}; got {num_strong}")
-  mask = np.zeros(num_demos, bool)
-  mask[np.random.default_rng(seed).permutation(num_demos)[:num_strong]] = True
-  return mask
-
-
-def nanocraft_demos(seed: int, num_demos: int, num_strong: int) -> Demonstration:
-  """A NanoCraft run's training demonstrations: num_demos random episodes, num_strong of them annotated."""
-  problems = datasets.nanocraft_problems(seed, num_demos)
-  return datasets.oracle_demonstrations(tasks.get("nanocraft"), datasets.nanocraft_states(problems), 0,
-                                        nanocraft.ORACLE_STEP_BUDGET)._replace(
-                                            strong=strong_mask(num_demos, num_strong, seed))
-
-
-def addition_demos(seed: int, num_strong: int) -> Demonstration:
-  """An addition run's 160 training traces (16 per length 1..10), num_strong of them annotated."""
-  problems = datasets.addition_problems(seed)
-  return datasets.oracle_demonstrations(tasks.get("addition"), datasets.addition_states(problems), 0,
-                                        addition.oracle_step_budget(10))._replace(
-                                            strong=strong_mask(len(problems), num_strong, seed))
 
 
 def train_and_evaluate(task_name: str, demos: Demonstration, config: train.TrainConfig, workdir: str,

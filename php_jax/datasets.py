@@ -7,7 +7,7 @@ import numpy as np
 
 from php_jax import demos, executor
 from php_jax.envs import addition, nanocraft
-from php_jax.tasks import Task
+from php_jax.tasks import TASKS, Task
 
 ADDITION_LENGTHS = tuple(range(1, 11))
 
@@ -96,3 +96,26 @@ def oracle_demonstrations(task: Task, states, num_strong: int, max_steps: int) -
   rollouts = executor.rollout_batch(task.oracle, task.spec, task.env, states,
                                     jax.random.split(jax.random.key(0), batch), max_steps)
   return demos.from_rollouts(rollouts, np.arange(batch) < num_strong)
+
+
+def strong_mask(num_demos: int, num_strong: int, seed: int) -> np.ndarray:
+  """[num_demos] bool: which demonstrations are strongly supervised, num_strong chosen at random (seeded)."""
+  if not 0 <= num_strong <= num_demos:
+    raise ValueError(f"num_strong must be in 0..{num_demos}; got {num_strong}")
+  mask = np.zeros(num_demos, bool)
+  mask[np.random.default_rng(seed).permutation(num_demos)[:num_strong]] = True
+  return mask
+
+
+def nanocraft_training_demos(seed: int, num_demos: int, num_strong: int) -> demos.Demonstration:
+  """The training set of `experiments.nanocraft`: num_demos random episodes, num_strong annotated."""
+  problems = nanocraft_problems(seed, num_demos)
+  return oracle_demonstrations(TASKS["nanocraft"], nanocraft_states(problems), 0, nanocraft.ORACLE_STEP_BUDGET
+                               )._replace(strong=strong_mask(num_demos, num_strong, seed))
+
+
+def addition_training_demos(seed: int, num_strong: int) -> demos.Demonstration:
+  """The training set of `experiments.addition`: 160 traces (16 per length 1..10), num_strong annotated."""
+  problems = addition_problems(seed)
+  return oracle_demonstrations(TASKS["addition"], addition_states(problems), 0, addition.oracle_step_budget(10)
+                               )._replace(strong=strong_mask(len(problems), num_strong, seed))

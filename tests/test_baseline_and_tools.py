@@ -1,4 +1,4 @@
-"""The flat LSTM baseline, the sweep runner's grid and the plot command."""
+"""The flat LSTM baseline, the sweep runner's grid, the plot command and the segmentation report."""
 import json
 import subprocess
 import sys
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from experiments import sweep
-from php_jax import checkpoint, datasets, evaluation, flat_lstm, tasks
+from experiments import segmentation, sweep
+from php_jax import checkpoint, datasets, evaluation, flat_lstm, tasks, views
 from php_jax.envs import nanocraft
 
 NANOCRAFT = tasks.get("nanocraft")
@@ -90,3 +90,32 @@ def test_plot_draws_the_figure_and_tables(tmp_path):
   empty = subprocess.run([sys.executable, "-m", "experiments.plot", f"--runs={tmp_path / 'none'}",
                           f"--out={out}"], capture_output=True, text=True, timeout=300)
   assert empty.returncode == 2 and "no results.json" in empty.stderr
+
+
+def test_segmentation_classifies_splits_merges_and_mistaken_procedures():
+  procs, taus = np.array([0, 0, 0, 1]), np.array([0, 1, 2, 0])
+  assert segmentation.classify(procs, taus, procs, taus) == ("correct", [])
+  assert segmentation.classify(procs, taus, procs, np.array([0, 1, 0, 0])) == ("split", [2])
+  assert segmentation.classify(np.array([0, 0, 1]), np.array([0, 0, 0]), np.array([0, 0, 1]),
+                               np.array([0, 1, 0])) == ("merge", [1])
+  assert segmentation.classify(procs, taus, np.array([0, 0, 0, 2]), taus)[0] == "other"
+
+
+def test_segmentation_report_finds_a_split_in_the_supervisors_level_1_view():
+  demos = datasets.nanocraft_training_demos(seed=2, num_demos=6, num_strong=2)
+  spec = NANOCRAFT.spec
+  truth = lambda view, level: (np.asarray(demos.procedures)[np.arange(6)[:, None], np.maximum(view.times, 0), level],
+                               np.asarray(demos.counters)[np.arange(6)[:, None], np.maximum(view.times, 0), level])
+  view = views.lowest_view(demos, spec.num_levels)
+  view = views.view_above(demos, view, 2, *truth(view, 2))
+  procs, taus = truth(view, 1)
+  report = segmentation.level_report(demos, view, 1, procs, taus, spec.levels[1])
+  assert report == {"kinds": {"correct": 4}, "where": {}, "wrong": []}
+  weak = int(np.flatnonzero(~demos.strong)[0])
+  second = int(np.flatnonzero(taus[weak] == 1)[0])  # a call's second operation, pushed anew
+  taus = taus.copy()
+  taus[weak, second] = 0
+  report = segmentation.level_report(demos, view, 1, procs, taus, spec.levels[1])
+  assert report["kinds"] == {"correct": 3, "split": 1}
+  assert report["where"] == {f"split in {spec.levels[1][procs[weak, second]]}": 1}
+  assert report["wrong"][0]["demo"] == weak

@@ -111,6 +111,10 @@ def test_nanocraft_run_solves_held_out_episodes_and_evaluate_loads_it(tmp_path):
   assert set(results["levels"]) == {"0", "1", "2"} and results["levels"]["0"]["best_iteration"] is not None
   assert results["commit"] is None or len(results["commit"].removesuffix("+dirty")) == 40  # provenance
   assert (workdir / "metrics.jsonl").read_text().count("\n") > 10
+  proc = subprocess.run([sys.executable, "-m", "experiments.segmentation", f"--run={workdir}"], capture_output=True,
+                        text=True, timeout=300)
+  assert proc.returncode == 0, proc.stderr[-3000:]
+  assert [json.loads(line)["level"] for line in proc.stdout.splitlines()] == [2, 1]  # no weak demonstration
   problems = tmp_path / "p.jsonl"
   problems.write_text("".join(json.dumps({"x": x, "y": y, "w": w, "h": h, "preplaced": pre}) + "\n"
                               for x, y, w, h, pre in datasets.nanocraft_problems(7, 20)))
