@@ -54,7 +54,8 @@ def level_report(demos, view: views.LevelView, level: int, procs, taus, names) -
     where.update(f"{kind} in {names[truth[0][k]]}" for k in steps if kind in ("split", "merge"))
     if kind != "correct":
       frames = lambda p, t: [f"{names[i]}:{j}" for i, j in zip(p, t)]
-      wrong.append({"demo": int(b), "kind": kind, "truth": frames(*truth), "decoded": frames(procs[b, :n], taus[b, :n])})
+      wrong.append({"demo": int(b), "kind": kind, "truth": frames(*truth),
+                    "decoded": frames(procs[b, :n], taus[b, :n])})
   return {"kinds": dict(kinds), "where": dict(where), "wrong": wrong}
 
 
