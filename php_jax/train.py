@@ -264,7 +264,7 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
     meta, state = saved
     nnx.update(hierarchy, _unflatten(nnx.state(hierarchy, nnx.Param), state["hierarchy"]))
     report = {int(k): v for k, v in meta["report"].items()}
-    decoded = read_decoded(checkpoint_path)
+    decoded = _decoded(state)
     log({"resumed": True, "level": meta["level"], "iteration": meta["iteration"]})
   view = views.lowest_view(demos, spec.num_levels)
   for level in range(spec.num_levels - 1, -1, -1):
@@ -332,7 +332,11 @@ def read_decoded(path: str) -> dict[int, tuple[np.ndarray, np.ndarray]]:
   saved = _read_checkpoint(path)
   if saved is None:
     raise FileNotFoundError(f"no training checkpoint at {path}")
-  return {int(k): (np.asarray(v["procedures"]), np.asarray(v["counters"])) for k, v in saved[1]["decoded"].items()}
+  return _decoded(saved[1])
+
+
+def _decoded(state) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+  return {int(k): (np.asarray(v["procedures"]), np.asarray(v["counters"])) for k, v in state["decoded"].items()}
 
 
 def _read_checkpoint(path):

@@ -104,8 +104,11 @@ def test_segmentation_classifies_splits_merges_and_mistaken_procedures():
 def test_segmentation_report_finds_a_split_in_the_supervisors_level_1_view():
   demos = datasets.nanocraft_training_demos(seed=2, num_demos=6, num_strong=2)
   spec = NANOCRAFT.spec
-  truth = lambda view, level: (np.asarray(demos.procedures)[np.arange(6)[:, None], np.maximum(view.times, 0), level],
-                               np.asarray(demos.counters)[np.arange(6)[:, None], np.maximum(view.times, 0), level])
+
+  def truth(view, level):  # the supervisor's frames at each of the view's operations
+    steps = np.arange(6)[:, None], np.maximum(view.times, 0), level
+    return np.asarray(demos.procedures)[steps], np.asarray(demos.counters)[steps]
+
   view = views.lowest_view(demos, spec.num_levels)
   view = views.view_above(demos, view, 2, *truth(view, 2))
   procs, taus = truth(view, 1)
