@@ -31,7 +31,7 @@ STRONG_WARMUP = flags.DEFINE_integer("strong_warmup", 0, "Per level below the ro
                                      "supervised demonstrations alone before --iterations on all of them.")
 DECODE = flags.DEFINE_enum("decode", "sample", list(train.DECODERS), "Decoding of weak views for the level above.")
 EVAL_EVERY = flags.DEFINE_integer("eval_every", 100, "Iterations between logged losses / root snapshots.")
-SNAPSHOT = flags.DEFINE_enum("snapshot", "earliest", list(fitting.SNAPSHOT_RULES),
+SNAPSHOT = flags.DEFINE_enum("snapshot", "latest", list(fitting.SNAPSHOT_RULES),
                              "Snapshot kept among those with the best validation accuracy (the PHP root level's, or "
                              "the flat LSTM's).")
 MODEL = flags.DEFINE_enum("model", "php", ["php", "flat_lstm"],

@@ -26,11 +26,11 @@ class Progress(NamedTuple):
 def fit(model: nnx.Module, loss_fn: Callable[[nnx.Module], jax.Array], iterations: int, learning_rate: float,
         eval_every: int, on_eval: Callable[[int, float], float | None] | None = None,
         log: Callable[[dict], None] = print, resume: Progress | None = None,
-        save: Callable[[Progress], None] | None = None, snapshot: str = "earliest") -> Progress:
+        save: Callable[[Progress], None] | None = None, snapshot: str = "latest") -> Progress:
   """Full-batch Adam on loss_fn(model) []. Updates `model` in place to the kept snapshot.
 
   Every eval_every iterations and at the end: on_eval(iteration, loss) may return a validation score (the
-  snapshot with the highest score is kept, the earliest or the latest among equals as `snapshot` says;
+  snapshot with the highest score is kept, the latest or the earliest among equals as `snapshot` says;
   without scores, the final iterate), then save(progress) is called (before logging). resume continues from
   a saved Progress.
   """

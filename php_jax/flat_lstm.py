@@ -4,7 +4,7 @@ demonstrations' elementary actions (call stacks ignored), run in the same enviro
 At each step t the LSTM reads o_t and the previous action, then either stops (the episode ends, as when a
 PHP root returns) or emits an action, one categorical per action factor. Training maximises
 Σ_t<T [log p(a_t | o_≤t) + log p(continue)] + log p(stop at T), full-batch Adam, with the same snapshot rule as
-PHP training: the earliest (or latest) snapshot with the best validation accuracy.
+PHP training: the latest (or earliest) snapshot with the best validation accuracy.
 """
 from __future__ import annotations
 
@@ -103,9 +103,9 @@ def rollout_batch(policy: FlatLSTMPolicy, env, states, max_steps: int) -> execut
 
 def train(policy: FlatLSTMPolicy, demos: Demonstration, iterations: int, learning_rate: float,
           eval_every: int = 100, on_eval: Callable[[int], float] | None = None,
-          log: Callable[[dict], None] = print, snapshot: str = "earliest") -> dict:
+          log: Callable[[dict], None] = print, snapshot: str = "latest") -> dict:
   """Behaviour cloning: full-batch Adam on −mean log p(demonstration). Updates `policy` in place; keeps the
-  earliest (snapshot="latest": the latest) snapshot with the best on_eval() score, else the final one.
+  latest (snapshot="earliest": the earliest) snapshot with the best on_eval() score, else the final one.
   Returns a report."""
   observations, actions = jnp.asarray(demos.observations), jnp.asarray(demos.actions)
   length = jnp.asarray(demos.length)

@@ -44,7 +44,7 @@ class TrainConfig:
   decode: str = "sample"            # how weak views are decoded for the level above (the paper sampled)
   capacity: int = 8                 # counter capacity C below the root level when nothing is annotated
   eval_every: int = 100             # logging, checkpoint and root-snapshot interval
-  snapshot: str = "earliest"        # root snapshot among the equally best-validated: "earliest" or "latest"
+  snapshot: str = "latest"          # root snapshot among the equally best-validated: "latest" or "earliest"
   length_buckets: int = 4           # views are batched by length into this many buckets
   seed: int = 0
 
