@@ -27,6 +27,9 @@ TAU_IN_TERMINATION = flags.DEFINE_list("tau_in_termination", None,
                                        "Per level (root first), whether ψ sees τ: e.g. 0,1,1. Default: task's.")
 STRONG_WEIGHT = flags.DEFINE_float("strong_weight", None, "Weight on the strongly supervised loss; default: "
                                    "balanced, num_weak / num_strong (at least 1).")
+ROOT_STRONG_WEIGHT = flags.DEFINE_float("root_strong_weight", None, "Weight on the strongly supervised loss at "
+                                        "the root level, whose weak views have no latent choice; default: "
+                                        "--strong_weight's.")
 STRONG_WARMUP = flags.DEFINE_integer("strong_warmup", 0, "Per level below the root, Adam iterations on the strongly "
                                      "supervised demonstrations alone before --iterations on all of them.")
 DECODE = flags.DEFINE_enum("decode", "sample", list(train.DECODERS), "Decoding of weak views for the level above.")
@@ -47,7 +50,8 @@ def config_from_flags(default_tau: tuple[bool, ...], default_hidden: tuple[int, 
                            hidden=tuple(int(h) for h in HIDDEN.value) if HIDDEN.value else default_hidden,
                            root=ROOT.value,
                            tau_in_termination=tau, strong_weight=STRONG_WEIGHT.value,
-                           strong_warmup=STRONG_WARMUP.value, decode=DECODE.value,
+                           root_strong_weight=ROOT_STRONG_WEIGHT.value, strong_warmup=STRONG_WARMUP.value,
+                           decode=DECODE.value,
                            eval_every=EVAL_EVERY.value, snapshot=SNAPSHOT.value, seed=SEED.value)
 
 

@@ -40,6 +40,7 @@ class TrainConfig:
   root_hidden: int = 64
   tau_in_termination: tuple[bool, ...] | None = None  # per level; None: all True
   strong_weight: float | None = None  # weight on strongly supervised demonstrations' loss; None: balanced
+  root_strong_weight: float | None = None  # the root level's: its weak views have no latent choice; None: the same
   strong_warmup: int = 0            # below the root, iterations on the strong views alone before those on all
   decode: str = "sample"            # how weak views are decoded for the level above (the paper sampled)
   capacity: int = 8                 # counter capacity C below the root level when nothing is annotated
@@ -279,7 +280,9 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
       def save(progress, level=level):
         _write_checkpoint(checkpoint_path, hierarchy, level, progress, report, decoded)
 
-      progress = train_level(model, view, capacity, config, on_eval,
+      level_config = (dataclasses.replace(config, strong_weight=config.root_strong_weight)
+                      if level == 0 and config.root_strong_weight is not None else config)
+      progress = train_level(model, view, capacity, level_config, on_eval,
                              log=lambda row, level=level: log({"level": level, **row}), resume=resume,
                              save=save if checkpoint_path else None)
       entry = {"capacity": capacity, "losses": progress.losses, "best_iteration": progress.best_iteration,

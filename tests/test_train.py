@@ -203,6 +203,19 @@ def test_strong_warmup_fits_the_strong_views_alone_first():
   assert any(not np.array_equal(a, b) for a, b in zip(trained(view, strong_warmup=30, iterations=5), strong_only))
 
 
+def test_root_strong_weight_changes_only_the_root_levels_loss():
+  demos = datasets.nanocraft_training_demos(seed=3, num_demos=6, num_strong=2)
+  config = train.TrainConfig(iterations=1, hidden=(8,), root="mlp", root_hidden=8, strong_weight=5.0, seed=2)
+
+  def first_losses(**changes):
+    _, report = train.train_hierarchy(NANOCRAFT.spec, demos, dataclasses.replace(config, **changes),
+                                      log=lambda row: None)
+    return [report[level]["losses"][0][1] for level in (2, 1, 0)]
+
+  default, root_weight_1 = first_losses(), first_losses(root_strong_weight=1.0)
+  assert default[:2] == root_weight_1[:2] and default[2] > root_weight_1[2]  # weak views now count as much
+
+
 @pytest.mark.parametrize("rule, kept", [("earliest", 20), ("latest", 30)])
 def test_fit_keeps_the_earliest_or_latest_of_the_best_validated_snapshots(rule, kept):
   model = nnx.Linear(2, 1, rngs=nnx.Rngs(0))
