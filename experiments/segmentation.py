@@ -18,7 +18,6 @@ import numpy as np
 from absl import app, flags
 
 from php_jax import datasets, tasks, train, views
-from php_jax.demos import UNKNOWN
 
 _RUN = flags.DEFINE_string("run", None, "A training run's workdir (results.json, checkpoint.msgpack).")
 _LEVEL = flags.DEFINE_integer("level", None, "Level to report (default: every level below the root).")
@@ -44,17 +43,18 @@ def level_report(demos, view: views.LevelView, level: int, procs, taus, names) -
   splits and merges happen, and the wrong ones' frames (truth, decoded) as "name:τ" lists."""
   true_procs, true_taus = np.asarray(demos.procedures), np.asarray(demos.counters)
   kinds, where, wrong = collections.Counter(), collections.Counter(), []
-  for b in np.flatnonzero(~view.strong):
+
+  def frames(procedures, counters):
+    return [f"{names[i]}:{j}" for i, j in zip(procedures, counters)]
+
+  for b in train.weak_with_stack(demos, view, level):
     n, times = view.length[b], view.times[b, :view.length[b]]
-    if np.any(true_procs[b, :int(demos.length[b]), level] == UNKNOWN):
-      continue
     truth = true_procs[b, times, level], true_taus[b, times, level]
     kind, steps = classify(*truth, procs[b, :n], taus[b, :n])
     kinds[kind] += 1
     where.update(f"{kind} in {names[truth[0][k]]}" for k in steps if kind in ("split", "merge"))
     if kind != "correct":
-      frames = lambda p, t: [f"{names[i]}:{j}" for i, j in zip(p, t)]
-      wrong.append({"demo": int(b), "kind": kind, "truth": frames(*truth),
+      wrong.append({"demo": b, "kind": kind, "truth": frames(*truth),
                     "decoded": frames(procs[b, :n], taus[b, :n])})
   return {"kinds": dict(kinds), "where": dict(where), "wrong": wrong}
 

@@ -140,19 +140,24 @@ def train_level(model: LevelModel, view: views.LevelView, capacity: int, config:
                 log: Callable[[dict], None] = print, resume: fitting.Progress | None = None,
                 save: Callable[[fitting.Progress], None] | None = None) -> fitting.Progress:
   """Full-batch Adam on one level's EG loss over its views in length buckets (`fitting.fit`: snapshots,
-  saving, resuming). Updates `model` in place.
+  saving, resuming). Updates `model` in place. The root level's strong weight is config.root_strong_weight
+  when set.
 
   Below the root level, with config.strong_warmup = W (and both kinds of view present), iterations 1..W fit
   the strong views alone and W+1..W+config.iterations all of them: the weak views' posteriors then start
   from networks that follow the annotated hierarchy instead of from random ones (paper §6: weak views can
   pull the fit towards another hierarchy). The root level's weak views have no latent choice (one procedure,
   τ = step), so it has no warm-up."""
+  is_root = model.root is None
+  strong_weight = config.root_strong_weight if is_root and config.root_strong_weight is not None else (
+      config.strong_weight)
+
   def fit(part: views.LevelView, iterations: int, progress: fitting.Progress | None) -> fitting.Progress:
     buckets = [device_view(b) for b in length_buckets(part, config.length_buckets)]
-    return fitting.fit(model, lambda m: level_loss(m, buckets, capacity, config.strong_weight), iterations,
+    return fitting.fit(model, lambda m: level_loss(m, buckets, capacity, strong_weight), iterations,
                        config.learning_rate, config.eval_every, on_eval, log, progress, save, config.snapshot)
 
-  warmup = config.strong_warmup if model.root is not None and 0 < view.strong.sum() < len(view.strong) else 0
+  warmup = config.strong_warmup if not is_root and 0 < view.strong.sum() < len(view.strong) else 0
   if warmup and (resume is None or resume.iteration < warmup):
     resume = fit(views.select(view, view.strong), warmup, resume)
   return fit(view, warmup + config.iterations, resume)
@@ -167,6 +172,13 @@ def level_capacity(view: views.LevelView, level: int, config: TrainConfig) -> in
   return int(annotated.max()) + 1 if annotated.size else config.capacity
 
 
+def weak_with_stack(demos: Demonstration, view: views.LevelView, level: int) -> list[int]:
+  """The weak demonstrations whose supervisor's stack at `level` is known on every elementary step: those
+  a decoding can be checked against."""
+  true_procs = np.asarray(demos.procedures)[..., level]
+  return [int(b) for b in np.flatnonzero(~view.strong) if np.all(true_procs[b, :int(demos.length[b])] != UNKNOWN)]
+
+
 def agreement_counts(demos: Demonstration, view: views.LevelView, level: int, procedures, counters):
   """[K, K] counts of weak demonstrations' elementary steps decoded as procedure i at `level` whose
   supervisor's procedure is j, with equal counters (None if no weak demonstration carries the supervisor's
@@ -174,11 +186,8 @@ def agreement_counts(demos: Demonstration, view: views.LevelView, level: int, pr
   true_procs, true_taus = np.asarray(demos.procedures), np.asarray(demos.counters)
   num_procs = int(max(true_procs[..., level].max(), np.max(procedures))) + 1
   counts, total = np.zeros((num_procs, num_procs), np.int64), 0
-  for b in np.flatnonzero(~view.strong):
-    n_elem = int(demos.length[b])
-    if np.any(true_procs[b, :n_elem, level] == UNKNOWN):
-      continue
-    bounds = list(view.times[b, :view.length[b]]) + [n_elem]
+  for b in weak_with_stack(demos, view, level):
+    bounds = list(view.times[b, :view.length[b]]) + [int(demos.length[b])]
     for k in range(view.length[b]):
       steps = slice(bounds[k], bounds[k + 1])
       same_tau = true_taus[b, steps, level] == counters[b, k]
@@ -280,9 +289,7 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
       def save(progress, level=level):
         _write_checkpoint(checkpoint_path, hierarchy, level, progress, report, decoded)
 
-      level_config = (dataclasses.replace(config, strong_weight=config.root_strong_weight)
-                      if level == 0 and config.root_strong_weight is not None else config)
-      progress = train_level(model, view, capacity, level_config, on_eval,
+      progress = train_level(model, view, capacity, config, on_eval,
                              log=lambda row, level=level: log({"level": level, **row}), resume=resume,
                              save=save if checkpoint_path else None)
       entry = {"capacity": capacity, "losses": progress.losses, "best_iteration": progress.best_iteration,
