@@ -32,6 +32,9 @@ ROOT_STRONG_WEIGHT = flags.DEFINE_float("root_strong_weight", None, "Weight on t
                                         "--strong_weight's.")
 STRONG_WARMUP = flags.DEFINE_integer("strong_warmup", 0, "Per level below the root, Adam iterations on the strongly "
                                      "supervised demonstrations alone before --iterations on all of them.")
+CALL_PENALTY = flags.DEFINE_list("call_penalty", None, "Per level (root first; the root's must be 0), a log-prior "
+                                 "cost of each call the stand-in root pushes: weak views' posteriors favour fewer, "
+                                 "longer calls. Default: 0 everywhere.")
 DECODE = flags.DEFINE_enum("decode", "sample", list(train.DECODERS), "Decoding of weak views for the level above.")
 EVAL_EVERY = flags.DEFINE_integer("eval_every", 100, "Iterations between logged losses / root snapshots.")
 SNAPSHOT = flags.DEFINE_enum("snapshot", "latest", list(fitting.SNAPSHOT_RULES),
@@ -51,6 +54,7 @@ def config_from_flags(default_tau: tuple[bool, ...], default_hidden: tuple[int, 
                            root=ROOT.value,
                            tau_in_termination=tau, strong_weight=STRONG_WEIGHT.value,
                            root_strong_weight=ROOT_STRONG_WEIGHT.value, strong_warmup=STRONG_WARMUP.value,
+                           call_penalty=tuple(float(v) for v in CALL_PENALTY.value) if CALL_PENALTY.value else None,
                            decode=DECODE.value,
                            eval_every=EVAL_EVERY.value, snapshot=SNAPSHOT.value, seed=SEED.value)
 

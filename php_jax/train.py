@@ -3,7 +3,9 @@
 Level i's loss on a batch of its views is −(w_strong Σ_strong log P(ζ, ξ) + Σ_weak log P(ξ)) / N, each term the
 lattice's exact log-likelihood (strong views through `annotate`). Below the root level, a root network (MLP
 or LSTM over the view's observations) stands in for the untrained levels above; the root level is the
-lattice's top-level mode (one procedure, called once). After a level is trained, its weak views are decoded
+lattice's top-level mode (one procedure, called once). An optional per-level call penalty λ is a prior on
+the latent call sequence: the root's log η_⊥ drops by λ at every push, so weak views' posteriors favour fewer,
+longer calls (a strong view's log-likelihood drops by λ per call, a constant). After a level is trained, its weak views are decoded
 (Viterbi, per-step max-marginal, or a posterior sample) into the view of the level above.
 """
 from __future__ import annotations
@@ -42,6 +44,7 @@ class TrainConfig:
   strong_weight: float | None = None  # weight on strongly supervised demonstrations' loss; None: balanced
   root_strong_weight: float | None = None  # the root level's: its weak views have no latent choice; None: the same
   strong_warmup: int = 0            # below the root, iterations on the strong views alone before those on all
+  call_penalty: tuple[float, ...] | None = None  # per level (root first), log-prior cost of each call; None: 0
   decode: str = "sample"            # how weak views are decoded for the level above (the paper sampled)
   capacity: int = 8                 # counter capacity C below the root level when nothing is annotated
   eval_every: int = 100             # logging, checkpoint and root-snapshot interval
@@ -53,9 +56,10 @@ class TrainConfig:
 class LevelModel(nnx.Module):
   """What one level trains: its PHP networks, and a root network unless it is the root level."""
 
-  def __init__(self, php: PHPLevel, root: nnx.Module | None):
+  def __init__(self, php: PHPLevel, root: nnx.Module | None, call_penalty: float = 0.0):
     self.php = php
     self.root = root
+    self.call_penalty = call_penalty
 
 
 def lattice_inputs(model: LevelModel, observations, actions, procedures, counters, length, capacity: int):
@@ -72,7 +76,7 @@ def lattice_inputs(model: LevelModel, observations, actions, procedures, counter
     log_root = jnp.zeros(log_op.shape[:2], log_op.dtype)
     log_stop = lattice.top_level(log_stop, length)
   else:
-    log_root = model.root(observations[:-1])
+    log_root = model.root(observations[:-1]) - model.call_penalty
   return log_root, lattice.annotate(log_op, procedures, counters), log_stop, log_cont
 
 
@@ -264,6 +268,9 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
   weak demonstrations, wall time)."""
   if config.decode not in DECODERS:
     raise ValueError(f"decode must be one of {DECODERS}; got {config.decode!r}")
+  if config.call_penalty is not None and (len(config.call_penalty) != spec.num_levels or config.call_penalty[0]):
+    raise ValueError(f"call_penalty needs one value per level, root first, the root's 0 (it has no stand-in root); "
+                     f"got {config.call_penalty} for {spec.num_levels} levels")
   validate_demos(demos, spec)  # malformed annotations are refused, naming the demonstration and step
   if config.strong_weight is None:
     config = dataclasses.replace(config, strong_weight=balanced_strong_weight(np.asarray(demos.strong)))
@@ -281,7 +288,8 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
     start = time.time()
     capacity = level_capacity(view, level, config)
     if level not in report:
-      model = LevelModel(hierarchy.levels[level], make_root(spec, level, config))
+      model = LevelModel(hierarchy.levels[level], make_root(spec, level, config),
+                         config.call_penalty[level] if config.call_penalty else 0.0)
       resume = _progress_from(saved, model) if saved is not None and saved[0]["level"] == level else None
       on_eval = (lambda it, loss: validate(hierarchy)) if (level == 0 and validate) else None
       log({"level": level, "capacity": capacity, "view_length": int(view.length.max())})

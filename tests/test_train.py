@@ -216,6 +216,36 @@ def test_root_strong_weight_changes_only_the_root_levels_loss():
   assert default[:2] == root_weight_1[:2] and default[2] > root_weight_1[2]  # weak views now count as much
 
 
+def test_call_penalty_is_a_prior_on_the_number_of_calls():
+  demos = datasets.nanocraft_training_demos(seed=3, num_demos=6, num_strong=3)
+  config = train.TrainConfig(hidden=(8,), root="mlp", root_hidden=8, seed=2)
+  view = train.device_view(views.lowest_view(demos, NANOCRAFT.spec.num_levels))
+  php, root = train.make_hierarchy(NANOCRAFT.spec, config).levels[2], train.make_root(NANOCRAFT.spec, 2, config)
+  capacity, penalty = train.level_capacity(view, 2, config), 1.5
+  for b in range(view.length.shape[0]):
+    obs, act, proc, tau, n = (x[b] for x in (view.observations, view.actions, view.procedures, view.counters,
+                                             view.length))
+    free = train.lattice_inputs(train.LevelModel(php, root), obs, act, proc, tau, n, capacity)
+    penalised = train.lattice_inputs(train.LevelModel(php, root, penalty), obs, act, proc, tau, n, capacity)
+
+    def log_likelihood(cost):
+      return lattice.forward_backward(free[0] - cost, *free[1:], length=n).log_likelihood
+
+    if view.strong[b]:  # one known path: its log-likelihood drops by the penalty once per call
+      calls = np.sum(np.asarray(tau[:n]) == 0)
+      np.testing.assert_allclose(log_likelihood(penalty), log_likelihood(0.0) - penalty * calls, rtol=1e-5)
+    else:  # d/dλ log Σ_ζ P(ζ, ξ) e^(−λ·calls(ζ)) = −E[calls | ξ] under the penalised posterior
+      posterior = lattice.forward_backward(*penalised, length=n)
+      expected_calls = jnp.sum(posterior.v[:, :, 0])
+      np.testing.assert_allclose(jax.grad(log_likelihood)(penalty), -expected_calls, rtol=1e-4)
+      unpenalised_calls = jnp.sum(lattice.forward_backward(*free, length=n).v[:, :, 0])
+      assert expected_calls <= unpenalised_calls + 1e-4
+  with pytest.raises(ValueError, match="call_penalty"):
+    train.train_hierarchy(NANOCRAFT.spec, demos, dataclasses.replace(config, call_penalty=(0.0, 1.0)))
+  with pytest.raises(ValueError, match="call_penalty"):
+    train.train_hierarchy(NANOCRAFT.spec, demos, dataclasses.replace(config, call_penalty=(1.0, 1.0, 0.0)))
+
+
 @pytest.mark.parametrize("rule, kept", [("earliest", 20), ("latest", 30)])
 def test_fit_keeps_the_earliest_or_latest_of_the_best_validated_snapshots(rule, kept):
   model = nnx.Linear(2, 1, rngs=nnx.Rngs(0))
