@@ -5,8 +5,9 @@ lattice's exact log-likelihood (strong views through `annotate`). Below the root
 or LSTM over the view's observations) stands in for the untrained levels above; the root level is the
 lattice's top-level mode (one procedure, called once). An optional per-level call penalty λ is a prior on
 the latent call sequence: the root's log η_⊥ drops by λ at every push, so weak views' posteriors favour fewer,
-longer calls (a strong view's log-likelihood drops by λ per call, a constant). After a level is trained, its weak views are decoded
-(Viterbi, per-step max-marginal, or a posterior sample) into the view of the level above.
+longer calls (a strong view's log-likelihood drops by λ per call, a constant). After a level is trained, its
+weak views are decoded (Viterbi, per-step max-marginal, or a posterior sample) into the view of the level
+above.
 """
 from __future__ import annotations
 
