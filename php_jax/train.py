@@ -55,7 +55,8 @@ class TrainConfig:
 
 
 class LevelModel(nnx.Module):
-  """What one level trains: its PHP networks, and a root network unless it is the root level."""
+  """What one level trains: its PHP networks, and a root network unless it is the root level. call_penalty
+  (not trained) is subtracted from the root network's log η_⊥ at every push (`lattice_inputs`)."""
 
   def __init__(self, php: PHPLevel, root: nnx.Module | None, call_penalty: float = 0.0):
     self.php = php
