@@ -1,10 +1,10 @@
 r"""Benchmarks as commands: ratios against baselines measured in the same process.
 
   python -m experiments.benchmark estep     # E-step: ours vs a plain log-space scan vs dynamax's smoother
-  python -m experiments.benchmark rollout   # oracle rollouts: elementary steps per second
-  python -m experiments.benchmark train_step --hidden=64  # one EG iteration at addition's lowest level, split
+  python -m experiments.benchmark rollout --task=NAME --size=1000  # oracle rollouts: steps per second
+  python -m experiments.benchmark train_step --task=NAME --hidden=64  # one EG iteration, split
 
-estep times values + marginals for B demonstrations of T steps (vmapped, jitted) at the sizes of issue 3,
+estep times values + marginals for B demonstrations of T steps (vmapped, jitted) at the paper's sizes and beyond,
 checks that the three agree on log P(ξ), and prints lattice cells (B·T·K·C) per second and ratios.
 """
 from __future__ import annotations
@@ -21,8 +21,7 @@ from absl import app, flags
 from flax import nnx
 
 import php_jax
-from php_jax import datasets, executor, tasks, train, views
-from php_jax.envs import addition
+from php_jax import datasets, executor, objective, tasks, train, views
 
 _SIZES = flags.DEFINE_string(
     "sizes", "160x80x3x8,160x200x6x16,32x400x6x32,16x10000x3x8,4096x200x6x16",
@@ -30,11 +29,13 @@ _SIZES = flags.DEFINE_string(
 _MIN_TIME = flags.DEFINE_float("min_time", 1.0, "Seconds of repetitions per measurement (median taken).")
 _DYNAMAX_MAX_BYTES = flags.DEFINE_float("dynamax_max_gb", 4.0, "Skip dynamax above this working set (GB).")
 _OUT = flags.DEFINE_string("out", None, "Optional JSON file for the results.")
-_DIGITS = flags.DEFINE_integer("digits", 1000, "rollout: digits per addition problem.")
+_TASK = flags.DEFINE_string("task", None, "rollout, train_step: the task (what experiments.train --task takes).")
+_SIZE = flags.DEFINE_integer("size", 1000, "rollout: problem size (digits, array length; ignored by tasks with "
+                             "one size).")
 _PROBLEMS = flags.DEFINE_integer("problems", 100, "rollout: number of problems.")
 _HIDDEN = flags.DEFINE_list("hidden", ["64"], "train_step: hidden layer sizes of the PHP networks.")
 _ROOT = flags.DEFINE_enum("root", "lstm", ["lstm", "mlp"], "train_step: root network.")
-_NUM_STRONG = flags.DEFINE_integer("num_strong", 3, "train_step: annotated traces of the 160.")
+_NUM_STRONG = flags.DEFINE_integer("num_strong", 3, "train_step: annotated demonstrations of the training set.")
 
 
 def _median_seconds(fn, *args) -> float:
@@ -143,16 +144,15 @@ def bench_estep():
 
 
 def bench_rollout():
-  task = tasks.get("addition")
-  problems = datasets.random_addition_problems(0, [_DIGITS.value], _PROBLEMS.value)
-  states = datasets.addition_states(problems)
+  task = _task()
+  problems = task.test_problems(0, _PROBLEMS.value, _SIZE.value)
+  states, budget = task.states_and_budget(problems)
   keys = jax.random.split(jax.random.key(0), len(problems))
-  budget = addition.oracle_step_budget(_DIGITS.value)
   rows = []
   print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}); "
-        f"{len(problems)} problems of {_DIGITS.value} digits")
+        f"{len(problems)} {task.name} problems of size {_SIZE.value}")
   for record in (False, True):
-    run = lambda s, k, record=record: executor.rollout_batch(task.oracle, task.spec, addition, s, k, budget,
+    run = lambda s, k, record=record: executor.rollout_batch(task.oracle, task.spec, task.env, s, k, budget,
                                                            record)
     seconds = _median_seconds(run, states, keys)
     out = run(states, keys)
@@ -164,36 +164,34 @@ def bench_rollout():
 
 
 def bench_train_step():
-  """Where one training iteration's time goes at addition's lowest level (the costliest level: 160 views in
-  length buckets): the jitted gradient of the whole EG loss against the same loss with the lattice replaced
-  by a plain sum of its inputs (the networks alone) and against the root network alone."""
-  task = tasks.get("addition")
-  problems = datasets.addition_problems(1)
-  demos = datasets.oracle_demonstrations(task, datasets.addition_states(problems), _NUM_STRONG.value,
-                                         addition.oracle_step_budget(10))
+  """Where one training iteration's time goes at the task's lowest level (the costliest level: every
+  elementary step, in length buckets): the jitted gradient of the whole EG loss against the same loss with
+  the lattice replaced by a plain sum of its inputs (the networks alone) and against the root network alone."""
+  task = _task()
+  demos = datasets.training_demos(task, 1, task.defaults.num_demos, _NUM_STRONG.value)
   view = views.lowest_view(demos, task.spec.num_levels)
   config = train.TrainConfig(hidden=tuple(int(h) for h in _HIDDEN.value), root=_ROOT.value,
                              strong_weight=train.balanced_strong_weight(demos.strong))
   level = task.spec.num_levels - 1
-  model = train.LevelModel(train.make_hierarchy(task.spec, config).levels[level],
+  model = objective.LevelModel(train.make_hierarchy(task.spec, config).levels[level],
                            train.make_root(task.spec, level, config))
-  buckets = [train.device_view(b) for b in train.length_buckets(view, config.length_buckets)]
+  buckets = [views.device_view(b) for b in views.length_buckets(view, config.length_buckets)]
   capacity = train.level_capacity(view, level, config)
   graphdef, params, rest = nnx.split(model, nnx.Param, ...)
 
   def networks_only(m):  # the lattice's inputs, summed where finite: the same networks, no E-step
     total = 0.0
     for b in buckets:
-      inputs = jax.vmap(lambda *a: train.lattice_inputs(m, *a, capacity))(
+      inputs = jax.vmap(lambda *a: objective.lattice_inputs(m, *a, capacity))(
           b.observations, b.actions, b.procedures, b.counters, b.length)
       total = total + sum(jnp.sum(jnp.where(jnp.isfinite(x), x, 0.0)) for x in inputs)
     return total
 
-  losses = {"EG loss (networks + lattice)": lambda m: train.level_loss(m, buckets, capacity, config.strong_weight),
+  losses = {"EG loss (networks + lattice)": lambda m: objective.level_loss(m, buckets, capacity, config.strong_weight),
             "networks only": networks_only,
             "root network only": lambda m: sum(jnp.sum(jax.vmap(m.root)(b.observations[:, :-1])) for b in buckets)}
-  print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}); addition level {level}: "
-        f"{len(problems)} views in {len(buckets)} buckets, C = {capacity}, hidden {config.hidden}, root {config.root}")
+  print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}); {task.name} level {level}: "
+        f"{len(demos.length)} views in {len(buckets)} buckets, C = {capacity}, hidden {config.hidden}, root {config.root}")
   rows, first = [], None
   for name, loss in losses.items():
     grad = jax.jit(jax.value_and_grad(lambda p, loss=loss: loss(nnx.merge(graphdef, p, rest))))
@@ -202,6 +200,12 @@ def bench_train_step():
     rows.append({"what": name, "ms": seconds * 1e3, "fraction_of_full": seconds / first})
     print(f"{name:>30}: {seconds * 1e3:8.1f} ms per gradient  ({seconds / first:.2f} of the full loss)")
   return rows
+
+
+def _task():
+  if not _TASK.value:
+    raise app.UsageError("--task is required for rollout and train_step")
+  return tasks.get(_TASK.value)
 
 
 def main(argv):

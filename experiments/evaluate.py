@@ -1,6 +1,6 @@
 r"""Runs a hierarchy on a file of problems and writes one JSON outcome line per problem, in order.
 
-  python -m experiments.evaluate --task=addition --policy=oracle --problems=IN.jsonl --out=OUT.jsonl
+  python -m experiments.evaluate --task=NAME --policy=oracle --problems=IN.jsonl --out=OUT.jsonl
 
 --policy is `oracle` (the supervisor) or a training workdir holding a saved model (PHP or flat LSTM). A
 malformed problem line is reported with its line number and exit status 2 before anything runs; the output
@@ -15,34 +15,36 @@ from absl import app, flags
 
 from experiments import problems as problem_files
 from php_jax import checkpoint, evaluation, tasks
+from php_jax.task import Task
 
-_TASK = flags.DEFINE_enum("task", None, ["addition", "nanocraft"], "Benchmark task.")
+_TASK = flags.DEFINE_string("task", None, f"The task: one of {', '.join(tasks.TASKS)}, or module:attribute of "
+                            "a php_jax.task.Task defined elsewhere.")
 _POLICY = flags.DEFINE_string("policy", "oracle", "'oracle' or a workdir with a trained model.")
 _PROBLEMS = flags.DEFINE_string("problems", None, "Input JSON-lines file of problems.")
 _OUT = flags.DEFINE_string("out", None, "Output JSON-lines file of outcomes.")
 _BATCH_SIZE = flags.DEFINE_integer("batch_size", 64, "Problems rolled out together.")
 
 
-def load_policy(task: tasks.Task, policy: str):
+def load_policy(task_name: str, task: Task, policy: str):
   """The oracle, or the model (PHP hierarchy or flat LSTM baseline) saved in a workdir for the same task."""
   if policy == "oracle":
     return task.oracle
   saved_task, model = checkpoint.load_policy(policy)
-  if saved_task != task.name:
-    raise ValueError(f"--policy={policy!r} holds a {saved_task} model, not {task.name}")
+  if saved_task != task_name:
+    raise ValueError(f"--policy={policy!r} holds a {saved_task} model, not {task_name}")
   return model
 
 
 def main(argv):
   del argv
-  task = tasks.get(_TASK.value)
   try:
-    problems = problem_files.read_problems(_PROBLEMS.value, task.name)
-    policy = load_policy(task, _POLICY.value)
+    task = tasks.get(_TASK.value)
+    problems = problem_files.read_problems(_PROBLEMS.value, task)
+    policy = load_policy(_TASK.value, task, _POLICY.value)
   except (problem_files.ProblemFileError, OSError, ValueError) as e:
     print(f"error: {e}", file=sys.stderr)
     sys.exit(2)
-  outcomes = evaluation.SOLVERS[task.name](policy, task.spec, problems, batch_size=_BATCH_SIZE.value)
+  outcomes = evaluation.solve(task, policy, problems, batch_size=_BATCH_SIZE.value)
   checkpoint.write_atomically(_OUT.value, "".join(json.dumps(o) + "\n" for o in outcomes).encode())
   correct = sum(o["correct"] for o in outcomes)
   print(f"{task.name}: {correct}/{len(outcomes)} correct -> {_OUT.value}")

@@ -17,7 +17,7 @@ import os
 import numpy as np
 from absl import app, flags
 
-from php_jax import datasets, tasks, train, views
+from php_jax import agreement, checkpoint, datasets, tasks, views
 
 _RUN = flags.DEFINE_string("run", None, "A training run's workdir (results.json, checkpoint.msgpack).")
 _LEVEL = flags.DEFINE_integer("level", None, "Level to report (default: every level below the root).")
@@ -47,7 +47,7 @@ def level_report(demos, view: views.LevelView, level: int, procs, taus, names) -
   def frames(procedures, counters):
     return [f"{names[i]}:{j}" for i, j in zip(procedures, counters)]
 
-  for b in train.weak_with_stack(demos, view, level):
+  for b in agreement.weak_with_stack(demos, view, level):
     n, times = view.length[b], view.times[b, :view.length[b]]
     truth = true_procs[b, times, level], true_taus[b, times, level]
     kind, steps = classify(*truth, procs[b, :n], taus[b, :n])
@@ -69,12 +69,10 @@ def main(argv):
     results = json.load(f)
   if results.get("model", "php") != "php":
     raise app.UsageError(f"{_RUN.value} holds a {results['model']} run, which has no hierarchy to decode")
-  if results["task"] == "nanocraft":
-    demos = datasets.nanocraft_training_demos(results["seed"], results["num_demos"], results["num_strong"])
-  else:
-    demos = datasets.addition_training_demos(results["seed"], results["num_strong"])
-  spec = tasks.get(results["task"]).spec
-  decoded = train.read_decoded(paths[1])
+  task = tasks.get(results["task"])
+  demos = datasets.training_demos(task, results["seed"], results["num_demos"], results["num_strong"])
+  spec = task.spec
+  decoded = checkpoint.read_decoded(paths[1])
   view = views.lowest_view(demos, spec.num_levels)
   for level in range(spec.num_levels - 1, 0, -1):
     if _LEVEL.value in (None, level):

@@ -1,11 +1,11 @@
 r"""Runs a training experiment over a grid of flag values, one workdir per combination.
 
-  python -m experiments.sweep --task=nanocraft --workdir=runs/nc_sweep \
+  python -m experiments.sweep --task=NAME --workdir=runs/sweep \
       --grid=num_demos=16,32,64 --grid=num_strong=1,2,4,8,16,32,64 --grid=seed=1,2,3,4,5 -- --iterations=2000
-  python -m experiments.sweep --task=nanocraft --workdir=runs/nc_hparams \
+  python -m experiments.sweep --task=NAME --workdir=runs/hparams \
       --grid=num_demos=64 --grid=num_strong=8 --grid='tau_in_termination=1,1,1|1,0,1|1,1,0' --grid=seed=1
 
-Each combination runs `python -m experiments.<task> --workdir=WORKDIR/<name=value,...> --name=value ...`
+Each combination runs `python -m experiments.train --task=NAME --workdir=WORKDIR/<name=value,...> --name=value ...`
 followed by the flags after `--` (the same for every run). A combination whose results.json exists is
 skipped, so an interrupted sweep resumes where it stopped (and a run interrupted mid-way resumes from its
 own checkpoint); combinations with num_strong > num_demos are left out. `python -m experiments.plot` reads
@@ -21,7 +21,7 @@ import sys
 
 from absl import app, flags
 
-_TASK = flags.DEFINE_enum("task", None, ["addition", "nanocraft"], "Training experiment to run.")
+_TASK = flags.DEFINE_string("task", None, "The task trained (what experiments.train --task takes).")
 _WORKDIR = flags.DEFINE_string("workdir", None, "Parent directory of the runs' workdirs.")
 _GRID = flags.DEFINE_multi_string("grid", [], "name=v1,v2,...: a flag of the experiment and its values.")
 _PARALLEL = flags.DEFINE_integer("parallel", 1, "Runs at a time.")
@@ -48,7 +48,7 @@ def run_name(combo: dict[str, str]) -> str:
 
 def _run(task: str, workdir: str, combo: dict[str, str], extra: list[str]) -> tuple[str, int]:
   os.makedirs(workdir, exist_ok=True)
-  command = [sys.executable, "-m", f"experiments.{task}", f"--workdir={workdir}",
+  command = [sys.executable, "-m", "experiments.train", f"--task={task}", f"--workdir={workdir}",
              *(f"--{k}={v}" for k, v in combo.items()), *extra]
   with open(os.path.join(workdir, "stdout.log"), "a") as out:
     return workdir, subprocess.run(command, stdout=out, stderr=subprocess.STDOUT).returncode

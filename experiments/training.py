@@ -12,14 +12,16 @@ import numpy as np
 from absl import flags
 from flax import nnx
 
-from php_jax import checkpoint, fitting, flat_lstm, tasks, train
+from php_jax import checkpoint, fitting, flat_lstm, objective, tasks, train
 from php_jax.demos import Demonstration
+from php_jax.task import TrainingDefaults
 
 WORKDIR = flags.DEFINE_string("workdir", None, "Directory for results.json, metrics.jsonl and the model.")
 NUM_STRONG = flags.DEFINE_integer("num_strong", 1, "Strongly supervised (call-stack annotated) demonstrations.")
 SEED = flags.DEFINE_integer("seed", 0, "Seed for data, initialisation and decoding.")
-ITERATIONS = flags.DEFINE_integer("iterations", 2000, "Adam iterations per level (the paper: 2000).")
-LEARNING_RATE = flags.DEFINE_float("learning_rate", 3e-3, "Adam learning rate.")
+ITERATIONS = flags.DEFINE_integer("iterations", None, "Adam iterations per level. Default: the task's (the "
+                                  "paper's 2000 for its two tasks).")
+LEARNING_RATE = flags.DEFINE_float("learning_rate", None, "Adam learning rate. Default: the task's.")
 HIDDEN = flags.DEFINE_list("hidden", None, "Hidden layer sizes of every operation/termination MLP. Default: "
                            "the task's.")
 ROOT = flags.DEFINE_enum("root", "lstm", ["lstm", "mlp"], "Root network standing in for untrained levels.")
@@ -35,7 +37,7 @@ STRONG_WARMUP = flags.DEFINE_integer("strong_warmup", 0, "Per level below the ro
 CALL_PENALTY = flags.DEFINE_list("call_penalty", None, "Per level (root first; the root's must be 0), a log-prior "
                                  "cost of each call the stand-in root pushes: weak views' posteriors favour fewer, "
                                  "longer calls. Default: 0 everywhere.")
-DECODE = flags.DEFINE_enum("decode", "sample", list(train.DECODERS), "Decoding of weak views for the level above.")
+DECODE = flags.DEFINE_enum("decode", "sample", list(objective.DECODERS), "Decoding of weak views for the level above.")
 EVAL_EVERY = flags.DEFINE_integer("eval_every", 100, "Iterations between logged losses / root snapshots.")
 SNAPSHOT = flags.DEFINE_enum("snapshot", "latest", list(fitting.SNAPSHOT_RULES),
                              "Snapshot kept among those with the best validation accuracy (the PHP root level's, or "
@@ -44,13 +46,25 @@ MODEL = flags.DEFINE_enum("model", "php", ["php", "flat_lstm"],
                           "php: the hierarchy by level-wise EG; flat_lstm: the behaviour-cloning baseline.")
 LSTM_HIDDEN = flags.DEFINE_integer("lstm_hidden", 128, "Hidden units of the flat LSTM baseline.")
 NUM_VALIDATION = flags.DEFINE_integer("num_validation", 50, "Validation problems (training distribution).")
+OVERWRITE = flags.DEFINE_bool("overwrite", False, "Start afresh in a workdir that holds another run (its "
+                              "checkpoint, model, metrics and results are deleted); without it such a run is "
+                              "resumed if its settings match, and refused if they do not.")
+RUN_FILES = ("checkpoint.msgpack", "metrics.jsonl", "results.json", checkpoint.ARCHITECTURE_FILE,
+             checkpoint.MODEL_FILE)
 
 
-def config_from_flags(default_tau: tuple[bool, ...], default_hidden: tuple[int, ...]) -> train.TrainConfig:
+class UsageError(ValueError):
+  """A flag value the command refuses; the message names the flag."""
+
+
+def config_from_flags(defaults: TrainingDefaults) -> train.TrainConfig:
+  """The TrainConfig the flags ask for, the task's defaults where they are unset."""
   tau = (tuple(v.lower() in ("1", "true", "yes") for v in TAU_IN_TERMINATION.value)
-         if TAU_IN_TERMINATION.value else default_tau)
-  return train.TrainConfig(iterations=ITERATIONS.value, learning_rate=LEARNING_RATE.value,
-                           hidden=tuple(int(h) for h in HIDDEN.value) if HIDDEN.value else default_hidden,
+         if TAU_IN_TERMINATION.value else defaults.tau_in_termination)
+  iterations = defaults.iterations if ITERATIONS.value is None else ITERATIONS.value
+  learning_rate = defaults.learning_rate if LEARNING_RATE.value is None else LEARNING_RATE.value
+  return train.TrainConfig(iterations=iterations, learning_rate=learning_rate,
+                           hidden=tuple(int(h) for h in HIDDEN.value) if HIDDEN.value else defaults.hidden,
                            root=ROOT.value,
                            tau_in_termination=tau, strong_weight=STRONG_WEIGHT.value,
                            root_strong_weight=ROOT_STRONG_WEIGHT.value, strong_warmup=STRONG_WARMUP.value,
@@ -64,6 +78,12 @@ def train_and_evaluate(task_name: str, demos: Demonstration, config: train.Train
   """Trains the --model (a PHP hierarchy level by level, resuming from workdir/checkpoint.msgpack if an
   earlier run was interrupted; or the flat LSTM baseline), saves it, tests it, writes results.json; returns
   the results."""
+  if os.path.exists(workdir) and not os.path.isdir(workdir):
+    raise UsageError(f"--workdir={workdir} is a file, not a directory")
+  if OVERWRITE.value:
+    for name in RUN_FILES:
+      if os.path.exists(os.path.join(workdir, name)):
+        os.remove(os.path.join(workdir, name))
   os.makedirs(workdir, exist_ok=True)
   task = tasks.get(task_name)
   if config.strong_weight is None:  # resolved here so that results.json records the number

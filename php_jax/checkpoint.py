@@ -1,19 +1,34 @@
-"""Saving and loading trained models (PHP hierarchies and the flat LSTM baseline): parameters as msgpack
-(flax.serialization), the architecture as JSON, each written atomically (a temporary file renamed into
-place), so a workdir never holds half a model."""
+"""Saved models and training state, in one format: arrays in a msgpack map keyed by their pytree path
+(`jax.tree_util.keystr`), checked against the model's structure on load (every name present, every shape and
+dtype as expected), beside JSON metadata. Files are written atomically (a temporary file renamed into
+place), so a workdir never holds half a model or half a checkpoint.
+
+A model is workdir/model.json (task and architecture) and workdir/model.msgpack (parameters). A training
+checkpoint is one msgpack file: the hierarchy's parameters, the optimizer state of the level in progress,
+the decoded views of finished levels, and its metadata (the settings it was made with, the report so far).
+"""
 from __future__ import annotations
 
 import json
 import os
 import tempfile
+from typing import Any
 
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
 from flax import nnx, serialization
 
-from php_jax import tasks
+from php_jax import fitting, tasks
 from php_jax.flat_lstm import FlatLSTMPolicy
 from php_jax.model import PHPHierarchy
 
 MODEL_FILE, ARCHITECTURE_FILE = "model.msgpack", "model.json"
+
+
+class CheckpointError(ValueError):
+  """A saved file that cannot be used: missing, corrupt, or not matching the model; the message names it."""
 
 
 def write_atomically(path: str, data: bytes) -> None:
@@ -24,9 +39,52 @@ def write_atomically(path: str, data: bytes) -> None:
   os.replace(f.name, path)
 
 
+def named_arrays(tree) -> dict[str, np.ndarray]:
+  """{path name: array} of a pytree's leaves."""
+  return {jax.tree_util.keystr(path): np.asarray(leaf) for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
+
+
+def restore_named(template, named: dict, source: str):
+  """The pytree shaped like template with the arrays of `named`; raises CheckpointError naming `source` and
+  the first missing, unexpected or mis-shaped array."""
+  leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
+  names = [jax.tree_util.keystr(path) for path, _ in leaves]
+  if not isinstance(named, dict):
+    raise CheckpointError(f"{source}: not a map of named arrays")
+  unexpected = sorted(set(named) - set(names))
+  if unexpected:
+    raise CheckpointError(f"{source}: unexpected array {unexpected[0]} (saved with another architecture?)")
+  restored = []
+  for name, (_, leaf) in zip(names, leaves):
+    if name not in named:
+      raise CheckpointError(f"{source}: array {name} is missing (saved with another architecture?)")
+    value = np.asarray(named[name])
+    if value.shape != np.shape(leaf) or value.dtype != np.asarray(leaf).dtype:
+      raise CheckpointError(f"{source}: array {name} is {value.dtype}{list(value.shape)}; the model needs "
+                            f"{np.asarray(leaf).dtype}{list(np.shape(leaf))}")
+    restored.append(jnp.asarray(value))
+  return jax.tree_util.tree_unflatten(treedef, restored)
+
+
+def _read_msgpack(path: str) -> Any:
+  try:
+    with open(path, "rb") as f:
+      return serialization.msgpack_restore(f.read())
+  except (ValueError, TypeError, KeyError, IndexError) as e:
+    raise CheckpointError(f"{path}: corrupt or truncated ({e})") from None
+
+
+def _read_json(path: str) -> Any:
+  try:
+    with open(path, encoding="utf-8") as f:
+      return json.load(f)
+  except (ValueError, UnicodeDecodeError) as e:
+    raise CheckpointError(f"{path}: corrupt or truncated JSON ({e})") from None
+
+
 def _save(workdir: str, model, architecture: dict) -> None:
-  params = nnx.to_pure_dict(nnx.state(model, nnx.Param))
-  write_atomically(os.path.join(workdir, MODEL_FILE), serialization.msgpack_serialize(params))
+  write_atomically(os.path.join(workdir, MODEL_FILE),
+                   serialization.msgpack_serialize(named_arrays(nnx.state(model, nnx.Param))))
   write_atomically(os.path.join(workdir, ARCHITECTURE_FILE), json.dumps(architecture, indent=1).encode())
 
 
@@ -41,22 +99,92 @@ def save_flat_lstm(workdir: str, task_name: str, policy: FlatLSTMPolicy) -> None
   _save(workdir, policy, {"task": task_name, "kind": "flat_lstm", "hidden": policy.hidden})
 
 
+def _architecture(path: str, architecture) -> tuple:
+  """(task name, kind, hidden, tau_in_termination) from model.json, checked."""
+  if not isinstance(architecture, dict) or not isinstance(architecture.get("task"), str):
+    raise CheckpointError(f"{path}: not a model description (needs a \"task\")")
+  kind = architecture.get("kind", "php")
+  hidden = architecture.get("hidden")
+  if kind == "flat_lstm" and isinstance(hidden, int) and hidden > 0:
+    return architecture["task"], kind, hidden, None
+  tau = architecture.get("tau_in_termination")
+  if (kind == "php" and isinstance(hidden, list) and all(isinstance(h, int) and h > 0 for h in hidden)
+      and isinstance(tau, list) and all(isinstance(t, bool) for t in tau)):
+    return architecture["task"], kind, tuple(hidden), tuple(tau)
+  raise CheckpointError(f"{path}: malformed model description {architecture}")
+
+
 def load_policy(workdir: str) -> tuple[str, PHPHierarchy | FlatLSTMPolicy]:
   """(task name, model) saved by save_hierarchy or save_flat_lstm. Raises FileNotFoundError if workdir holds
-  no model."""
+  no model, CheckpointError if its files are corrupt or disagree with each other."""
   arch_path, model_path = (os.path.join(workdir, f) for f in (ARCHITECTURE_FILE, MODEL_FILE))
   if not (os.path.isfile(arch_path) and os.path.isfile(model_path)):
     raise FileNotFoundError(f"no trained model in {workdir!r} (expected {ARCHITECTURE_FILE} and {MODEL_FILE})")
-  with open(arch_path) as f:
-    architecture = json.load(f)
-  task = tasks.get(architecture["task"])
-  if architecture.get("kind", "php") == "flat_lstm":
-    model = FlatLSTMPolicy(task.spec.obs_dim, task.spec.action_sizes, architecture["hidden"], rngs=nnx.Rngs(0))
+  task_name, kind, hidden, tau = _architecture(arch_path, _read_json(arch_path))
+  task = tasks.get(task_name)
+  if kind == "flat_lstm":
+    model = FlatLSTMPolicy(task.spec.obs_dim, task.spec.action_sizes, hidden, rngs=nnx.Rngs(0))
   else:
-    model = PHPHierarchy(task.spec, hidden=tuple(architecture["hidden"]),
-                         tau_in_termination=tuple(architecture["tau_in_termination"]), rngs=nnx.Rngs(0))
-  state = nnx.state(model, nnx.Param)
-  with open(model_path, "rb") as f:
-    nnx.replace_by_pure_dict(state, serialization.msgpack_restore(f.read()))
-  nnx.update(model, state)
-  return task.name, model
+    if len(tau) != task.spec.num_levels:
+      raise CheckpointError(f"{arch_path}: tau_in_termination has {len(tau)} entries; {task_name} has "
+                            f"{task.spec.num_levels} levels")
+    model = PHPHierarchy(task.spec, hidden=hidden, tau_in_termination=tau, rngs=nnx.Rngs(0))
+  nnx.update(model, restore_named(nnx.state(model, nnx.Param), _read_msgpack(model_path), model_path))
+  return task_name, model
+
+
+def write_training(path: str, hierarchy: PHPHierarchy, meta: dict, progress: fitting.Progress | None,
+                   decoded: dict[int, tuple[np.ndarray, np.ndarray]]) -> None:
+  """One file: the hierarchy's parameters, the in-progress level's optimizer state (progress), the decoded
+  views of finished levels, and meta (JSON: the level, the settings, the report so far)."""
+  meta = {**meta, "progress": None if progress is None else {
+      "iteration": progress.iteration, "best_iteration": progress.best_iteration,
+      "best_score": progress.best_score, "losses": progress.losses}}
+  state = {"hierarchy": named_arrays(nnx.state(hierarchy, nnx.Param)),
+           "progress": {} if progress is None else named_arrays(
+               (progress.params, progress.opt_state, progress.best_params)),
+           "decoded": {str(k): {"procedures": v[0], "counters": v[1]} for k, v in decoded.items()},
+           "meta": json.dumps(meta)}
+  write_atomically(path, serialization.msgpack_serialize(state))
+
+
+def read_training(path: str | None) -> tuple[dict, dict] | None:
+  """(meta, arrays) from a training checkpoint, or None if there is none. Raises CheckpointError if the file
+  is corrupt."""
+  if not path or not os.path.isfile(path):
+    return None
+  state = _read_msgpack(path)
+  try:
+    return json.loads(state["meta"]), state
+  except (TypeError, KeyError, ValueError) as e:
+    raise CheckpointError(f"{path}: not a training checkpoint ({e})") from None
+
+
+def restore_hierarchy(path: str, saved: tuple[dict, dict], hierarchy: PHPHierarchy) -> None:
+  """Loads the checkpoint's parameters into hierarchy."""
+  nnx.update(hierarchy, restore_named(nnx.state(hierarchy, nnx.Param), saved[1]["hierarchy"], path))
+
+
+def restore_progress(path: str, saved: tuple[dict, dict], model: nnx.Module) -> fitting.Progress:
+  """The saved in-progress level's Progress, shaped like a fresh Adam optimizer for `model`."""
+  meta, state = saved
+  params = nnx.state(model, nnx.Param)
+  restored = restore_named((params, optax.adam(0.0).init(params), params), state["progress"], path)
+  p = meta["progress"]
+  return fitting.Progress(p["iteration"], *restored, p["best_iteration"], p["best_score"],
+                          [list(x) for x in p["losses"]])
+
+
+def decoded_views(saved: tuple[dict, dict]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+  """The (procedures, counters) [B, T] per finished level > 0: each level's view of every demonstration,
+  annotated where strong and decoded where weak."""
+  return {int(k): (np.asarray(v["procedures"]), np.asarray(v["counters"]))
+          for k, v in saved[1]["decoded"].items()}
+
+
+def read_decoded(path: str) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+  """decoded_views of the training checkpoint at path."""
+  saved = read_training(path)
+  if saved is None:
+    raise FileNotFoundError(f"no training checkpoint at {path}")
+  return decoded_views(saved)

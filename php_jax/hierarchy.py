@@ -16,7 +16,7 @@ class HierarchySpec:
   Attributes:
     name: task name.
     levels: procedure names per level; level 0 has the single root procedure.
-    action_sizes: elementary action factor sizes, e.g. (2, 4, 10) for addition, (5,) for NanoCraft.
+    action_sizes: elementary action factor sizes, e.g. (2, 4, 10): three factors.
     obs_dim: observation size.
   """
   name: str

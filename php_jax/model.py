@@ -21,7 +21,7 @@ class ProcedureMLPs(nnx.Module):
   The first layer is split into an observation part, computed once per observation, and a τ part added per
   counter, so a [N observations × M counters] grid costs N + M first-layer products, not N × M. Activations
   are laid out [K, N·M, H] and the output [K, out_dim, N, M]: plain batched matmuls, and per-output slabs
-  that the heads reduce over without touching a short minor axis (on the CPU, at addition's lowest level
+  that the heads reduce over without touching a short minor axis (on the CPU, for 160 views at a lowest level
   with hidden (32,), this cut a training gradient from 123 to 103 ms; BUILD.md).
   """
 

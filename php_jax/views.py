@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax.numpy as jnp
 import numpy as np
 
 from php_jax.demos import UNKNOWN, Demonstration
@@ -39,6 +40,29 @@ class LevelView(NamedTuple):
 def select(view: LevelView, mask: np.ndarray) -> LevelView:
   """The views where mask [B] is True."""
   return LevelView(*(np.asarray(x)[mask] for x in view))
+
+
+def length_buckets(view: LevelView, num_buckets: int) -> list[LevelView]:
+  """The views sorted by length into up to num_buckets groups of similar size, each trimmed to its longest
+  view: the networks run on far fewer padding cells than in one batch padded to the longest view."""
+  order = np.argsort(view.length, kind="stable")
+  buckets = []
+  for group in np.array_split(order, min(num_buckets, len(order))):
+    width = int(view.length[group].max())
+    buckets.append(LevelView(
+        view.observations[group, :width + 1], view.actions[group, :width], view.procedures[group, :width],
+        view.counters[group, :width], view.length[group], view.times[group, :width], view.strong[group]))
+  return buckets
+
+
+def device_view(view: LevelView) -> LevelView:
+  """The view as device arrays, with annotations only on strong demonstrations."""
+  strong = view.strong[:, None]
+  return LevelView(
+      observations=jnp.asarray(view.observations), actions=jnp.asarray(view.actions),
+      procedures=jnp.asarray(np.where(strong, view.procedures, UNKNOWN)),
+      counters=jnp.asarray(np.where(strong, view.counters, UNKNOWN)),
+      length=jnp.asarray(view.length), times=jnp.asarray(view.times), strong=jnp.asarray(view.strong))
 
 
 def _pack(demos: Demonstration, level: int, times: list[np.ndarray], actions: list[np.ndarray]) -> LevelView:

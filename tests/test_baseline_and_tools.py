@@ -11,14 +11,14 @@ from flax import nnx
 
 from experiments import segmentation, sweep
 from php_jax import checkpoint, datasets, evaluation, flat_lstm, tasks, views
-from php_jax.envs import nanocraft
+from php_jax.envs import nanocraft, nanocraft_task
 
 NANOCRAFT = tasks.get("nanocraft")
 
 
 def _demos(num=8, seed=3):
-  problems = datasets.nanocraft_problems(seed, num)
-  return problems, datasets.oracle_demonstrations(NANOCRAFT, datasets.nanocraft_states(problems), 0,
+  problems = nanocraft_task.random_problems(seed, num)
+  return problems, datasets.oracle_demonstrations(NANOCRAFT, nanocraft_task.make_states(problems), 0,
                                                   nanocraft.ORACLE_STEP_BUDGET)
 
 
@@ -43,12 +43,12 @@ def test_flat_lstm_clones_its_training_demonstrations_and_survives_saving(tmp_pa
   policy = flat_lstm.FlatLSTMPolicy(5, (5,), 32, rngs=nnx.Rngs(1))
   report = flat_lstm.train(policy, demos, iterations=400, learning_rate=1e-2, eval_every=100, log=lambda r: None)
   assert report["losses"][-1][1] < 0.05 * report["losses"][0][1]
-  outcomes = evaluation.solve_nanocraft(policy, NANOCRAFT.spec, problems)
+  outcomes = evaluation.solve(NANOCRAFT, policy, problems)
   assert np.mean([o["correct"] for o in outcomes]) >= 0.75  # its own training problems
   checkpoint.save_flat_lstm(str(tmp_path), "nanocraft", policy)
   name, loaded = checkpoint.load_policy(str(tmp_path))
   assert name == "nanocraft" and isinstance(loaded, flat_lstm.FlatLSTMPolicy)
-  assert evaluation.solve_nanocraft(loaded, NANOCRAFT.spec, problems) == outcomes
+  assert evaluation.solve(NANOCRAFT, loaded, problems) == outcomes
 
 
 def test_sweep_grid_is_the_product_without_impossible_combinations():
@@ -76,15 +76,17 @@ def test_plot_draws_the_figure_and_tables(tmp_path):
   for seed, accs in enumerate([(1.0, 1.0), (1.0, 0.99)]):
     (runs / f"add{seed}").mkdir()
     (runs / f"add{seed}" / "results.json").write_text(json.dumps(
-        {"task": "addition", "num_strong": 3, "test": {"500": accs[0], "1000": accs[1]}}))
+        {"task": "addition", "num_demos": 160, "num_strong": 3, "test": {"500": accs[0], "1000": accs[1]}}))
   out = tmp_path / "out"
   proc = subprocess.run([sys.executable, "-m", "experiments.plot", f"--runs={runs}", f"--out={out}"],
                         capture_output=True, text=True, timeout=300)
   assert proc.returncode == 0, proc.stderr[-2000:]
-  assert "| php | 16 | 1 | 2 | 0.600 | 0.500 | 0.700 | 0.300, 0.600 |" in (out / "nanocraft.md").read_text()
-  assert "| php | 16 | 0 | 1 | 0.300 |" in (out / "nanocraft.md").read_text()  # weak only
-  assert "| flat_lstm | 16 | 0 | 1 | 0.200 | 0.200 | 0.200 | – |" in (out / "nanocraft.md").read_text()
-  assert "| php | 3 | 1.000 (2/2) | 0.995 (1/2) |" in (out / "addition.md").read_text()
+  table = (out / "nanocraft.md").read_text()
+  assert "| php | 16 | 1 | 2 | 0.600 (0.500–0.700, 0/2) | 0.300, 0.600 |" in table
+  assert "| php | 16 | 0 | 1 | 0.300 (0.300–0.300, 0/1) |" in table  # weak only
+  assert "| flat_lstm | 16 | 0 | 1 | 0.200 (0.200–0.200, 0/1) | – |" in table
+  assert "| php | 160 | 3 | 2 | 1.000 (1.000–1.000, 2/2) | 0.995 (0.990–1.000, 1/2) | – |" in (
+      out / "addition.md").read_text()  # test sets by increasing length
   for png in ("nanocraft.png", "addition.png"):
     assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
   empty = subprocess.run([sys.executable, "-m", "experiments.plot", f"--runs={tmp_path / 'none'}",
@@ -102,7 +104,7 @@ def test_segmentation_classifies_splits_merges_and_mistaken_procedures():
 
 
 def test_segmentation_report_finds_a_split_in_the_supervisors_level_1_view():
-  demos = datasets.nanocraft_training_demos(seed=2, num_demos=6, num_strong=2)
+  demos = datasets.training_demos(tasks.get("nanocraft"), seed=2, num_demos=6, num_strong=2)
   spec = NANOCRAFT.spec
 
   def truth(view, level):  # the supervisor's frames at each of the view's operations

@@ -24,11 +24,11 @@ def test_benchmark_commands_run_and_cross_check(tmp_path):
   assert "4x12x2x3" in proc.stdout and out.exists()
   rows = __import__("json").loads(out.read_text())
   assert all(r["max_rel_loglik_diff"] < 1e-5 for r in rows)
-  proc = subprocess.run([sys.executable, "-m", "experiments.benchmark", "rollout", "--digits=5", "--problems=3",
+  proc = subprocess.run([sys.executable, "-m", "experiments.benchmark", "rollout", "--task=addition", "--size=5", "--problems=3",
                          "--min_time=0"], capture_output=True, text=True, timeout=300, cwd=ROOT)
   assert proc.returncode == 0, proc.stderr
   assert "steps/s" in proc.stdout
-  proc = subprocess.run([sys.executable, "-m", "experiments.benchmark", "train_step", "--hidden=8", "--root=mlp",
+  proc = subprocess.run([sys.executable, "-m", "experiments.benchmark", "train_step", "--task=nanocraft", "--hidden=8", "--root=mlp",
                          "--min_time=0"], capture_output=True, text=True, timeout=300, cwd=ROOT)
   assert proc.returncode == 0, proc.stderr
   assert "networks only" in proc.stdout and "of the full loss" in proc.stdout

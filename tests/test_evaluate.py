@@ -6,6 +6,7 @@ import sys
 import pytest
 
 from experiments import problems as problem_files
+from php_jax import tasks
 
 
 def _evaluate(tmp_path, task, lines):
@@ -83,5 +84,5 @@ def test_parser_names_line_and_problem(tmp_path, task, line, message):
   path.write_text('{"a": "1", "b": "2"}\n' if task == "addition" else '{"x": 1, "y": 1, "w": 2, "h": 2}\n')
   path.write_text(path.read_text() + line + "\n")
   with pytest.raises(problem_files.ProblemFileError, match=message) as info:
-    problem_files.read_problems(str(path), task)
+    problem_files.read_problems(str(path), tasks.get(task))
   assert str(info.value).startswith(f"{path}:2:")

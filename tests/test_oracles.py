@@ -8,6 +8,7 @@ import pytest
 from php_jax import datasets, demos, executor, tasks
 from php_jax.envs import addition as add
 from php_jax.envs import nanocraft as nc
+from php_jax.envs import addition_task, nanocraft_task
 
 ADDITION = tasks.get("addition")
 NANOCRAFT = tasks.get("nanocraft")
@@ -29,7 +30,7 @@ def _addition_cases(num_digits, count, rng):
 
 def _check_addition(cases):
   max_digits = max(len(a) for a, _ in cases)
-  rollouts = _run(ADDITION, datasets.addition_states(cases), add.oracle_step_budget(max_digits), record=False)
+  rollouts = _run(ADDITION, addition_task.make_states(cases), add.oracle_step_budget(max_digits), record=False)
   assert np.all(rollouts.terminated) and np.all(rollouts.valid)
   for i, (a, b) in enumerate(cases):
     assert add.is_correct(add.result(jax.tree.map(lambda x: x[i], rollouts.final_state)), a, b)
@@ -62,8 +63,8 @@ def test_nanocraft_oracle_solves_all_100_specs(place_prob):
 
 def test_demonstration_stacks_follow_the_semantics():
   for task, states, budget in [
-      (ADDITION, datasets.addition_states(datasets.addition_problems(seed=0)), add.oracle_step_budget(10)),
-      (NANOCRAFT, datasets.nanocraft_states(datasets.nanocraft_problems(0, 64)), nc.ORACLE_STEP_BUDGET)]:
+      (ADDITION, addition_task.make_states(addition_task.training_problems(seed=0)), add.oracle_step_budget(10)),
+      (NANOCRAFT, nanocraft_task.make_states(nanocraft_task.random_problems(0, 64)), nc.ORACLE_STEP_BUDGET)]:
     batch = datasets.oracle_demonstrations(task, states, num_strong=1000, max_steps=budget)
     demos.validate(batch, task.spec)  # raises on any broken stack
     procs, taus, length = np.asarray(batch.procedures), np.asarray(batch.counters), np.asarray(batch.length)
@@ -90,28 +91,28 @@ def test_nanocraft_demonstration_matches_the_paper_program():
 
 
 def test_addition_data_set_constraints():
-  problems = datasets.addition_problems(seed=3)
+  problems = addition_task.training_problems(seed=3)
   assert len(problems) == 160
   for n in range(1, 11):
     assert sum(len(a) == n and len(b) == n for a, b in problems) == 16
-  assert len(set().union(*(datasets.column_triples(a, b) for a, b in problems))) == 200
-  assert problems == datasets.addition_problems(seed=3)
-  assert problems != datasets.addition_problems(seed=4)
+  assert len(set().union(*(addition_task.column_triples(a, b) for a, b in problems))) == 200
+  assert problems == addition_task.training_problems(seed=3)
+  assert problems != addition_task.training_problems(seed=4)
 
 
 @pytest.mark.parametrize("digits", [2, 3, 5])
 def test_covering_addition_problems_cover_every_column(digits):
-  problems = datasets.covering_addition_problems(seed=digits, digits=digits)
+  problems = addition_task.covering_problems(seed=digits, digits=digits)
   assert all(len(a) == len(b) == digits for a, b in problems)
-  assert len(set().union(*(datasets.column_triples(a, b) for a, b in problems))) == 200
+  assert len(set().union(*(addition_task.column_triples(a, b) for a, b in problems))) == 200
   assert len(problems) <= 1.2 * 200 / (digits - 1)  # few problems: mostly new columns above the lowest
-  assert problems == datasets.covering_addition_problems(seed=digits, digits=digits)
+  assert problems == addition_task.covering_problems(seed=digits, digits=digits)
   with pytest.raises(ValueError, match="at least 2"):
-    datasets.covering_addition_problems(seed=0, digits=1)
+    addition_task.covering_problems(seed=0, digits=1)
 
 
 def test_column_triples():
-  assert datasets.column_triples("19", "05") == {(9, 5, 0), (1, 0, 1)}
+  assert addition_task.column_triples("19", "05") == {(9, 5, 0), (1, 0, 1)}
 
 
 @pytest.mark.parametrize("corrupt, message", [
@@ -121,7 +122,7 @@ def test_column_triples():
     (lambda p, t, a: a.__setitem__((1, 0, 0), 5), "demonstration 1, step 0: action factor 0 = 5"),
 ])
 def test_validate_rejects_broken_annotations(corrupt, message):
-  states = datasets.addition_states([("19", "25"), ("7", "8")])
+  states = addition_task.make_states([("19", "25"), ("7", "8")])
   batch = datasets.oracle_demonstrations(ADDITION, states, 2, add.oracle_step_budget(2))
   procs, taus, actions = (np.array(batch.procedures), np.array(batch.counters), np.array(batch.actions))
   corrupt(procs, taus, actions)
@@ -131,7 +132,7 @@ def test_validate_rejects_broken_annotations(corrupt, message):
 
 
 def test_validate_rejects_lengths_over_capacity():
-  states = datasets.addition_states([("1", "2")])
+  states = addition_task.make_states([("1", "2")])
   batch = datasets.oracle_demonstrations(ADDITION, states, 1, add.oracle_step_budget(1))
   with pytest.raises(ValueError, match="length 99 is outside"):
     demos.validate(batch._replace(length=jnp.array([99])), ADDITION.spec)

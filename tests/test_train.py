@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from php_jax import checkpoint, datasets, evaluation, fitting, lattice, tasks, train, views
+from php_jax import agreement, checkpoint, datasets, evaluation, fitting, lattice, objective, tasks, train, views
+from php_jax.envs import addition_task, nanocraft_task
+from php_jax.model import RootMLP
 from php_jax.envs import addition, nanocraft
 
 ADDITION = tasks.get("addition")
@@ -15,7 +17,7 @@ NANOCRAFT = tasks.get("nanocraft")
 
 
 def _addition_demos(problems, num_strong):
-  return datasets.oracle_demonstrations(ADDITION, datasets.addition_states(problems), num_strong,
+  return datasets.oracle_demonstrations(ADDITION, addition_task.make_states(problems), num_strong,
                                         addition.oracle_step_budget(max(len(a) for a, _ in problems)))
 
 
@@ -40,16 +42,16 @@ def test_level_views_are_the_supervisors_call_sequences():
 def test_level_loss_is_the_complete_data_log_likelihood_for_strong_views():
   demos = _addition_demos([("19", "25"), ("7", "8")], num_strong=2)
   view = views.lowest_view(demos, 3)
-  model = train.LevelModel(train.make_hierarchy(ADDITION.spec, train.TrainConfig(hidden=(16,))).levels[2],
-                           train.RootMLP(44, 3, (8,), rngs=nnx.Rngs(0)))
-  batch = train.device_view(view)
-  loss = train.level_loss(model, [batch], 4, strong_weight=1.0)
-  split = train.level_loss(model, [train.device_view(b) for b in train.length_buckets(view, 2)], 4, 1.0)
+  model = objective.LevelModel(train.make_hierarchy(ADDITION.spec, train.TrainConfig(hidden=(16,))).levels[2],
+                           RootMLP(44, 3, (8,), rngs=nnx.Rngs(0)))
+  batch = views.device_view(view)
+  loss = objective.level_loss(model, [batch], 4, strong_weight=1.0)
+  split = objective.level_loss(model, [views.device_view(b) for b in views.length_buckets(view, 2)], 4, 1.0)
   np.testing.assert_allclose(split, loss, rtol=1e-6)
   direct = []
   for b in range(2):
     none = -jnp.ones_like(batch.procedures[b])
-    inputs = train.lattice_inputs(model, batch.observations[b], batch.actions[b], none, none, batch.length[b], 4)
+    inputs = objective.lattice_inputs(model, batch.observations[b], batch.actions[b], none, none, batch.length[b], 4)
     direct.append(lattice.complete_log_likelihood(*inputs, batch.procedures[b], batch.counters[b], batch.length[b]))
   np.testing.assert_allclose(loss, -np.mean(direct), rtol=1e-5)
 
@@ -58,9 +60,9 @@ def test_decoding_agreement_is_one_for_the_truth_and_lower_otherwise():
   demos = _addition_demos([("19", "25"), ("7", "8")], num_strong=0)
   view = views.lowest_view(demos, 3)
   truth = (np.asarray(demos.procedures)[:, :, 2], np.asarray(demos.counters)[:, :, 2])
-  assert train.agreement(demos, view, 2, *truth) == 1.0
+  assert agreement.agreement(demos, view, 2, *truth) == 1.0
   wrong = (truth[0], np.zeros_like(truth[1]))
-  assert train.agreement(demos, view, 2, *wrong) < 1.0
+  assert agreement.agreement(demos, view, 2, *wrong) < 1.0
 
 
 def test_relabelled_agreement_ignores_procedure_ids_but_not_segmentation():
@@ -68,12 +70,12 @@ def test_relabelled_agreement_ignores_procedure_ids_but_not_segmentation():
   view = views.lowest_view(demos, 3)
   procs, taus = np.asarray(demos.procedures)[:, :, 2], np.asarray(demos.counters)[:, :, 2]
   renamed = np.array([2, 0, 1])[procs]  # write, carry, lshift under other ids
-  assert train.agreement(demos, view, 2, renamed, taus) < 0.5
-  assert train.relabelled_agreement(demos, view, 2, renamed, taus) == 1.0
+  assert agreement.agreement(demos, view, 2, renamed, taus) < 0.5
+  assert agreement.relabelled_agreement(demos, view, 2, renamed, taus) == 1.0
   merged = np.zeros_like(procs)  # every call decoded as one procedure: no renaming recovers the three
-  counts, total = train.agreement_counts(demos, view, 2, merged, taus)
-  assert train.relabelled_agreement(demos, view, 2, merged, taus) == counts.max() / total < 1.0
-  assert train.relabelled_agreement(demos, view, 2, procs + 6, taus) is None  # 9 ids: 9! renamings, not tried
+  counts, total = agreement.agreement_counts(demos, view, 2, merged, taus)
+  assert agreement.relabelled_agreement(demos, view, 2, merged, taus) == counts.max() / total < 1.0
+  assert agreement.relabelled_agreement(demos, view, 2, procs + 6, taus) is None  # 9 ids: 9! renamings, not tried
 
 
 def test_training_refuses_malformed_demonstrations():
@@ -117,7 +119,7 @@ def test_nanocraft_run_solves_held_out_episodes_and_evaluate_loads_it(tmp_path):
   assert [json.loads(line)["level"] for line in proc.stdout.splitlines()] == [2, 1]  # no weak demonstration
   problems = tmp_path / "p.jsonl"
   problems.write_text("".join(json.dumps({"x": x, "y": y, "w": w, "h": h, "preplaced": pre}) + "\n"
-                              for x, y, w, h, pre in datasets.nanocraft_problems(7, 20)))
+                              for x, y, w, h, pre in nanocraft_task.random_problems(7, 20)))
   out = tmp_path / "out.jsonl"
   proc = subprocess.run([sys.executable, "-m", "experiments.evaluate", "--task=nanocraft", f"--policy={workdir}",
                          f"--problems={problems}", f"--out={out}"], capture_output=True, text=True, timeout=300)
@@ -135,17 +137,17 @@ def test_nanocraft_run_solves_held_out_episodes_and_evaluate_loads_it(tmp_path):
 def test_small_addition_run_solves_longer_problems_and_decodes_the_supervisors_segmentation():
   """Trained on 5-digit sums (strong: a set covering all 200 columns; weak: 10 random sums of 1–5 digits),
   the hierarchy adds 20-digit numbers, and decoding the weak demonstrations recovers the supervisor's stacks."""
-  strong = datasets.covering_addition_problems(0, 5)
-  problems = strong + datasets.random_addition_problems(1, range(1, 6), 2)
+  strong = addition_task.covering_problems(0, 5)
+  problems = strong + addition_task.random_problems(1, range(1, 6), 2)
   demos = _addition_demos(problems, num_strong=len(strong))
   config = train.TrainConfig(iterations=600, eval_every=100, hidden=(32,), root="mlp", root_hidden=32,
                              learning_rate=1e-2, tau_in_termination=(False, True, True), decode="viterbi")
-  validation = datasets.random_addition_problems(2, range(1, 6), 4)
+  validation = addition_task.random_problems(2, range(1, 6), 4)
   hierarchy, report = train.train_hierarchy(ADDITION.spec, demos, config,
-                                            lambda h: evaluation.accuracy(h, ADDITION.spec, validation),
+                                            lambda h: evaluation.accuracy(ADDITION, h, validation),
                                             log=lambda row: None)
   assert report[2]["decoding_agreement"] >= 0.95 and report[1]["decoding_agreement"] >= 0.95, report
-  assert evaluation.accuracy(hierarchy, ADDITION.spec, datasets.random_addition_problems(3, [20], 20)) == 1.0
+  assert evaluation.accuracy(ADDITION, hierarchy, addition_task.random_problems(3, [20], 20)) == 1.0
 
 
 class _Interrupt(Exception):
@@ -154,15 +156,15 @@ class _Interrupt(Exception):
 
 @pytest.mark.parametrize("warmup, stops", [(0, [(1, 40), (0, 60)]), (20, [(2, 20), (1, 60), (0, 60)])])
 def test_interrupted_training_resumes_to_the_same_result(tmp_path, warmup, stops):
-  problems = datasets.nanocraft_problems(3, 8)
-  demos = datasets.oracle_demonstrations(NANOCRAFT, datasets.nanocraft_states(problems), 4,
+  problems = nanocraft_task.random_problems(3, 8)
+  demos = datasets.oracle_demonstrations(NANOCRAFT, nanocraft_task.make_states(problems), 4,
                                          nanocraft.ORACLE_STEP_BUDGET)
   config = train.TrainConfig(iterations=60, eval_every=20, hidden=(8,), root="mlp", root_hidden=8,
                              learning_rate=1e-2, decode="sample", strong_warmup=warmup, seed=5)
-  validation = datasets.nanocraft_problems(4, 8)
+  validation = nanocraft_task.random_problems(4, 8)
 
   def validate(h):
-    return float(np.mean([o["correct"] for o in evaluation.solve_nanocraft(h, NANOCRAFT.spec, validation)]))
+    return float(np.mean([o["correct"] for o in evaluation.solve(NANOCRAFT, h, validation)]))
 
   def run(path, stop_at=None):
     def log(row):
@@ -185,14 +187,14 @@ def test_interrupted_training_resumes_to_the_same_result(tmp_path, warmup, stops
 
 
 def test_strong_warmup_fits_the_strong_views_alone_first():
-  problems = datasets.nanocraft_problems(3, 6)
-  demos = datasets.oracle_demonstrations(NANOCRAFT, datasets.nanocraft_states(problems), 2,
+  problems = nanocraft_task.random_problems(3, 6)
+  demos = datasets.oracle_demonstrations(NANOCRAFT, nanocraft_task.make_states(problems), 2,
                                          nanocraft.ORACLE_STEP_BUDGET)
   view = views.lowest_view(demos, NANOCRAFT.spec.num_levels)
   config = train.TrainConfig(iterations=0, hidden=(8,), root="mlp", root_hidden=8, strong_weight=2.0, seed=1)
 
   def trained(part, **changes):
-    model = train.LevelModel(train.make_hierarchy(NANOCRAFT.spec, config).levels[2],
+    model = objective.LevelModel(train.make_hierarchy(NANOCRAFT.spec, config).levels[2],
                              train.make_root(NANOCRAFT.spec, 2, config))
     train.train_level(model, part, 2, dataclasses.replace(config, **changes), log=lambda row: None)
     return jax.tree.leaves(nnx.state(model, nnx.Param))
@@ -204,7 +206,7 @@ def test_strong_warmup_fits_the_strong_views_alone_first():
 
 
 def test_root_strong_weight_changes_only_the_root_levels_loss():
-  demos = datasets.nanocraft_training_demos(seed=3, num_demos=6, num_strong=2)
+  demos = datasets.training_demos(tasks.get("nanocraft"), seed=3, num_demos=6, num_strong=2)
   config = train.TrainConfig(iterations=1, hidden=(8,), root="mlp", root_hidden=8, strong_weight=5.0, seed=2)
 
   def first_losses(**changes):
@@ -217,16 +219,16 @@ def test_root_strong_weight_changes_only_the_root_levels_loss():
 
 
 def test_call_penalty_is_a_prior_on_the_number_of_calls():
-  demos = datasets.nanocraft_training_demos(seed=3, num_demos=6, num_strong=3)
+  demos = datasets.training_demos(tasks.get("nanocraft"), seed=3, num_demos=6, num_strong=3)
   config = train.TrainConfig(hidden=(8,), root="mlp", root_hidden=8, seed=2)
-  view = train.device_view(views.lowest_view(demos, NANOCRAFT.spec.num_levels))
+  view = views.device_view(views.lowest_view(demos, NANOCRAFT.spec.num_levels))
   php, root = train.make_hierarchy(NANOCRAFT.spec, config).levels[2], train.make_root(NANOCRAFT.spec, 2, config)
   capacity, penalty = train.level_capacity(view, 2, config), 1.5
   for b in range(view.length.shape[0]):
     obs, act, proc, tau, n = (x[b] for x in (view.observations, view.actions, view.procedures, view.counters,
                                              view.length))
-    free = train.lattice_inputs(train.LevelModel(php, root), obs, act, proc, tau, n, capacity)
-    penalised = train.lattice_inputs(train.LevelModel(php, root, penalty), obs, act, proc, tau, n, capacity)
+    free = objective.lattice_inputs(objective.LevelModel(php, root), obs, act, proc, tau, n, capacity)
+    penalised = objective.lattice_inputs(objective.LevelModel(php, root, penalty), obs, act, proc, tau, n, capacity)
 
     def log_likelihood(cost):
       return lattice.forward_backward(free[0] - cost, *free[1:], length=n).log_likelihood

@@ -1,0 +1,78 @@
+r"""Trains a PHP hierarchy (or the flat LSTM baseline) on any task from its supervisor's demonstrations.
+
+  python -m experiments.train --task=NAME --workdir=DIR --num_strong=N --seed=S [--num_demos=M]
+
+Builds the task's training set for --seed (num_strong of its demonstrations annotated with the whole call
+stack, the rest actions only), trains every level from the lowest (the one taking elementary actions) up to
+the root (level 0), saves the model (`experiments.evaluate --policy=WORKDIR` runs it) and writes
+results.json with the accuracy on fresh test problems (seeds disjoint from training and validation). Rerun
+the same command to resume an interrupted run. Flags left unset take the task's defaults.
+"""
+from __future__ import annotations
+
+import sys
+
+from absl import app, flags
+
+from experiments import training
+from php_jax import checkpoint, datasets, evaluation, tasks
+
+_TASK = flags.DEFINE_string("task", None, f"The task: one of {', '.join(tasks.TASKS)}, or module:attribute "
+                            "of a php_jax.task.Task defined elsewhere.")
+_NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "Demonstrations in the training set, where the task offers "
+                                  "a choice. Default: the task's.")
+_TEST_LENGTHS = flags.DEFINE_list("test_lengths", None, "Problem sizes of the test sets (e.g. digits, array "
+                                  "lengths). Default: the task's.")
+_NUM_TEST = flags.DEFINE_integer("num_test", None, "Test problems per test set. Default: the task's.")
+flags.adopt_module_key_flags(training)
+
+
+def run(task_name: str) -> dict:
+  """Trains and tests on task_name with the flags' settings; returns the results written to results.json."""
+  try:
+    task = tasks.get(task_name)
+  except ValueError as e:
+    raise training.UsageError(f"--task: {e}") from None
+  defaults, seed = task.defaults, training.SEED.value
+  num_demos = defaults.num_demos if _NUM_DEMOS.value is None else _NUM_DEMOS.value
+  if defaults.num_demos_fixed and num_demos != defaults.num_demos:
+    raise training.UsageError(f"--num_demos: {task.name}'s training set has {defaults.num_demos} "
+                              f"demonstrations; got {num_demos}")
+  if num_demos < 1 or not 0 <= training.NUM_STRONG.value <= num_demos:
+    raise training.UsageError(f"--num_strong must be in 0..--num_demos={num_demos} and --num_demos ≥ 1; got "
+                              f"{training.NUM_STRONG.value} of {num_demos}")
+  num_test = defaults.num_test if _NUM_TEST.value is None else _NUM_TEST.value
+  lengths = defaults.test_lengths if _TEST_LENGTHS.value is None else [int(n) for n in _TEST_LENGTHS.value]
+  if num_test < 1 or any(n < 1 for n in lengths):
+    raise training.UsageError(f"--num_test and --test_lengths must be positive; got {num_test}, {list(lengths)}")
+  config = training.config_from_flags(defaults)
+  demos = datasets.training_demos(task, seed, num_demos, training.NUM_STRONG.value)
+  validation = task.validation_problems(seed + 10_000, training.NUM_VALIDATION.value)
+  test_sets = ({str(n): task.test_problems(seed + 20_000, num_test, n) for n in lengths} if lengths
+               else {"accuracy": task.test_problems(seed + 20_000, num_test, None)})
+  return training.train_and_evaluate(
+      task_name, demos, config, training.WORKDIR.value,
+      validate=lambda model: evaluation.accuracy(task, model, validation),
+      test=lambda model: {key: evaluation.accuracy(task, model, problems) for key, problems in test_sets.items()},
+      extra={"seed": seed, "num_demos": num_demos, "num_strong": int(demos.strong.sum()), "num_test": num_test})
+
+
+def main_for(task_name: str | None):
+  """An absl main that trains task_name (None: the --task flag's)."""
+  def main(argv):
+    if len(argv) > 1:
+      raise app.UsageError(f"unexpected arguments: {' '.join(argv[1:])}")
+    name = task_name or _TASK.value
+    if not name:
+      raise app.UsageError("--task is required")
+    try:
+      run(name)
+    except (training.UsageError, checkpoint.CheckpointError) as e:
+      print(f"error: {e}", file=sys.stderr)
+      sys.exit(2)
+  return main
+
+
+if __name__ == "__main__":
+  flags.mark_flags_as_required(["workdir"])
+  app.run(main_for(None))

@@ -1,0 +1,171 @@
+"""A task defined here, outside the library, goes through every generic part: oracle demonstrations, training
+one level, the training command, and evaluate (by its import path, tests.test_task_interface:COUNTDOWN)."""
+import dataclasses
+import json
+import pathlib
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import struct
+
+from php_jax import checkpoint, datasets, demos, evaluation, objective, tasks, train, views
+from php_jax.hierarchy import HierarchySpec
+from php_jax.task import Task, TrainingDefaults
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+DEC, REST = 0, 1  # elementary actions: decrement the counter, or do nothing
+
+
+@struct.dataclass
+class CounterState:
+  count: jax.Array
+  failed: jax.Array
+
+
+class Counter:
+  """A counter that must be brought to 0; decrementing 0 is invalid. Observation: (count = 0, count > 0)."""
+
+  @staticmethod
+  def observe(state):
+    return jnp.stack([state.count == 0, state.count > 0]).astype(jnp.float32)
+
+  @staticmethod
+  def step(state, action):
+    ok = (action[0] == REST) | ((action[0] == DEC) & (state.count > 0))
+    return CounterState(jnp.where(ok & (action[0] == DEC), state.count - 1, state.count), state.failed | ~ok)
+
+
+SPEC = HierarchySpec(name="countdown", levels=(("countdown",), ("tick",), ("dec", "rest")), action_sizes=(2,),
+                     obs_dim=2)
+
+
+@struct.dataclass
+class CountdownOracle:
+  """countdown calls tick until the count is 0; tick = dec then rest; dec = DEC; rest = REST."""
+
+  def operation(self, level, proc, tau, obs, key):
+    if level == 0:
+      return jnp.zeros(1, jnp.int32)
+    if level == 1:
+      return jnp.clip(tau, 0, 1)[None].astype(jnp.int32)
+    return jnp.where(proc == 0, DEC, REST)[None].astype(jnp.int32)
+
+  def terminates(self, level, proc, tau, obs, key):
+    if level == 0:
+      return obs[0] > 0.5
+    if level == 1:
+      return tau >= 1
+    return tau >= 0
+
+
+def _problems(seed, num, length=None):
+  rng = np.random.default_rng(seed)
+  return [int(k) for k in (rng.integers(1, 6, num) if length is None else [length] * num)]
+
+
+def _parse(obj):
+  if not isinstance(obj.get("count"), int) or obj["count"] < 1:
+    raise ValueError('needs a positive integer "count"')
+  return obj["count"]
+
+
+COUNTDOWN = Task(
+    name="countdown", env=Counter, spec=SPEC, oracle=CountdownOracle(),
+    training_problems=lambda seed, num: _problems(seed, num), validation_problems=_problems,
+    test_problems=_problems, bucket=lambda k: 0,
+    make_states=lambda problems, bucket: CounterState(jnp.asarray(problems, jnp.int32),
+                                                      jnp.zeros(len(problems), bool)),
+    step_budget=lambda bucket: 64, parse_problem=_parse,
+    outcome=lambda k, state: ({"left": int(state.count)}, int(state.count) == 0),
+    defaults=TrainingDefaults(num_demos=8, num_demos_fixed=False, hidden=(8,),
+                              tau_in_termination=(False, True, True), num_test=10, iterations=100,
+                              learning_rate=3e-2))
+
+
+def test_a_task_defined_outside_the_library_demonstrates_and_trains_one_level():
+  batch = datasets.training_demos(COUNTDOWN, seed=0, num_demos=6, num_strong=2)
+  demos.validate(batch, SPEC)
+  assert np.asarray(batch.strong).sum() == 2
+  assert [int(n) for n in batch.length] == [2 * k for k in COUNTDOWN.training_problems(0, 6)]
+  view = views.lowest_view(batch, SPEC.num_levels)
+  config = train.TrainConfig(iterations=60, eval_every=30, hidden=(8,), root="mlp", root_hidden=8,
+                             learning_rate=3e-2, strong_weight=1.0)
+  model = objective.LevelModel(train.make_hierarchy(SPEC, config).levels[2], train.make_root(SPEC, 2, config))
+  progress = train.train_level(model, view, 2, config, log=lambda row: None)
+  assert progress.losses[-1][1] < progress.losses[0][1]
+  assert evaluation.accuracy(COUNTDOWN, COUNTDOWN.oracle, [1, 3, 5]) == 1.0
+  assert tasks.get("tests.test_task_interface:COUNTDOWN") is COUNTDOWN
+
+
+def test_the_training_command_and_evaluate_run_a_task_given_by_import_path(tmp_path):
+  name = "--task=tests.test_task_interface:COUNTDOWN"
+  workdir = tmp_path / "run"
+  proc = subprocess.run([sys.executable, "-m", "experiments.train", name, f"--workdir={workdir}", "--num_strong=8",
+                         "--root=mlp", "--eval_every=50"], capture_output=True, text=True, timeout=600, cwd=ROOT)
+  assert proc.returncode == 0, proc.stderr[-3000:]
+  results = json.loads((workdir / "results.json").read_text())
+  assert results["task"] == "tests.test_task_interface:COUNTDOWN" and set(results["levels"]) == {"0", "1", "2"}
+  assert results["config"]["iterations"] == 100 and results["config"]["hidden"] == [8]  # the task's defaults
+  problems = tmp_path / "in.jsonl"
+  problems.write_text('{"count": 3}\n{"count": 1}\n')
+  for policy in ("oracle", str(workdir)):
+    out = tmp_path / "out.jsonl"
+    proc = subprocess.run([sys.executable, "-m", "experiments.evaluate", name, f"--policy={policy}",
+                           f"--problems={problems}", f"--out={out}"], capture_output=True, text=True, timeout=300,
+                          cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    assert set(rows[0]) == {"left", "terminated", "valid", "steps", "correct"}
+    if policy == "oracle":
+      assert rows == [{"left": 0, "terminated": True, "valid": True, "steps": 6, "correct": True},
+                      {"left": 0, "terminated": True, "valid": True, "steps": 2, "correct": True}]
+  problems.write_text('{"count": 0}\n')
+  proc = subprocess.run([sys.executable, "-m", "experiments.evaluate", name, "--policy=oracle",
+                         f"--problems={problems}", f"--out={tmp_path / 'bad.jsonl'}"], capture_output=True,
+                        text=True, timeout=300, cwd=ROOT)
+  assert proc.returncode == 2 and f"{problems}:1:" in proc.stderr and not (tmp_path / "bad.jsonl").exists()
+
+
+def test_a_checkpoint_made_with_other_settings_or_data_is_refused(tmp_path):
+  path = str(tmp_path / "checkpoint.msgpack")
+  batch = datasets.training_demos(COUNTDOWN, seed=0, num_demos=4, num_strong=2)
+  config = train.TrainConfig(iterations=2, eval_every=1, hidden=(4,), root="mlp", root_hidden=4)
+  train.train_hierarchy(SPEC, batch, config, log=lambda row: None, checkpoint_path=path)
+  saved = pathlib.Path(path).read_bytes()
+  other_data = datasets.training_demos(COUNTDOWN, seed=1, num_demos=4, num_strong=2)
+  for demos_, config_, message in [
+      (batch, dataclasses.replace(config, hidden=(5,)), r"hidden: \[4\] there, \[5\] here"),
+      (batch, dataclasses.replace(config, seed=1), "seed: 0 there, 1 here"),
+      (other_data, config, "demonstrations differ"),
+      (batch._replace(strong=np.array([True, False, False, False])), config, "demonstrations differ")]:
+    with pytest.raises(checkpoint.CheckpointError, match=message):
+      train.train_hierarchy(SPEC, demos_, config_, log=lambda row: None, checkpoint_path=path)
+  assert pathlib.Path(path).read_bytes() == saved
+
+
+def test_a_workdir_made_with_other_settings_is_refused_until_overwrite(tmp_path):
+  workdir = tmp_path / "run"
+  base = [sys.executable, "-m", "experiments.train", "--task=tests.test_task_interface:COUNTDOWN",
+          f"--workdir={workdir}", "--num_strong=2", "--root=mlp", "--iterations=20", "--eval_every=10"]
+  first = subprocess.run(base, capture_output=True, text=True, timeout=600, cwd=ROOT)
+  assert first.returncode == 0, first.stderr[-3000:]
+  before = {p.name: p.read_bytes() for p in workdir.iterdir()}
+  proc = subprocess.run(base + ["--iterations=30"], capture_output=True, text=True, timeout=600, cwd=ROOT)
+  assert proc.returncode == 2 and "iterations: 20 there, 30 here" in proc.stderr, proc.stderr[-2000:]
+  assert proc.stderr.count("\n") == 1 and "--overwrite" in proc.stderr
+  assert {p.name: p.read_bytes() for p in workdir.iterdir()} == before  # nothing written
+  again = subprocess.run(base + ["--iterations=30", "--overwrite"], capture_output=True, text=True, timeout=600,
+                         cwd=ROOT)
+  assert again.returncode == 0, again.stderr[-3000:]
+  assert json.loads((workdir / "results.json").read_text())["config"]["iterations"] == 30
+  metrics = [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
+  assert sum("capacity" in row for row in metrics) == 3 and not any("resumed" in row for row in metrics)
+  as_file = tmp_path / "file"
+  as_file.write_text("x")
+  proc = subprocess.run(base[:4] + [f"--workdir={as_file}", "--num_strong=2"], capture_output=True, text=True,
+                        timeout=600, cwd=ROOT)
+  assert proc.returncode == 2 and "is a file" in proc.stderr and as_file.read_text() == "x"
