@@ -1,0 +1,87 @@
+"""Bubble sort as a Task: the training set (arrays of 2..9 digits), length-generalization tests,
+problem-file lines, outcomes.
+
+A problem is a tuple of n ≥ 2 digits; its bucket is the tape width, a power of two (at least 8) above n.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from php_jax.envs import bubblesort, bubblesort_oracle
+from php_jax.task import Task, TrainingDefaults
+
+TRAINING_LENGTHS = tuple(range(2, 10))
+
+
+def compared_pairs(array) -> set[tuple[int, int]]:
+  """The ordered (digit under i, digit under j) pairs that bubble sort compares on this array."""
+  a, pairs = list(array), set()
+  for end in range(len(a), 1, -1):
+    for i in range(end - 1):
+      pairs.add((a[i], a[i + 1]))
+      if a[i] > a[i + 1]:
+        a[i], a[i + 1] = a[i + 1], a[i]
+  return pairs
+
+
+def training_problems(seed: int, per_length: int = 16, lengths=TRAINING_LENGTHS,
+                      max_tries: int = 1000) -> list[tuple[int, ...]]:
+  """per_length uniformly random arrays for each length, redrawn until every ordered pair of digits is
+  compared somewhere in the set. Deterministic in seed."""
+  rng = np.random.default_rng(seed)
+  for _ in range(max_tries):
+    problems = [tuple(int(d) for d in rng.integers(0, 10, n)) for n in lengths for _ in range(per_length)]
+    if len(set().union(*map(compared_pairs, problems))) == 100:
+      return problems
+  raise RuntimeError(f"no training set compares every pair of digits in {max_tries} draws; add arrays")
+
+
+def random_problems(seed: int, num: int, length: int | None = None) -> list[tuple[int, ...]]:
+  """num uniformly random arrays of `length` digits (None: lengths uniform in 2..9). Deterministic in seed."""
+  rng = np.random.default_rng(seed)
+  sizes = rng.integers(TRAINING_LENGTHS[0], TRAINING_LENGTHS[-1] + 1, num) if length is None else [length] * num
+  return [tuple(int(d) for d in rng.integers(0, 10, n)) for n in sizes]
+
+
+def bucket(problem: tuple[int, ...]) -> int:
+  """The tape width for an array: a power of two, at least 8, above its length."""
+  return max(8, 1 << len(problem).bit_length())
+
+
+def make_states(problems: list[tuple[int, ...]], width: int) -> bubblesort.State:
+  """Batched start states [B, ...] on a common tape width."""
+  states = [bubblesort.make_problem(p, width) for p in problems]
+  return jax.tree.map(lambda *x: jnp.stack(x), *states)
+
+
+def parse_problem(obj: dict) -> tuple[int, ...]:
+  """{"array": [3, 1, 2]} → (3, 1, 2)."""
+  array = obj.get("array")
+  if not isinstance(array, list):
+    raise ValueError('needs a list field "array"')
+  if len(array) < 2:
+    raise ValueError(f'"array" must hold at least 2 digits; got {len(array)}')
+  for position, d in enumerate(array):
+    if not (isinstance(d, int) and not isinstance(d, bool) and 0 <= d <= 9):
+      raise ValueError(f'"array" entries must be digits 0-9; entry {position} is {d!r}')
+  return tuple(array)
+
+
+def outcome(problem: tuple[int, ...], final_state: bubblesort.State) -> tuple[dict, bool]:
+  """({"result": the tape's digits}, whether they are the sorted input)."""
+  result = bubblesort.result(final_state)
+  return {"result": result}, result == sorted(problem)
+
+
+TASK = Task(
+    name="bubblesort", env=bubblesort, spec=bubblesort_oracle.SPEC, oracle=bubblesort_oracle.BubbleSortOracle(),
+    training_problems=lambda seed, num: training_problems(seed),
+    validation_problems=random_problems, test_problems=random_problems,
+    bucket=bucket, make_states=make_states,
+    step_budget=lambda width: bubblesort.oracle_step_budget(width - 1),
+    parse_problem=parse_problem, outcome=outcome,
+    # bubble's and bubblesort's returns read the observation; the lowest procedures' need the counter.
+    defaults=TrainingDefaults(num_demos=128, num_demos_fixed=True, hidden=(64,),
+                              tau_in_termination=(False, False, True), test_lengths=(20, 50, 100), num_test=100))
