@@ -148,8 +148,13 @@ def main(argv):
 
 def _draw_atomically(draw, path: str) -> None:
   temporary = path + ".tmp.png"
-  draw(temporary)
-  os.replace(temporary, path)
+  try:
+    draw(temporary)
+    os.replace(temporary, path)
+  except BaseException:
+    if os.path.exists(temporary):
+      os.remove(temporary)
+    raise
 
 
 if __name__ == "__main__":

@@ -4,14 +4,20 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import platform
 import subprocess
 import time
 from typing import Callable
 
+import flax
+import jax
+import jaxlib
 import numpy as np
+import optax
 from absl import flags
 from flax import nnx
 
+import php_jax
 from php_jax import checkpoint, fitting, flat_lstm, objective, tasks, train
 from php_jax.demos import Demonstration
 from php_jax.task import TrainingDefaults
@@ -107,7 +113,8 @@ def train_and_evaluate(task_name: str, demos: Demonstration, config: train.Train
           "final_loss": entry["losses"][-1][1] if entry["losses"] else None} for level, entry in report.items()}}
   test_results = test(model)
   results = {"task": task_name, "model": MODEL.value, "config": dataclasses.asdict(config), **extra, **trained,
-             "test": test_results, "wall_seconds": round(time.time() - start, 1), "commit": commit}
+             "test": test_results, "wall_seconds": round(time.time() - start, 1), "commit": commit,
+             "versions": environment_versions()}
   checkpoint.write_atomically(os.path.join(workdir, "results.json"), json.dumps(results, indent=1).encode())
   print(json.dumps({"test": test_results, "wall_seconds": results["wall_seconds"]}), flush=True)
   return results
@@ -124,6 +131,15 @@ def code_version() -> str | None:
   except (OSError, subprocess.CalledProcessError):
     return None
   return head.stdout.strip() + ("+dirty" if status.stdout.strip() else "")
+
+
+def environment_versions() -> dict:
+  """What ran, for results.json, with or without a git checkout: the versions of php_jax, Python, jax, jaxlib,
+  flax and optax, and the device (its platform and kind: "cpu" and "cpu", or "gpu" and the GPU's model name)."""
+  device = jax.devices()[0]
+  return {"php_jax": php_jax.__version__, "python": platform.python_version(), "jax": jax.__version__,
+          "jaxlib": jaxlib.__version__, "flax": flax.__version__, "optax": optax.__version__,
+          "platform": device.platform, "device_kind": device.device_kind}
 
 
 def _train_flat_lstm(task, demos: Demonstration, config: train.TrainConfig, validate, log):

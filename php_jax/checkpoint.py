@@ -9,9 +9,10 @@ the decoded views of finished levels, and its metadata (the settings it was made
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
-import tempfile
+import secrets
 from typing import Any
 
 import jax
@@ -32,11 +33,27 @@ class CheckpointError(ValueError):
 
 
 def write_atomically(path: str, data: bytes) -> None:
+  """Writes data to path through a temporary file in the same directory renamed into place: readers see the
+  old file or the new one, never part of one. The file gets mode 0o666 & ~umask (0644 under umask 022), as
+  open() would give it; if the write or the rename fails (KeyboardInterrupt included) the temporary file is
+  removed."""
   directory = os.path.dirname(os.path.abspath(path))
   os.makedirs(directory, exist_ok=True)
-  with tempfile.NamedTemporaryFile("wb", dir=directory, delete=False, suffix=".tmp") as f:
-    f.write(data)
-  os.replace(f.name, path)
+  while True:  # O_CREAT | O_EXCL with mode 0o666: the kernel applies the umask, no need to read or change it
+    tmp = os.path.join(directory, f".{os.path.basename(path)}.{secrets.token_hex(6)}.tmp")
+    try:
+      fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+      break
+    except FileExistsError:
+      continue
+  try:
+    with os.fdopen(fd, "wb") as f:
+      f.write(data)
+    os.replace(tmp, path)
+  except BaseException:
+    with contextlib.suppress(OSError):
+      os.unlink(tmp)
+    raise
 
 
 def named_arrays(tree) -> dict[str, np.ndarray]:

@@ -1,9 +1,15 @@
 """Test-session settings: a persistent compilation cache in a fresh temporary directory, so that the many
 identical computations the training tests compile again (each training run jits its own closures) are
-compiled by XLA once per session."""
+compiled by XLA once per session. Also puts the checkout on the PYTHONPATH of the commands the tests run:
+experiments/ is not installed, and `python -m experiments.X` must find it whatever the working directory."""
+import os
+import pathlib
 import tempfile
 
 import jax
+
+ROOT = str(pathlib.Path(__file__).resolve().parents[1])
+os.environ["PYTHONPATH"] = os.pathsep.join([ROOT, *filter(None, [os.environ.get("PYTHONPATH")])])
 
 jax.config.update("jax_compilation_cache_dir", tempfile.mkdtemp(prefix="php_jax_xla_cache_"))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)

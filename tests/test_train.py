@@ -112,6 +112,7 @@ def test_nanocraft_run_solves_held_out_episodes_and_evaluate_loads_it(tmp_path):
   assert results["test"]["accuracy"] >= 0.8, results["test"]
   assert set(results["levels"]) == {"0", "1", "2"} and results["levels"]["0"]["best_iteration"] is not None
   assert results["commit"] is None or len(results["commit"].removesuffix("+dirty")) == 40  # provenance
+  assert results["versions"]["jax"] == jax.__version__ and results["versions"]["platform"] == jax.devices()[0].platform
   assert (workdir / "metrics.jsonl").read_text().count("\n") > 10
   proc = subprocess.run([sys.executable, "-m", "experiments.segmentation", f"--run={workdir}"], capture_output=True,
                         text=True, timeout=300)

@@ -1,0 +1,63 @@
+"""Packaging and provenance: the version, the versions results.json records, and how files are written."""
+import importlib.metadata
+import os
+import stat
+
+import jax
+import pytest
+
+import php_jax
+from experiments import training
+from php_jax import checkpoint
+
+
+def test_version_is_the_installed_metadata_version():
+  assert php_jax.__version__ == importlib.metadata.version("php_jax")
+
+
+def test_environment_versions_name_the_code_and_the_device():
+  versions = training.environment_versions()
+  assert versions["php_jax"] == php_jax.__version__ and versions["jax"] == jax.__version__
+  for name in ("flax", "optax", "jaxlib"):
+    assert versions[name] == importlib.metadata.version(name)
+  device = jax.devices()[0]
+  assert (versions["platform"], versions["device_kind"]) == (device.platform, device.device_kind)
+
+
+@pytest.fixture
+def set_umask():
+  """Sets the process umask for one test; restores it after."""
+  previous = os.umask(0o022)
+  yield os.umask
+  os.umask(previous)
+
+
+@pytest.mark.parametrize("mask, mode", [(0o022, 0o644), (0o077, 0o600), (0o002, 0o664)],
+                         ids=["umask022", "umask077", "umask002"])
+def test_write_atomically_gives_the_mode_open_would(tmp_path, set_umask, mask, mode):
+  set_umask(mask)
+  path = tmp_path / "sub" / "results.json"
+  checkpoint.write_atomically(str(path), b"{}")
+  assert path.read_bytes() == b"{}" and stat.S_IMODE(path.stat().st_mode) == mode
+  checkpoint.write_atomically(str(path), b"[]")  # replacing an existing file
+  assert path.read_bytes() == b"[]" and stat.S_IMODE(path.stat().st_mode) == mode
+  assert os.listdir(path.parent) == ["results.json"]
+
+
+def test_write_atomically_removes_its_temporary_file_when_the_write_fails(tmp_path):
+  path = tmp_path / "model.msgpack"
+  path.write_bytes(b"old")
+  with pytest.raises(TypeError):
+    checkpoint.write_atomically(str(path), object())  # not bytes: the write itself raises
+  assert os.listdir(tmp_path) == ["model.msgpack"] and path.read_bytes() == b"old"
+
+
+@pytest.mark.parametrize("error", [OSError("disk full"), KeyboardInterrupt()])
+def test_write_atomically_removes_its_temporary_file_when_the_rename_fails(tmp_path, monkeypatch, error):
+  def fail(src, dst):
+    assert os.path.exists(src)  # the data was written to the temporary file
+    raise error
+  monkeypatch.setattr(os, "replace", fail)
+  with pytest.raises(type(error)):
+    checkpoint.write_atomically(str(tmp_path / "results.json"), b"{}")
+  assert os.listdir(tmp_path) == []
