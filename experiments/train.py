@@ -15,7 +15,7 @@ import sys
 from absl import app, flags
 
 from experiments import training
-from php_jax import checkpoint, datasets, evaluation, tasks
+from php_jax import checkpoint, datasets, evaluation, tasks, train
 
 _TASK = flags.DEFINE_string("task", None, f"The task: one of {', '.join(tasks.TASKS)}, or module:attribute "
                             "of a php_jax.task.Task defined elsewhere.")
@@ -46,6 +46,10 @@ def run(task_name: str) -> dict:
   if num_test < 1 or any(n < 1 for n in lengths):
     raise training.UsageError(f"--num_test and --test_lengths must be positive; got {num_test}, {list(lengths)}")
   config = training.config_from_flags(defaults)
+  try:
+    train.check_config(task.spec, config)
+  except ValueError as e:
+    raise training.UsageError(f"--{e}") from None
   demos = datasets.training_demos(task, seed, num_demos, training.NUM_STRONG.value)
   validation = task.validation_problems(seed + 10_000, training.NUM_VALIDATION.value)
   test_sets = ({str(n): task.test_problems(seed + 20_000, num_test, n) for n in lengths} if lengths
@@ -75,4 +79,4 @@ def main_for(task_name: str | None):
 
 if __name__ == "__main__":
   flags.mark_flags_as_required(["workdir"])
-  app.run(main_for(None))
+  app.run(main_for(None), flags_parser=training.parse_flags)

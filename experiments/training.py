@@ -6,6 +6,7 @@ import json
 import os
 import platform
 import subprocess
+import sys
 import time
 from typing import Callable
 
@@ -30,7 +31,8 @@ ITERATIONS = flags.DEFINE_integer("iterations", None, "Adam iterations per level
 LEARNING_RATE = flags.DEFINE_float("learning_rate", None, "Adam learning rate. Default: the task's.")
 HIDDEN = flags.DEFINE_list("hidden", None, "Hidden layer sizes of every operation/termination MLP. Default: "
                            "the task's.")
-ROOT = flags.DEFINE_enum("root", "lstm", ["lstm", "mlp"], "Root network standing in for untrained levels.")
+ROOT = flags.DEFINE_enum("root", "lstm", list(train.ROOTS), "Network standing in, below the root level, for the "
+                         "levels above while they are untrained (the paper's LSTM, or an MLP on each observation).")
 TAU_IN_TERMINATION = flags.DEFINE_list("tau_in_termination", None,
                                        "Per level (root first), whether ψ sees τ: e.g. 0,1,1. Default: task's.")
 STRONG_WEIGHT = flags.DEFINE_float("strong_weight", None, "Weight on the strongly supervised loss; default: "
@@ -63,20 +65,60 @@ class UsageError(ValueError):
   """A flag value the command refuses; the message names the flag."""
 
 
+def parse_flags(argv: list[str]) -> list[str]:
+  """absl's flag parsing, with a bad flag reported in one line and exit status 2 (for app.run's flags_parser)."""
+  try:
+    return flags.FLAGS(argv)
+  except flags.Error as e:
+    print(f"error: {e}", file=sys.stderr)
+    sys.exit(2)
+
+
 def config_from_flags(defaults: TrainingDefaults) -> train.TrainConfig:
-  """The TrainConfig the flags ask for, the task's defaults where they are unset."""
-  tau = (tuple(v.lower() in ("1", "true", "yes") for v in TAU_IN_TERMINATION.value)
-         if TAU_IN_TERMINATION.value else defaults.tau_in_termination)
+  """The TrainConfig the flags ask for, the task's defaults where they are unset. Raises UsageError naming
+  the flag of a value that is not allowed."""
+  try:
+    return _config(defaults)
+  except ValueError as e:
+    name = str(e).split(" ", 1)[0]
+    raise UsageError(f"--{name}: {str(e).split(' ', 1)[1]}" if name.isidentifier() else str(e)) from None
+
+
+def _config(defaults: TrainingDefaults) -> train.TrainConfig:
+  tau = (tuple(_flag_bool(v) for v in TAU_IN_TERMINATION.value) if TAU_IN_TERMINATION.value
+         else defaults.tau_in_termination)
   iterations = defaults.iterations if ITERATIONS.value is None else ITERATIONS.value
   learning_rate = defaults.learning_rate if LEARNING_RATE.value is None else LEARNING_RATE.value
   return train.TrainConfig(iterations=iterations, learning_rate=learning_rate,
-                           hidden=tuple(int(h) for h in HIDDEN.value) if HIDDEN.value else defaults.hidden,
+                           hidden=tuple(_flag_int("hidden", h) for h in HIDDEN.value) if HIDDEN.value
+                           else defaults.hidden,
                            root=ROOT.value,
                            tau_in_termination=tau, strong_weight=STRONG_WEIGHT.value,
                            root_strong_weight=ROOT_STRONG_WEIGHT.value, strong_warmup=STRONG_WARMUP.value,
-                           call_penalty=tuple(float(v) for v in CALL_PENALTY.value) if CALL_PENALTY.value else None,
+                           call_penalty=(tuple(_flag_float("call_penalty", v) for v in CALL_PENALTY.value)
+                                         if CALL_PENALTY.value else None),
                            decode=DECODE.value,
                            eval_every=EVAL_EVERY.value, snapshot=SNAPSHOT.value, seed=SEED.value)
+
+
+def _flag_bool(value: str) -> bool:
+  if value.lower() not in ("0", "1", "true", "false", "yes", "no"):
+    raise ValueError(f"tau_in_termination values must be 0/1 (or true/false); got {value!r}")
+  return value.lower() in ("1", "true", "yes")
+
+
+def _flag_int(name: str, value: str) -> int:
+  try:
+    return int(value)
+  except ValueError:
+    raise ValueError(f"{name} values must be integers; got {value!r}") from None
+
+
+def _flag_float(name: str, value: str) -> float:
+  try:
+    return float(value)
+  except ValueError:
+    raise ValueError(f"{name} values must be numbers; got {value!r}") from None
 
 
 def train_and_evaluate(task_name: str, demos: Demonstration, config: train.TrainConfig, workdir: str,

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import time
 from typing import Callable
 
@@ -22,6 +23,9 @@ from php_jax.demos import validate as validate_demos
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy, RootLSTM, RootMLP
 from php_jax.objective import DECODERS, LevelModel, decode, level_loss
+
+
+ROOTS = ("lstm", "mlp")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,6 +47,28 @@ class TrainConfig:
   snapshot: str = "latest"          # root snapshot among the equally best-validated: "latest" or "earliest"
   length_buckets: int = 4           # views are batched by length into this many buckets
   seed: int = 0
+
+  def __post_init__(self):
+    """Raises ValueError naming the first setting that is not allowed."""
+    positive_ints = ("iterations", "root_hidden", "capacity", "eval_every", "length_buckets")
+    for name in positive_ints:
+      if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
+        raise ValueError(f"{name} must be a positive integer; got {getattr(self, name)!r}")
+    if not (isinstance(self.strong_warmup, int) and self.strong_warmup >= 0):
+      raise ValueError(f"strong_warmup must be a non-negative integer; got {self.strong_warmup!r}")
+    if not (math.isfinite(self.learning_rate) and self.learning_rate > 0):
+      raise ValueError(f"learning_rate must be a positive finite number; got {self.learning_rate!r}")
+    if not (self.hidden and all(isinstance(h, int) and h >= 1 for h in self.hidden)):
+      raise ValueError(f"hidden must list positive layer sizes; got {self.hidden!r}")
+    for name in ("strong_weight", "root_strong_weight"):
+      value = getattr(self, name)
+      if value is not None and not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a positive finite number; got {value!r}")
+    if self.call_penalty is not None and not all(math.isfinite(v) and v >= 0 for v in self.call_penalty):
+      raise ValueError(f"call_penalty values must be finite and non-negative; got {self.call_penalty!r}")
+    for name, allowed in (("root", ROOTS), ("decode", DECODERS), ("snapshot", fitting.SNAPSHOT_RULES)):
+      if getattr(self, name) not in allowed:
+        raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
 
 
 def train_level(model: LevelModel, view: views.LevelView, capacity: int, config: TrainConfig,
@@ -105,9 +131,10 @@ def make_root(spec: HierarchySpec, level: int, config: TrainConfig) -> nnx.Modul
 
 
 def check_config(spec: HierarchySpec, config: TrainConfig) -> None:
-  """Raises ValueError naming the first setting that is not allowed."""
-  if config.decode not in DECODERS:
-    raise ValueError(f"decode must be one of {DECODERS}; got {config.decode!r}")
+  """Raises ValueError naming the first per-level setting that does not fit the hierarchy."""
+  if config.tau_in_termination is not None and len(config.tau_in_termination) != spec.num_levels:
+    raise ValueError(f"tau_in_termination needs one value per level, root first ({spec.num_levels}); got "
+                     f"{config.tau_in_termination}")
   if config.call_penalty is not None and (len(config.call_penalty) != spec.num_levels or config.call_penalty[0]):
     raise ValueError(f"call_penalty needs one value per level, root first, the root's 0 (it has no stand-in root); "
                      f"got {config.call_penalty} for {spec.num_levels} levels")
