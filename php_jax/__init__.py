@@ -1,11 +1,11 @@
 """php_jax: Parametrized Hierarchical Procedures (Fox et al., ICLR 2018) in JAX."""
 from php_jax.lattice import (NO_FRAME, LatticeInputs, LatticePath, LatticePosterior, annotate,
                              complete_log_likelihood, forward_backward, max_marginal_path, posterior_entropy,
-                             sample_posterior, top_level, viterbi)
+                             sample_posterior, top_level, validate_inputs, viterbi)
 from php_jax.lattice_ops import (LatticeFilter, cross_entropy, differentiable_sample, forward_filter,
                                  kl_divergence, top_k)
 
 __all__ = ["NO_FRAME", "LatticeFilter", "LatticeInputs", "LatticePath", "LatticePosterior", "annotate",
            "complete_log_likelihood", "cross_entropy", "differentiable_sample", "forward_backward",
            "forward_filter", "kl_divergence", "max_marginal_path", "posterior_entropy", "sample_posterior",
-           "top_k", "top_level", "viterbi"]
+           "top_k", "top_level", "validate_inputs", "viterbi"]

@@ -27,6 +27,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 NO_FRAME = -1  # procedure / counter value of padding steps in a LatticePath.
 
@@ -84,9 +85,52 @@ def _check_inputs(log_root, log_op, log_stop, log_cont, length):
     raise ValueError(f"log_root must be [T, K] = {(num_steps, num_procs)}; got {jnp.shape(log_root)}")
   if length is None:
     length = num_steps
-  if isinstance(length, int) and not 1 <= length <= num_steps:
+  if isinstance(length, (int, np.integer)) and not 1 <= length <= num_steps:
     raise ValueError(f"length must be in 1..T = 1..{num_steps}; got {length}")
   return num_steps, num_procs, capacity, jnp.asarray(length, jnp.int32)
+
+
+def validate_inputs(log_root, log_op, log_stop, log_cont, length=None) -> LatticeInputs:
+  """Checks one demonstration's lattice concretely (outside jit), with a message naming the argument.
+
+  Checks: log_op, log_stop, log_cont are float arrays [T, K, C] and log_root [T, K] with T, K, C ≥ 1 (integer
+  or boolean arrays and Python lists are refused: pass jnp.asarray(x, jnp.float32)); no NaN and no +inf
+  (−inf is a legal zero probability); length, if given, an integer (Python, NumPy or a 0-d integer array)
+  in 1..T. forward_backward checks shapes and Python-int lengths only, and nothing under jit or vmap.
+
+  Returns:
+    LatticeInputs with length as a Python int.
+  Raises:
+    ValueError on the first problem found. TypeError for traced values.
+  """
+  arrays = {"log_root": log_root, "log_op": log_op, "log_stop": log_stop, "log_cont": log_cont}
+  for name, x in arrays.items():
+    if isinstance(x, jax.core.Tracer):
+      raise TypeError(f"validate_inputs needs concrete values; {name} is traced (call it outside jit/vmap)")
+    if not hasattr(x, "dtype"):
+      raise ValueError(f"{name} must be a float array; got a {type(x).__name__} "
+                       f"(pass jnp.asarray({name}, jnp.float32))")
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+      raise ValueError(f"{name} must be a float array; got dtype {x.dtype}")
+  num_steps, num_procs, capacity, _ = _check_inputs(log_root, log_op, log_stop, log_cont, None)
+  if min(num_steps, num_procs, capacity) < 1:
+    raise ValueError(f"T, K and C must be ≥ 1; log_op has shape {jnp.shape(log_op)}")
+  for name, x in arrays.items():
+    values = np.asarray(x)
+    for bad, what in ((np.isnan(values), "NaN"), (np.isposinf(values), "+inf")):
+      if bad.any():
+        raise ValueError(f"{name} contains {what} at index {tuple(int(i) for i in np.argwhere(bad)[0])}")
+  if length is None:
+    length = num_steps
+  else:
+    if isinstance(length, jax.core.Tracer):
+      raise TypeError("validate_inputs needs concrete values; length is traced (call it outside jit/vmap)")
+    if isinstance(length, bool) or np.ndim(length) != 0 or not np.issubdtype(np.asarray(length).dtype, np.integer):
+      raise ValueError(f"length must be an integer; got {length!r}")
+    length = int(length)
+    if not 1 <= length <= num_steps:
+      raise ValueError(f"length must be in 1..T = 1..{num_steps}; got {length}")
+  return LatticeInputs(log_root, log_op, log_stop, log_cont, length)
 
 
 def _finite_or_zero(x):
@@ -219,6 +263,8 @@ def forward_backward(log_root, log_op, log_stop, log_cont, length=None) -> Latti
 
   Args:
     log_root: [T, K]. log_op, log_stop, log_cont: [T, K, C]. length: [] int, default T. (Module docstring.)
+      Shapes and a Python-int length are checked here; under jit or vmap a length outside 1..T is not
+      (the result is then meaningless): call validate_inputs first, or use jax.experimental.checkify.
 
   Returns:
     LatticePosterior(log_likelihood [], v [T, K, C], w [T, K, C]).
@@ -351,12 +397,22 @@ def annotate(log_op, procedure, counter):
 
   Args:
     log_op: [T, K, C].
-    procedure: [T] int, the annotated h_t or −1 where unknown.
-    counter: [T] int, the annotated τ_t or −1 where unknown.
+    procedure: [T] int, the annotated h_t in 0..K−1 or −1 where unknown.
+    counter: [T] int, the annotated τ_t in 0..C−1 or −1 where unknown.
   Returns:
     [T, K, C] log_op with −inf outside the annotation.
+  Raises:
+    ValueError, when procedure or counter is concrete (not traced), for a value out of range, naming the step.
   """
   _, num_procs, capacity = log_op.shape
+  for name, values, size, letter in (("procedure", procedure, num_procs, "K"), ("counter", counter, capacity, "C")):
+    if isinstance(values, jax.core.Tracer):
+      continue
+    values = np.asarray(values)
+    bad = np.flatnonzero((values < -1) | (values >= size))
+    if bad.size:
+      step = int(bad[0])
+      raise ValueError(f"annotate: {name}[{step}] = {int(values[step])} is outside −1..{letter}−1 = −1..{size - 1}")
   proc_ok = (procedure[:, None] < 0) | (procedure[:, None] == jnp.arange(num_procs)[None, :])
   tau_ok = (counter[:, None] < 0) | (counter[:, None] == jnp.arange(capacity)[None, :])
   return jnp.where(proc_ok[:, :, None] & tau_ok[:, None, :], log_op, -jnp.inf)

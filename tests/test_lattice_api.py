@@ -312,3 +312,56 @@ def test_example_runs(capsys):
   runpy.run_path(str(pathlib.Path(__file__).parents[1] / "examples" / "estep_operations.py"),
                  run_name="__main__")
   assert "top_k" in capsys.readouterr().out
+
+
+def test_annotate_refuses_out_of_range_concrete_annotations_naming_the_step():
+  log_op = jnp.zeros((4, 2, 3))
+  ok = php_jax.annotate(log_op, np.array([0, -1, 1, -1]), np.array([0, 1, -1, 2]))
+  assert ok.shape == log_op.shape
+  with pytest.raises(ValueError, match=r"procedure\[2\] = 2"):
+    php_jax.annotate(log_op, np.array([0, 1, 2, 0]), np.array([-1, -1, -1, -1]))
+  with pytest.raises(ValueError, match=r"counter\[1\] = -2"):
+    php_jax.annotate(log_op, jnp.array([0, 1, 1, 0]), jnp.array([0, -2, 0, 0]))
+  with pytest.raises(ValueError, match=r"counter\[3\] = 3"):
+    php_jax.annotate(log_op, [-1, -1, -1, -1], [0, 1, 2, 3])
+  # Traced annotations are not checked (no error inside jit).
+  traced = jax.jit(php_jax.annotate)(log_op, jnp.array([0, 1, 2, 0]), jnp.array([0, 0, 0, 0]))
+  assert traced.shape == log_op.shape
+
+
+def _valid_arrays():
+  return dict(log_root=np.zeros((4, 2)), log_op=np.zeros((4, 2, 3)), log_stop=np.full((4, 2, 3), -np.inf),
+              log_cont=np.zeros((4, 2, 3), np.float32))
+
+
+@pytest.mark.parametrize("length", [None, 1, 4, np.int64(3), np.array(2), jnp.array(4, jnp.int32)])
+def test_validate_inputs_accepts_valid_lattices(length):
+  inputs = php_jax.validate_inputs(**_valid_arrays(), length=length)
+  assert isinstance(inputs, php_jax.LatticeInputs)
+  assert inputs.length == (4 if length is None else int(length)) and isinstance(inputs.length, int)
+
+
+@pytest.mark.parametrize("bad, message", [
+    (dict(log_op=np.zeros((4, 2, 3), np.int32)), "log_op must be a float array; got dtype int32"),
+    (dict(log_root=[[0.0, 0.0]] * 4), "log_root must be a float array; got a list"),
+    (dict(log_stop=np.zeros((4, 3, 3))), "log_stop must have"),
+    (dict(log_root=np.zeros((4, 0)), log_op=np.zeros((4, 0, 3)), log_stop=np.zeros((4, 0, 3)),
+          log_cont=np.zeros((4, 0, 3))), "must be ≥ 1"),
+    (dict(log_cont=np.where(np.arange(24).reshape(4, 2, 3) == 5, np.nan, 0.0)), r"log_cont contains NaN at index \(0, 1, 2\)"),
+    (dict(log_op=np.where(np.arange(24).reshape(4, 2, 3) == 7, np.inf, 0.0)), r"log_op contains \+inf"),
+    (dict(length=0), "length must be in 1..T"),
+    (dict(length=np.int32(5)), "length must be in 1..T"),
+    (dict(length=2.0), "length must be an integer"),
+    (dict(length=True), "length must be an integer"),
+    (dict(length=np.array([2])), "length must be an integer"),
+])
+def test_validate_inputs_refuses_with_a_clear_message(bad, message):
+  args = _valid_arrays()
+  args.update(bad)
+  with pytest.raises(ValueError, match=message):
+    php_jax.validate_inputs(**args)
+
+
+def test_validate_inputs_refuses_traced_values():
+  with pytest.raises(TypeError, match="traced"):
+    jax.jit(lambda x: php_jax.validate_inputs(x, *list(_valid_arrays().values())[1:]))(np.zeros((4, 2)))
