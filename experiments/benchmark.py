@@ -1,6 +1,7 @@
 r"""Benchmarks as commands: ratios against baselines measured in the same process.
 
   python -m experiments.benchmark estep     # E-step: ours vs a plain log-space scan vs dynamax's smoother
+  python -m experiments.benchmark estep_grad  # the E-step's gradient: jax.grad of log P(ξ) vs the values alone
   python -m experiments.benchmark rollout --task=NAME --size=1000  # oracle rollouts: steps per second
   python -m experiments.benchmark train_step --task=NAME --hidden=64  # one EG iteration, split
 
@@ -143,6 +144,28 @@ def bench_estep():
   return rows
 
 
+def bench_estep_grad():
+  """Cost of jax.grad of Σ log P(ξ) w.r.t. the four inputs, against values + marginals alone (ours) and
+  against the plain reference's autodiff gradient, at the same sizes as estep."""
+  ours = jax.jit(jax.vmap(lambda *a: tuple(php_jax.forward_backward(*a))))
+  ours_grad = jax.jit(jax.grad(lambda *a: jnp.sum(jax.vmap(lambda *x: php_jax.forward_backward(*x).log_likelihood)(*a)),
+                               argnums=(0, 1, 2, 3)))
+  plain_grad = jax.jit(jax.grad(lambda *a: jnp.sum(jax.vmap(plain_forward_backward)(*a)[0]), argnums=(0, 1, 2, 3)))
+  print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()})")
+  print(f"{'B x T x K x C':>20} {'values ms':>10} {'grad ms':>9} {'grad/values':>12} {'plain grad ms':>14}")
+  rows = []
+  for size in _SIZES.value.split(","):
+    batch, num_steps, num_procs, capacity = map(int, size.split("x"))
+    inputs = _random_inputs(jax.random.key(0), batch, num_steps, num_procs, capacity)
+    t_values = _median_seconds(ours, *inputs)
+    t_grad = _median_seconds(ours_grad, *inputs)
+    t_plain = _median_seconds(plain_grad, *inputs)
+    rows.append({"size": size, "values_s": t_values, "grad_s": t_grad, "plain_grad_s": t_plain})
+    print(f"{size:>20} {t_values * 1e3:10.1f} {t_grad * 1e3:9.1f} {t_grad / t_values:11.2f}x {t_plain * 1e3:14.1f}",
+          flush=True)
+  return rows
+
+
 def bench_rollout():
   task = _task()
   problems = task.test_problems(0, _PROBLEMS.value, _SIZE.value)
@@ -209,7 +232,8 @@ def _task():
 
 
 def main(argv):
-  commands = {"estep": bench_estep, "rollout": bench_rollout, "train_step": bench_train_step}
+  commands = {"estep": bench_estep, "estep_grad": bench_estep_grad, "rollout": bench_rollout,
+              "train_step": bench_train_step}
   if len(argv) != 2 or argv[1] not in commands:
     raise app.UsageError(f"usage: python -m experiments.benchmark {{{'|'.join(commands)}}} [--flags]")
   rows = commands[argv[1]]()

@@ -23,13 +23,27 @@ traces of 10,000 steps with large logits; −inf masks give exact zeros, never N
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jax.custom_derivatives import SymbolicZero
+import numpy as np
 
 NO_FRAME = -1  # procedure / counter value of padding steps in a LatticePath.
+
+
+class LatticeInputs(NamedTuple):
+  """One demonstration's lattice, the five arguments of every E-step function in order, so that
+  `forward_backward(*inputs)`, `viterbi(*inputs)`, `sample_posterior(key, *inputs)` ... take it unpacked.
+
+  Attributes:
+    log_root: [T, K]. log_op, log_stop, log_cont: [T, K, C]. length: [] int or None (= T). (Module docstring.)
+  """
+  log_root: jax.Array
+  log_op: jax.Array
+  log_stop: jax.Array
+  log_cont: jax.Array
+  length: Any = None
 
 
 class LatticePosterior(NamedTuple):
@@ -71,9 +85,52 @@ def _check_inputs(log_root, log_op, log_stop, log_cont, length):
     raise ValueError(f"log_root must be [T, K] = {(num_steps, num_procs)}; got {jnp.shape(log_root)}")
   if length is None:
     length = num_steps
-  if isinstance(length, int) and not 1 <= length <= num_steps:
+  if isinstance(length, (int, np.integer)) and not 1 <= length <= num_steps:
     raise ValueError(f"length must be in 1..T = 1..{num_steps}; got {length}")
   return num_steps, num_procs, capacity, jnp.asarray(length, jnp.int32)
+
+
+def validate_inputs(log_root, log_op, log_stop, log_cont, length=None) -> LatticeInputs:
+  """Checks one demonstration's lattice concretely (outside jit), with a message naming the argument.
+
+  Checks: log_op, log_stop, log_cont are float arrays [T, K, C] and log_root [T, K] with T, K, C ≥ 1 (integer
+  or boolean arrays and Python lists are refused: pass jnp.asarray(x, jnp.float32)); no NaN and no +inf
+  (−inf is a legal zero probability); length, if given, an integer (Python, NumPy or a 0-d integer array)
+  in 1..T. forward_backward checks shapes and Python-int lengths only, and nothing under jit or vmap.
+
+  Returns:
+    LatticeInputs with length as a Python int.
+  Raises:
+    ValueError on the first problem found. TypeError for traced values.
+  """
+  arrays = {"log_root": log_root, "log_op": log_op, "log_stop": log_stop, "log_cont": log_cont}
+  for name, x in arrays.items():
+    if isinstance(x, jax.core.Tracer):
+      raise TypeError(f"validate_inputs needs concrete values; {name} is traced (call it outside jit/vmap)")
+    if not hasattr(x, "dtype"):
+      raise ValueError(f"{name} must be a float array; got a {type(x).__name__} "
+                       f"(pass jnp.asarray({name}, jnp.float32))")
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+      raise ValueError(f"{name} must be a float array; got dtype {x.dtype}")
+  num_steps, num_procs, capacity, _ = _check_inputs(log_root, log_op, log_stop, log_cont, None)
+  if min(num_steps, num_procs, capacity) < 1:
+    raise ValueError(f"T, K and C must be ≥ 1; log_op has shape {jnp.shape(log_op)}")
+  for name, x in arrays.items():
+    values = np.asarray(x)
+    for bad, what in ((np.isnan(values), "NaN"), (np.isposinf(values), "+inf")):
+      if bad.any():
+        raise ValueError(f"{name} contains {what} at index {tuple(int(i) for i in np.argwhere(bad)[0])}")
+  if length is None:
+    length = num_steps
+  else:
+    if isinstance(length, jax.core.Tracer):
+      raise TypeError("validate_inputs needs concrete values; length is traced (call it outside jit/vmap)")
+    if isinstance(length, bool) or np.ndim(length) != 0 or not np.issubdtype(np.asarray(length).dtype, np.integer):
+      raise ValueError(f"length must be an integer; got {length!r}")
+    length = int(length)
+    if not 1 <= length <= num_steps:
+      raise ValueError(f"length must be in 1..T = 1..{num_steps}; got {length}")
+  return LatticeInputs(log_root, log_op, log_stop, log_cont, length)
 
 
 def _finite_or_zero(x):
@@ -172,34 +229,25 @@ def _posterior_impl(log_root, log_op, log_stop, log_cont, length):
   return log_likelihood, v.reshape(log_op.shape), w.reshape(log_op.shape)
 
 
-@jax.custom_vjp
+@jax.custom_jvp
 def _posterior(log_root, log_op, log_stop, log_cont, length):
   return _posterior_impl(log_root, log_op, log_stop, log_cont, length)
 
 
-def _posterior_fwd(log_root, log_op, log_stop, log_cont, length):
-  args = tuple(a.value for a in (log_root, log_op, log_stop, log_cont, length))
-  out = _posterior_impl(*args)
-  return out, (args, out[1], out[2])
+@_posterior.defjvp
+def _posterior_jvp(primals, tangents):
+  """d log P = Σ v·d log_op + w·d log_cont + (v − w)·d log_stop + v[:, :, 0]·d log_root (the EG identities):
+  linear in the tangents with the marginals as coefficients, so reverse mode transposes it to g·v, ... at no
+  extra cost. The tangents of v and w come from forward-mode autodiff of the implementation."""
+  inputs, length = tuple(primals[:4]), primals[4]
+  d_root, d_op, d_stop, d_cont = tangents[:4]
+  (log_likelihood, v, w), (_, d_v, d_w) = jax.jvp(lambda *a: _posterior_impl(*a, length), inputs,
+                                                  tuple(tangents[:4]))
+  d_log_likelihood = (jnp.sum(v[:, :, 0] * d_root) + jnp.sum(v * d_op) + jnp.sum((v - w) * d_stop)
+                      + jnp.sum(w * d_cont))
+  return (log_likelihood, v, w), (d_log_likelihood, d_v, d_w)
 
 
-def _posterior_bwd(residuals, cotangents):
-  """∂ log P = marginals (the EG identities); autodiff only for cotangents on v and w themselves."""
-  args, v, w = residuals
-  g_log_likelihood, g_v, g_w = cotangents
-  grads = [jnp.zeros_like(a) for a in args[:4]]
-  if not isinstance(g_log_likelihood, SymbolicZero):
-    g = g_log_likelihood
-    grads = [g * v[:, :, 0], g * v, g * (v - w), g * w]
-  if not (isinstance(g_v, SymbolicZero) and isinstance(g_w, SymbolicZero)):
-    g_v = jnp.zeros_like(v) if isinstance(g_v, SymbolicZero) else g_v
-    g_w = jnp.zeros_like(w) if isinstance(g_w, SymbolicZero) else g_w
-    _, vjp = jax.vjp(lambda *a: _posterior_impl(*a, args[4])[1:], *args[:4])
-    grads = [g + h for g, h in zip(grads, vjp((g_v, g_w)))]
-  return (*grads, None)
-
-
-_posterior.defvjp(_posterior_fwd, _posterior_bwd, symbolic_zeros=True)
 _posterior_jit = jax.jit(_posterior)
 
 
@@ -207,11 +255,16 @@ def forward_backward(log_root, log_op, log_stop, log_cont, length=None) -> Latti
   """Exact log-likelihood and single-step posterior marginals of one demonstration.
 
   Gradients: ∂ log_likelihood / ∂ log_op = v, / ∂ log_cont = w, / ∂ log_stop = v − w,
-  / ∂ log_root[t, h] = v[t, h, 0] (a custom VJP returns them at no extra cost), so `jax.grad` of
-  `log_likelihood` is the paper's Expectation–Gradient gradient. Memory is linear in T. Batch with `jax.vmap`.
+  / ∂ log_root[t, h] = v[t, h, 0]. A custom JVP rule returns the tangent of log_likelihood as the marginals
+  times the input tangents, which reverse mode transposes at no extra cost, so `jax.grad` of `log_likelihood`
+  is the paper's Expectation–Gradient gradient for the price of the forward–backward. Forward mode
+  (`jax.jvp`, `jax.jacfwd`, `jax.hessian`) works too; tangents of v and w come from autodiff of the
+  recursions. Memory is linear in T. Batch with `jax.vmap`.
 
   Args:
     log_root: [T, K]. log_op, log_stop, log_cont: [T, K, C]. length: [] int, default T. (Module docstring.)
+      Shapes and a Python-int length are checked here; under jit or vmap a length outside 1..T is not
+      (the result is then meaningless): call validate_inputs first, or use jax.experimental.checkify.
 
   Returns:
     LatticePosterior(log_likelihood [], v [T, K, C], w [T, K, C]).
@@ -246,16 +299,28 @@ def _viterbi(log_root, log_op, log_stop, log_cont, length):
   return _path_from_states(states, capacity, jnp.sum(log_increments))
 
 
-def sample_posterior(key, log_root, log_op, log_stop, log_cont, length=None) -> LatticePath:
-  """One exact sample from P(ζ | ξ) (forward filter, backward sample). Vmap over keys for many samples."""
+def sample_posterior(key, log_root, log_op, log_stop, log_cont, length=None, temperature=1.0) -> LatticePath:
+  """One exact sample from P(ζ | ξ)^(1/temperature), renormalised (forward filter, backward sample).
+
+  A path's log P(ζ, ξ) is a sum of one log_root / log_op / log_stop / log_cont term per step, so the tempered
+  posterior is the posterior of the lattice with all four inputs divided by temperature (> 0): 1 is the
+  posterior itself, → 0 approaches the Viterbi path, → ∞ the uniform distribution over possible paths.
+  Vmap over keys for many samples.
+
+  Returns:
+    LatticePath(procedure [T], counter [T], log_prob []): log_prob is log P(ζ, ξ) under the untempered model.
+  Example:
+    >>> path = sample_posterior(jax.random.key(0), log_root, log_op, log_stop, log_cont, 5, temperature=0.5)
+  """
   _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
-  return _sample_posterior(key, log_root, log_op, log_stop, log_cont, length)
+  return _sample_posterior(key, log_root, log_op, log_stop, log_cont, length, temperature)
 
 
 @jax.jit
-def _sample_posterior(key, log_root, log_op, log_stop, log_cont, length):
+def _sample_posterior(key, log_root, log_op, log_stop, log_cont, length, temperature):
   num_steps, _, capacity = log_op.shape
-  _, stop_filter = _forward_filter(log_root, log_op, log_stop, log_cont, length)
+  tempered = (x / temperature for x in (log_root, log_op, log_stop, log_cont))
+  _, stop_filter = _forward_filter(*tempered, length)
 
   def backward(state_next, xs):
     t, step_key, q = xs
@@ -332,12 +397,22 @@ def annotate(log_op, procedure, counter):
 
   Args:
     log_op: [T, K, C].
-    procedure: [T] int, the annotated h_t or −1 where unknown.
-    counter: [T] int, the annotated τ_t or −1 where unknown.
+    procedure: [T] int, the annotated h_t in 0..K−1 or −1 where unknown.
+    counter: [T] int, the annotated τ_t in 0..C−1 or −1 where unknown.
   Returns:
     [T, K, C] log_op with −inf outside the annotation.
+  Raises:
+    ValueError, when procedure or counter is concrete (not traced), for a value out of range, naming the step.
   """
   _, num_procs, capacity = log_op.shape
+  for name, values, size, letter in (("procedure", procedure, num_procs, "K"), ("counter", counter, capacity, "C")):
+    if isinstance(values, jax.core.Tracer):
+      continue
+    values = np.asarray(values)
+    bad = np.flatnonzero((values < -1) | (values >= size))
+    if bad.size:
+      step = int(bad[0])
+      raise ValueError(f"annotate: {name}[{step}] = {int(values[step])} is outside −1..{letter}−1 = −1..{size - 1}")
   proc_ok = (procedure[:, None] < 0) | (procedure[:, None] == jnp.arange(num_procs)[None, :])
   tau_ok = (counter[:, None] < 0) | (counter[:, None] == jnp.arange(capacity)[None, :])
   return jnp.where(proc_ok[:, :, None] & tau_ok[:, None, :], log_op, -jnp.inf)
@@ -354,11 +429,18 @@ def top_level(log_stop, length=None):
 def posterior_entropy(log_root, log_op, log_stop, log_cont, length=None):
   """Entropy of P(ζ | ξ) in nats: log P(ξ) − E[log P(ζ, ξ)], from the marginals. Returns []."""
   post = forward_backward(log_root, log_op, log_stop, log_cont, length)
-  v, w = post.v, post.w
+  return post.log_likelihood - _expected_log_joint(post, log_root, log_op, log_stop, log_cont)
 
-  def expected(prob, log_factor):  # Σ prob · log_factor, with 0 · (−inf) = 0.
-    return jnp.sum(jnp.where(prob > 0, prob * log_factor, 0.0))
 
-  expected_complete = (expected(v[:, :, 0], log_root) + expected(v, log_op)
-                       + expected(w, log_cont) + expected(v - w, log_stop))
-  return post.log_likelihood - expected_complete
+def _expected_log_joint(posterior: LatticePosterior, log_root, log_op, log_stop, log_cont):
+  """E[log P'(ζ, ξ)] over paths drawn from `posterior`'s marginals, for the lattice (log_root, ...) of the
+  same shape: one term per step, so Σ v·log_op + w·log_cont + (v − w)·log_stop + v[:, :, 0]·log_root.
+  Cells of zero probability count 0 even where the log-factor is −inf, in values and in gradients. Returns []."""
+  v, w = posterior.v, posterior.w
+
+  def expected(prob, log_factor):
+    used = prob > 0
+    return jnp.sum(jnp.where(used, prob * jnp.where(used, log_factor, 0.0), 0.0))
+
+  return (expected(v[:, :, 0], log_root) + expected(v, log_op) + expected(w, log_cont)
+          + expected(v - w, log_stop))

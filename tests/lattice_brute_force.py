@@ -76,3 +76,32 @@ def entropy(log_probs, log_z):
   nz = p > 0
   return float(-(p[nz] * (log_probs[nz] - log_z)).sum())
 
+
+
+def prefix_log_prob(inputs, path):
+  """log-probability of a path prefix (h_0, τ_0) .. (h_t, τ_t) emitting a_0 .. a_t: path_log_prob without
+  the last step's termination factor, which is not decided yet."""
+  log_root, log_op, log_stop, log_cont = inputs
+  (h, tau), t = path[-1], len(path) - 1
+  undecided = log_stop.copy()
+  undecided[t, h, tau] = 0.0
+  return path_log_prob((log_root, log_op, undecided, log_cont), path)
+
+
+def path_features(paths, shape, length):
+  """Per path, how often each input's entry enters log P(ζ, ξ): four count arrays (root [P, T, K], op, stop,
+  cont [P, T, K, C]), so that log P(ζ, ξ) = Σ counts · inputs. Lets JAX differentiate the enumeration."""
+  num_steps, num_procs, capacity = shape
+  root = np.zeros((len(paths), num_steps, num_procs))
+  op, stop, cont = (np.zeros((len(paths),) + tuple(shape)) for _ in range(3))
+  for i, path in enumerate(paths):
+    root[i, 0, path[0][0]] = 1
+    for t, (h, tau) in enumerate(path):
+      op[i, t, h, tau] = 1
+      if t == length - 1 or path[t + 1][1] == 0:
+        stop[i, t, h, tau] = 1
+        if t < length - 1:
+          root[i, t + 1, path[t + 1][0]] = 1
+      else:
+        cont[i, t, h, tau] = 1
+  return root, op, stop, cont

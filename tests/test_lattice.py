@@ -159,7 +159,7 @@ def test_partial_annotation_sums_over_consistent_paths():
 
 def test_broken_annotation_has_zero_probability():
   inputs = _jnp(bf.random_lattice(np.random.default_rng(4), 4, 2, 3), jnp.float32)
-  jump = (jnp.array([0, 0, 0, 1]), jnp.array([0, 2, 3, 0]))  # counter jumps 0 → 2
+  jump = (jnp.array([0, 0, 0, 1]), jnp.array([0, 2, 0, 0]))  # counter jumps 0 → 2 (values in range)
   assert php_jax.complete_log_likelihood(*inputs, *jump) == -jnp.inf
   post = php_jax.forward_backward(inputs[0], php_jax.annotate(inputs[1], *jump), *inputs[2:])
   assert post.log_likelihood == -jnp.inf
