@@ -33,6 +33,10 @@ HIDDEN = flags.DEFINE_list("hidden", None, "Hidden layer sizes of every operatio
                            "the task's.")
 ROOT = flags.DEFINE_enum("root", "lstm", list(train.ROOTS), "Network standing in, below the root level, for the "
                          "levels above while they are untrained (the paper's LSTM, or an MLP on each observation).")
+TAU_LIMIT = flags.DEFINE_list("tau_limit", None, "Per level (root first), the networks see min(τ, limit) "
+                              "instead of the counter τ ('none': τ itself): e.g. 0,1,none. Default: the task's.")
+MIN_CAPACITY = flags.DEFINE_list("min_capacity", None, "Per level (root first; the root's is unused), the least "
+                                 "counter capacity, for calls longer than the annotated ones. Default: the task's.")
 TAU_IN_TERMINATION = flags.DEFINE_list("tau_in_termination", None,
                                        "Per level (root first), whether ψ sees τ: e.g. 0,1,1. Default: task's.")
 STRONG_WEIGHT = flags.DEFINE_float("strong_weight", None, "Weight on the strongly supervised loss; default: "
@@ -94,6 +98,10 @@ def _config(defaults: TrainingDefaults) -> train.TrainConfig:
                            else defaults.hidden,
                            root=ROOT.value,
                            tau_in_termination=tau, strong_weight=STRONG_WEIGHT.value,
+                           tau_limit=(tuple(None if v.lower() == "none" else _flag_int("tau_limit", v)
+                                            for v in TAU_LIMIT.value) if TAU_LIMIT.value else defaults.tau_limit),
+                           min_capacity=(tuple(_flag_int("min_capacity", v) for v in MIN_CAPACITY.value)
+                                         if MIN_CAPACITY.value else defaults.min_capacity),
                            root_strong_weight=ROOT_STRONG_WEIGHT.value, strong_warmup=STRONG_WARMUP.value,
                            call_penalty=(tuple(_flag_float("call_penalty", v) for v in CALL_PENALTY.value)
                                          if CALL_PENALTY.value else None),
@@ -150,7 +158,7 @@ def train_and_evaluate(task_name: str, demos: Demonstration, config: train.Train
     else:
       model, report = train.train_hierarchy(task.spec, demos, config, validate, log=log,
                                             checkpoint_path=os.path.join(workdir, "checkpoint.msgpack"))
-      checkpoint.save_hierarchy(workdir, task_name, model, config.hidden, config.tau_in_termination)
+      checkpoint.save_hierarchy(workdir, task_name, model, config.hidden)
       trained = {"levels": {str(level): {k: v for k, v in entry.items() if k != "losses"} | {
           "final_loss": entry["losses"][-1][1] if entry["losses"] else None} for level, entry in report.items()}}
   test_results = test(model)

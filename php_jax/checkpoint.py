@@ -105,10 +105,11 @@ def _save(workdir: str, model, architecture: dict) -> None:
   write_atomically(os.path.join(workdir, ARCHITECTURE_FILE), json.dumps(architecture, indent=1).encode())
 
 
-def save_hierarchy(workdir: str, task_name: str, hierarchy: PHPHierarchy, hidden, tau_in_termination) -> None:
+def save_hierarchy(workdir: str, task_name: str, hierarchy: PHPHierarchy, hidden) -> None:
   """Writes workdir/model.json (task and architecture) and workdir/model.msgpack (parameters)."""
   _save(workdir, hierarchy, {"task": task_name, "kind": "php", "hidden": list(hidden),
-                             "tau_in_termination": list(tau_in_termination)})
+                             "tau_in_termination": [level.tau_in_termination for level in hierarchy.levels],
+                             "tau_limit": [level.tau_limit for level in hierarchy.levels]})
 
 
 def save_flat_lstm(workdir: str, task_name: str, policy: FlatLSTMPolicy) -> None:
@@ -117,7 +118,7 @@ def save_flat_lstm(workdir: str, task_name: str, policy: FlatLSTMPolicy) -> None
 
 
 def _architecture(path: str, architecture) -> tuple:
-  """(task name, kind, hidden, tau_in_termination) from model.json, checked."""
+  """(task name, kind, hidden, (tau_in_termination, tau_limit)) from model.json, checked."""
   if not isinstance(architecture, dict) or not isinstance(architecture.get("task"), str):
     raise CheckpointError(f"{path}: not a model description (needs a \"task\")")
   kind = architecture.get("kind", "php")
@@ -125,9 +126,11 @@ def _architecture(path: str, architecture) -> tuple:
   if kind == "flat_lstm" and isinstance(hidden, int) and hidden > 0:
     return architecture["task"], kind, hidden, None
   tau = architecture.get("tau_in_termination")
+  limit = architecture.get("tau_limit", [None] * len(tau) if isinstance(tau, list) else None)
   if (kind == "php" and isinstance(hidden, list) and all(isinstance(h, int) and h > 0 for h in hidden)
-      and isinstance(tau, list) and all(isinstance(t, bool) for t in tau)):
-    return architecture["task"], kind, tuple(hidden), tuple(tau)
+      and isinstance(tau, list) and all(isinstance(t, bool) for t in tau) and isinstance(limit, list)
+      and len(limit) == len(tau) and all(v is None or (isinstance(v, int) and v >= 0) for v in limit)):
+    return architecture["task"], kind, tuple(hidden), (tuple(tau), tuple(limit))
   raise CheckpointError(f"{path}: malformed model description {architecture}")
 
 
@@ -142,10 +145,12 @@ def load_policy(workdir: str) -> tuple[str, PHPHierarchy | FlatLSTMPolicy]:
   if kind == "flat_lstm":
     model = FlatLSTMPolicy(task.spec.obs_dim, task.spec.action_sizes, hidden, rngs=nnx.Rngs(0))
   else:
-    if len(tau) != task.spec.num_levels:
-      raise CheckpointError(f"{arch_path}: tau_in_termination has {len(tau)} entries; {task_name} has "
-                            f"{task.spec.num_levels} levels")
-    model = PHPHierarchy(task.spec, hidden=hidden, tau_in_termination=tau, rngs=nnx.Rngs(0))
+    tau_in_termination, tau_limit = tau
+    if len(tau_in_termination) != task.spec.num_levels:
+      raise CheckpointError(f"{arch_path}: tau_in_termination has {len(tau_in_termination)} entries; {task_name} "
+                            f"has {task.spec.num_levels} levels")
+    model = PHPHierarchy(task.spec, hidden=hidden, tau_in_termination=tau_in_termination, tau_limit=tau_limit,
+                         rngs=nnx.Rngs(0))
   nnx.update(model, restore_named(nnx.state(model, nnx.Param), _read_msgpack(model_path), model_path))
   return task_name, model
 

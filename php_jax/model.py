@@ -56,24 +56,28 @@ class PHPLevel(nnx.Module):
   Attributes:
     op_sizes: factor sizes of the operation (callees of the next level, or the elementary action factors).
     tau_in_termination: whether ψ sees τ (the paper's per-level hyper-parameter); if not, τ is fed as 0.
+    tau_limit: both networks see min(τ, tau_limit) (None: τ itself). A procedure whose decisions need only
+      the first few counter values then behaves the same for any number of operations: a limit of 1 tells
+      the first operation from the others, 0 hides τ.
   """
 
   def __init__(self, num_procs: int, obs_dim: int, op_sizes: tuple[int, ...], hidden=(64, 64),
-               tau_in_termination: bool = True, *, rngs: nnx.Rngs):
+               tau_in_termination: bool = True, tau_limit: int | None = None, *, rngs: nnx.Rngs):
     self.op_sizes = tuple(op_sizes)
     self.tau_in_termination = tau_in_termination
+    self.tau_limit = tau_limit
     self.operation = ProcedureMLPs(num_procs, obs_dim, tuple(hidden), sum(op_sizes), rngs=rngs)
     self.termination = ProcedureMLPs(num_procs, obs_dim, tuple(hidden), 1, rngs=rngs)
 
   def op_log_probs(self, obs: jax.Array, tau: jax.Array) -> list[jax.Array]:
     """Per factor f: [N, K, M, op_sizes[f]] log-probabilities (the factorized action head)."""
-    logits = jnp.transpose(self.operation(obs, tau), (2, 0, 3, 1))
+    logits = jnp.transpose(self.operation(obs, self._limited(tau)), (2, 0, 3, 1))
     splits = np.cumsum(self.op_sizes)[:-1]
     return [jax.nn.log_softmax(part, axis=-1) for part in jnp.split(logits, splits, axis=-1)]
 
   def log_op(self, obs: jax.Array, tau: jax.Array, ops: jax.Array) -> jax.Array:
     """log η_h^τ(ops_n | obs_n) for every procedure and counter. obs [N, D], tau [M], ops [N, F] → [N, K, M]."""
-    logits = self.operation(obs, tau)                                     # [K, Σ op_sizes, N, M]
+    logits = self.operation(obs, self._limited(tau))                      # [K, Σ op_sizes, N, M]
     total, start = 0.0, 0
     for f, size in enumerate(self.op_sizes):
       part = logits[:, start:start + size]
@@ -84,8 +88,11 @@ class PHPLevel(nnx.Module):
 
   def termination_logits(self, obs: jax.Array, tau: jax.Array) -> jax.Array:
     """logit of ψ_h^τ(1 | obs). obs [N, D], tau [M] → [N, K, M]; log ψ(1) = log σ(z), log ψ(0) = log σ(−z)."""
-    tau = tau if self.tau_in_termination else jnp.zeros_like(tau)
+    tau = self._limited(tau) if self.tau_in_termination else jnp.zeros_like(tau)
     return jnp.transpose(self.termination(obs, tau)[:, 0], (1, 0, 2))
+
+  def _limited(self, tau: jax.Array) -> jax.Array:
+    return tau if self.tau_limit is None else jnp.minimum(tau, self.tau_limit)
 
 
 class RootMLP(nnx.Module):
@@ -121,15 +128,18 @@ class PHPHierarchy(nnx.Module):
   """A whole hierarchy of PHP levels; a Policy for the executor (argmax, or sampling when `sample`)."""
 
   def __init__(self, spec: HierarchySpec, hidden=(64, 64), tau_in_termination=None, sample: bool = False,
-               *, rngs: nnx.Rngs):
+               tau_limit=None, *, rngs: nnx.Rngs):
+    """tau_in_termination, tau_limit: per level, root first (PHPLevel); None: τ everywhere, unlimited."""
     tau_in_termination = tau_in_termination or (True,) * spec.num_levels
-    if len(tau_in_termination) != spec.num_levels:
-      raise ValueError(f"tau_in_termination needs one flag per level ({spec.num_levels}); "
-                       f"got {tau_in_termination}")
+    tau_limit = tau_limit or (None,) * spec.num_levels
+    for name, values in (("tau_in_termination", tau_in_termination), ("tau_limit", tau_limit)):
+      if len(values) != spec.num_levels:
+        raise ValueError(f"{name} needs one value per level ({spec.num_levels}); got {values}")
     self.spec = spec
     self.sample = sample
     self.levels = nnx.List([
-        PHPLevel(spec.num_procs(i), spec.obs_dim, spec.op_sizes(i), hidden, tau_in_termination[i], rngs=rngs)
+        PHPLevel(spec.num_procs(i), spec.obs_dim, spec.op_sizes(i), hidden, tau_in_termination[i], tau_limit[i],
+                 rngs=rngs)
         for i in range(spec.num_levels)])
 
   def operation(self, level, proc, tau, obs, key):

@@ -40,6 +40,9 @@ class TrainingDefaults:
     num_demos_fixed: whether the training set's size is fixed (then --num_demos may not change it).
     hidden: hidden layer sizes of every operation / termination network.
     tau_in_termination: per level, root first, whether ψ sees the counter τ.
+    tau_limit: per level, root first, the networks see min(τ, limit) (None: no limit); None: none anywhere.
+    min_capacity: per level, root first, the least counter capacity below the root (when calls can be
+      longer than the annotated ones); None: the longest annotated call decides.
     test_lengths: problem sizes tested (one accuracy each); empty: one test set from the training
       distribution, reported as "accuracy".
     num_test: test problems per test set.
@@ -50,6 +53,8 @@ class TrainingDefaults:
   num_demos_fixed: bool
   hidden: tuple[int, ...]
   tau_in_termination: tuple[bool, ...]
+  tau_limit: tuple[int | None, ...] | None = None
+  min_capacity: tuple[int, ...] | None = None
   test_lengths: tuple[int, ...] = ()
   num_test: int = 100
   iterations: int = 2000

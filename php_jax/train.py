@@ -37,12 +37,15 @@ class TrainConfig:
   root: str = "lstm"                # network standing in for untrained levels: "lstm" or "mlp"
   root_hidden: int = 64
   tau_in_termination: tuple[bool, ...] | None = None  # per level; None: all True
+  tau_limit: tuple[int | None, ...] | None = None  # per level, the networks see min(τ, limit); None: no limit
   strong_weight: float | None = None  # weight on strongly supervised demonstrations' loss; None: balanced
   root_strong_weight: float | None = None  # the root level's: its weak views have no latent choice; None: the same
   strong_warmup: int = 0            # below the root, iterations on the strong views alone before those on all
   call_penalty: tuple[float, ...] | None = None  # per level (root first), log-prior cost of each call; None: 0
   decode: str = "sample"            # how weak views are decoded for the level above (the paper sampled)
   capacity: int = 8                 # counter capacity C below the root level when nothing is annotated
+  min_capacity: tuple[int, ...] | None = None  # per level, the least C below the root (calls may be longer
+                                               # than the annotated ones)
   eval_every: int = 100             # logging, checkpoint and root-snapshot interval
   snapshot: str = "latest"          # root snapshot among the equally best-validated: "latest" or "earliest"
   length_buckets: int = 4           # views are batched by length into this many buckets
@@ -64,6 +67,10 @@ class TrainConfig:
       value = getattr(self, name)
       if value is not None and not (math.isfinite(value) and value > 0):
         raise ValueError(f"{name} must be a positive finite number; got {value!r}")
+    if self.tau_limit is not None and not all(v is None or (isinstance(v, int) and v >= 0) for v in self.tau_limit):
+      raise ValueError(f"tau_limit values must be non-negative integers or None; got {self.tau_limit!r}")
+    if self.min_capacity is not None and not all(isinstance(v, int) and v >= 0 for v in self.min_capacity):
+      raise ValueError(f"min_capacity values must be non-negative integers; got {self.min_capacity!r}")
     if self.call_penalty is not None and not all(math.isfinite(v) and v >= 0 for v in self.call_penalty):
       raise ValueError(f"call_penalty values must be finite and non-negative; got {self.call_penalty!r}")
     for name, allowed in (("root", ROOTS), ("decode", DECODERS), ("snapshot", fitting.SNAPSHOT_RULES)):
@@ -101,11 +108,13 @@ def train_level(model: LevelModel, view: views.LevelView, capacity: int, config:
 
 def level_capacity(view: views.LevelView, level: int, config: TrainConfig) -> int:
   """The root level needs its whole view; below, the longest annotated call (the cells the networks are
-  evaluated on scale with C), or config.capacity when nothing is annotated."""
+  evaluated on scale with C), or config.capacity when nothing is annotated, and at least
+  config.min_capacity[level]."""
   if level == 0:
     return int(view.length.max())
   annotated = view.counters[view.strong][view.counters[view.strong] >= 0]
-  return int(annotated.max()) + 1 if annotated.size else config.capacity
+  capacity = int(annotated.max()) + 1 if annotated.size else config.capacity
+  return max(capacity, config.min_capacity[level]) if config.min_capacity else capacity
 
 
 def balanced_strong_weight(strong) -> float:
@@ -117,7 +126,7 @@ def balanced_strong_weight(strong) -> float:
 
 def make_hierarchy(spec: HierarchySpec, config: TrainConfig) -> PHPHierarchy:
   return PHPHierarchy(spec, hidden=config.hidden, tau_in_termination=config.tau_in_termination,
-                      rngs=nnx.Rngs(config.seed))
+                      tau_limit=config.tau_limit, rngs=nnx.Rngs(config.seed))
 
 
 def make_root(spec: HierarchySpec, level: int, config: TrainConfig) -> nnx.Module | None:
@@ -132,9 +141,10 @@ def make_root(spec: HierarchySpec, level: int, config: TrainConfig) -> nnx.Modul
 
 def check_config(spec: HierarchySpec, config: TrainConfig) -> None:
   """Raises ValueError naming the first per-level setting that does not fit the hierarchy."""
-  if config.tau_in_termination is not None and len(config.tau_in_termination) != spec.num_levels:
-    raise ValueError(f"tau_in_termination needs one value per level, root first ({spec.num_levels}); got "
-                     f"{config.tau_in_termination}")
+  for name in ("tau_in_termination", "tau_limit", "min_capacity"):
+    values = getattr(config, name)
+    if values is not None and len(values) != spec.num_levels:
+      raise ValueError(f"{name} needs one value per level, root first ({spec.num_levels}); got {values}")
   if config.call_penalty is not None and (len(config.call_penalty) != spec.num_levels or config.call_penalty[0]):
     raise ValueError(f"call_penalty needs one value per level, root first, the root's 0 (it has no stand-in root); "
                      f"got {config.call_penalty} for {spec.num_levels} levels")

@@ -48,6 +48,19 @@ def test_termination_ignores_tau_when_switched_off():
   assert not np.allclose(seen[:, :, 0], seen[:, :, 5])
 
 
+def test_tau_limit_makes_counters_past_it_look_alike():
+  level = PHPLevel(3, 5, (4, 2), hidden=(8,), tau_limit=1, rngs=nnx.Rngs(0))
+  obs, tau = jax.random.normal(jax.random.key(1), (4, 5)), jnp.arange(6.0)
+  ops = jnp.array([[0, 1], [3, 0], [2, 1], [1, 1]])
+  for out in (level.log_op(obs, tau, ops), level.termination_logits(obs, tau),
+              level.op_log_probs(obs, tau)[0]):
+    for t in range(2, 6):
+      np.testing.assert_allclose(out[:, :, t], out[:, :, 1], atol=1e-6)
+    assert not np.allclose(out[:, :, 0], out[:, :, 1])
+  unlimited = PHPLevel(3, 5, (4, 2), hidden=(8,), rngs=nnx.Rngs(0))
+  np.testing.assert_array_equal(unlimited.log_op(obs, tau[:2], ops), level.log_op(obs, tau[:2], ops))
+
+
 def test_root_networks_give_distributions_and_lstm_is_causal():
   obs = jax.random.normal(jax.random.key(4), (7, 44))
   for root in (RootMLP(44, 3, rngs=nnx.Rngs(0)), RootLSTM(44, 3, rngs=nnx.Rngs(0))):

@@ -78,6 +78,15 @@ def test_relabelled_agreement_ignores_procedure_ids_but_not_segmentation():
   assert agreement.relabelled_agreement(demos, view, 2, procs + 6, taus) is None  # 9 ids: 9! renamings, not tried
 
 
+def test_level_capacity_is_the_longest_annotated_call_at_least_the_minimum():
+  demos = _addition_demos([("19", "25"), ("7", "8")], num_strong=1)
+  view = views.lowest_view(demos, 3)
+  assert train.level_capacity(view, 2, train.TrainConfig()) == 4  # lshift's four moves
+  assert train.level_capacity(view, 2, train.TrainConfig(min_capacity=(0, 0, 6))) == 6
+  assert train.level_capacity(view, 2, train.TrainConfig(min_capacity=(0, 0, 2))) == 4
+  assert train.level_capacity(view, 0, train.TrainConfig(min_capacity=(50, 0, 0))) == int(view.length.max())
+
+
 def test_training_refuses_malformed_demonstrations():
   demos = _addition_demos([("19", "25")], num_strong=1)
   counters = np.array(demos.counters)
@@ -89,7 +98,7 @@ def test_training_refuses_malformed_demonstrations():
 def test_checkpoint_round_trip(tmp_path):
   config = train.TrainConfig(hidden=(16,), tau_in_termination=(True, False, True), seed=3)
   hierarchy = train.make_hierarchy(NANOCRAFT.spec, config)
-  checkpoint.save_hierarchy(str(tmp_path), "nanocraft", hierarchy, config.hidden, config.tau_in_termination)
+  checkpoint.save_hierarchy(str(tmp_path), "nanocraft", hierarchy, config.hidden)
   name, loaded = checkpoint.load_policy(str(tmp_path))
   assert name == "nanocraft" and loaded.levels[1].tau_in_termination is False
   for a, b in zip(jax.tree.leaves(nnx.state(hierarchy, nnx.Param)), jax.tree.leaves(nnx.state(loaded, nnx.Param))):

@@ -82,6 +82,10 @@ TASK = Task(
     bucket=bucket, make_states=make_states,
     step_budget=lambda width: bubblesort.oracle_step_budget(width - 1),
     parse_problem=parse_problem, outcome=outcome,
-    # bubble's and bubblesort's returns read the observation; the lowest procedures' need the counter.
+    # Every return but the lowest procedures' reads the observation. The root's decisions need no counter and
+    # level 1's only whether an operation is reset's first (so they behave the same on arrays of any length);
+    # level 1's calls grow with the array (reset makes n of them, 9 in the training set), beyond the longest
+    # annotated one when few arrays are annotated.
     defaults=TrainingDefaults(num_demos=128, num_demos_fixed=True, hidden=(64,),
-                              tau_in_termination=(False, False, True), test_lengths=(20, 50, 100), num_test=100))
+                              tau_in_termination=(False, False, True), tau_limit=(0, 1, None),
+                              min_capacity=(0, 9, 3), test_lengths=(20, 50, 100), num_test=100))
