@@ -1,4 +1,4 @@
-"""Stack-machine rollout of a whole hierarchy inside `jit` (paper §4.1.1, DESIGN.md §3 "Executor semantics").
+"""Stack-machine rollout of a whole hierarchy inside `jit` (paper §4.1.1).
 
 The stack holds one frame (procedure, τ) per level: levels are layered, so at every elementary action the
 stack is full depth d. Start: push (root, 0) and descend on o_0. After each action, on the new observation,

@@ -1,4 +1,4 @@
-"""Level views of demonstrations (paper §4.2.3, DESIGN.md §4), host side.
+"""Level views of demonstrations (paper §4.2.3), host side.
 
 The level-i view of a demonstration is the sequence of operations that level i's procedures executed: the
 level-(i+1) calls (for the lowest level, the elementary actions), each with the observation at the call's

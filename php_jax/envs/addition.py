@@ -1,4 +1,4 @@
-"""Long-hand addition on four tapes (DESIGN.md §5), as pure jittable state transitions.
+"""Long-hand addition on four tapes (paper §5.2), as pure jittable state transitions.
 
 Tapes in1, in2, carry, out of static width W; column 0 is the least significant digit. A cell holds a digit
 0–9 or EMPTY. The observation is the four symbols under the heads, one-hot: 4 × 11 floats. An elementary

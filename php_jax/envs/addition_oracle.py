@@ -1,4 +1,4 @@
-"""The supervisor's hierarchy for long-hand addition (DESIGN.md §5), as a Policy of pure functions of
+"""The supervisor's hierarchy for long-hand addition (paper §5.2), as a Policy of pure functions of
 (level, procedure, τ, observation): add → add1 → {write, carry, lshift} → elementary actions."""
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""NanoCraft on a 6×6 grid (DESIGN.md §5), as pure jittable state transitions.
+"""NanoCraft on a 6×6 grid (paper §5.1), as pure jittable state transitions.
 
 The agent starts at row 0, column 0 and must complete the perimeter of a w × h building whose top-left cell
 is (row y, column x); each perimeter cell may be pre-placed. Observation: [5] float32 = (agent's cell full,

@@ -1,4 +1,4 @@
-"""The supervisor's hierarchy for NanoCraft (DESIGN.md §5), as a Policy of pure functions of
+"""The supervisor's hierarchy for NanoCraft (paper §5.1), as a Policy of pure functions of
 (level, procedure, τ, observation): nanocraft → {moves_r, moves_d, builds_r/d/l/u} → {move_r, move_d,
 build_r/d/l/u} → elementary actions."""
 from __future__ import annotations
