@@ -75,6 +75,8 @@ class Task:
     outcome: (problem, final state of one episode) → (the output line's task fields, e.g. {"result": ...},
       whether the final state is the right answer).
     defaults: the training command's defaults.
+    action_name: elementary action (a list of num_factors ints) → readable text for messages, e.g.
+      "MOVE in1 RIGHT".
   """
   name: str
   env: Environment
@@ -89,6 +91,7 @@ class Task:
   parse_problem: Callable[[dict], Problem]
   outcome: Callable[[Problem, Any], tuple[dict, bool]]
   defaults: TrainingDefaults
+  action_name: Callable[[list[int]], str] = str
 
   def states_and_budget(self, problems: list) -> tuple[Any, int]:
     """Start states of problems of any sizes on the largest one's bucket, and that bucket's step budget."""

@@ -3,10 +3,13 @@ import json
 import subprocess
 import sys
 
+import jax.numpy as jnp
 import pytest
+from flax import struct
 
 from experiments import problems as problem_files
-from php_jax import tasks
+from php_jax import evaluation, tasks
+from php_jax.envs import addition, bubblesort_task, nanocraft_task
 
 
 def _evaluate(tmp_path, task, lines):
@@ -86,3 +89,38 @@ def test_parser_names_line_and_problem(tmp_path, task, line, message):
   with pytest.raises(problem_files.ProblemFileError, match=message) as info:
     problem_files.read_problems(str(path), tasks.get(task))
   assert str(info.value).startswith(f"{path}:2:")
+
+
+@struct.dataclass
+class _Repeat:
+  """A policy that takes one elementary action forever and never returns."""
+  action: jnp.ndarray
+
+  def operation(self, level, proc, tau, obs, key):
+    return jnp.zeros(1, jnp.int32) if level < 2 else self.action
+
+  def terminates(self, level, proc, tau, obs, key):
+    return jnp.bool_(False)
+
+
+def test_failed_episodes_say_why():
+  task = tasks.get("addition")
+  problems = [("12", "34"), ("5", "6")]
+  off_the_tape = _Repeat(jnp.array([addition.MOVE, addition.IN1, addition.LEFT], jnp.int32))
+  rows = evaluation.solve(task, off_the_tape, problems)  # width 8: the 8th move leaves the tape
+  assert [r["failure"] for r in rows] == ["invalid action MOVE in1 LEFT at step 8"] * 2
+  assert rows[0]["valid"] is False and list(rows[0])[-1] == "failure"
+  writer = _Repeat(jnp.array([addition.WRITE, addition.OUT, 7], jnp.int32))
+  budget = 2 * task.step_budget(8)
+  assert [r["failure"] for r in evaluation.solve(task, writer, problems)] == [
+      f"step budget exhausted after {budget} steps"] * 2
+  assert all("failure" not in r for r in evaluation.solve(task, task.oracle, problems))
+
+
+def test_actions_have_readable_names():
+  assert tasks.get("addition").action_name([addition.WRITE, addition.OUT, 7]) == "WRITE out 7"
+  assert tasks.get("addition").action_name([addition.MOVE, addition.IN1, addition.RIGHT]) == "MOVE in1 RIGHT"
+  assert tasks.get("addition").action_name([0, 1, 5]) == "[0, 1, 5]"
+  assert nanocraft_task.action_name([4]) == "PLACE_BLOCK"
+  assert bubblesort_task.action_name([1, 0, 0]) == "SWAP i LEFT"
+  assert bubblesort_task.action_name([0, 2, 1]) == "MOVE e RIGHT"

@@ -75,6 +75,16 @@ def outcome(problem: tuple[int, ...], final_state: bubblesort.State) -> tuple[di
   return {"result": result}, result == sorted(problem)
 
 
+def action_name(action: list[int]) -> str:
+  """[kind, pointer, direction] → e.g. "SWAP i LEFT", "MOVE e RIGHT" (the raw list if it names no action)."""
+  kind, pointer, direction = action
+  if kind in (bubblesort.MOVE, bubblesort.SWAP) and 0 <= pointer <= bubblesort.E and direction in (
+      bubblesort.LEFT, bubblesort.RIGHT):
+    return (f"{'MOVE' if kind == bubblesort.MOVE else 'SWAP'} {'ije'[pointer]} "
+            f"{'LEFT' if direction == bubblesort.LEFT else 'RIGHT'}")
+  return str(list(action))
+
+
 TASK = Task(
     name="bubblesort", env=bubblesort, spec=bubblesort_oracle.SPEC, oracle=bubblesort_oracle.BubbleSortOracle(),
     training_problems=lambda seed, num: training_problems(seed),
@@ -84,4 +94,5 @@ TASK = Task(
     parse_problem=parse_problem, outcome=outcome,
     # bubble's and bubblesort's returns read the observation; the lowest procedures' need the counter.
     defaults=TrainingDefaults(num_demos=128, num_demos_fixed=True, hidden=(64,),
-                              tau_in_termination=(False, False, True), test_lengths=(20, 50, 100), num_test=100))
+                              tau_in_termination=(False, False, True), test_lengths=(20, 50, 100), num_test=100),
+    action_name=action_name)
