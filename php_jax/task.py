@@ -21,6 +21,13 @@ from php_jax.hierarchy import HierarchySpec, Policy
 Problem = Any
 
 
+def check_keys(obj: dict, known: tuple[str, ...]) -> None:
+  """For parse_problem: raises ValueError naming the first key of a problem line's object not in known."""
+  for key in obj:
+    if key not in known:
+      raise ValueError(f"unknown key {key!r}; a problem has {', '.join(map(repr, known))}")
+
+
 class Environment(Protocol):
   """A pure environment: states are pytrees with a `failed` [] bool field (an invalid action was taken)."""
 
@@ -71,7 +78,8 @@ class Task:
     bucket: problem → its bucket (int).
     make_states: (problems, bucket) → batched start states [B, ...] of that bucket's shape.
     step_budget: bucket → elementary steps the oracle needs at most on any problem of the bucket.
-    parse_problem: one problem-file line's JSON object → problem; raises ValueError saying what is wrong.
+    parse_problem: one problem-file line's JSON object → problem; raises ValueError saying what is wrong (an
+      unknown key included: see check_keys).
     outcome: (problem, final state of one episode) → (the output line's task fields, e.g. {"result": ...},
       whether the final state is the right answer).
     defaults: the training command's defaults.

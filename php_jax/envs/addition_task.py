@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from php_jax.envs import addition, addition_oracle
-from php_jax.task import Task, TrainingDefaults
+from php_jax.task import Task, TrainingDefaults, check_keys
 
 TRAINING_LENGTHS = tuple(range(1, 11))
 
@@ -81,6 +81,7 @@ def bucket(problem: tuple[str, str]) -> int:
 
 def parse_problem(obj: dict) -> tuple[str, str]:
   """{"a": "0123", "b": "4567"} → ("0123", "4567")."""
+  check_keys(obj, ("a", "b"))
   a, b = obj.get("a"), obj.get("b")
   if not isinstance(a, str) or not isinstance(b, str):
     raise ValueError('needs string fields "a" and "b"')

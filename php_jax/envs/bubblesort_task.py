@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from php_jax.envs import bubblesort, bubblesort_oracle
-from php_jax.task import Task, TrainingDefaults
+from php_jax.task import Task, TrainingDefaults, check_keys
 
 TRAINING_LENGTHS = tuple(range(2, 10))
 
@@ -58,6 +58,7 @@ def make_states(problems: list[tuple[int, ...]], width: int) -> bubblesort.State
 
 def parse_problem(obj: dict) -> tuple[int, ...]:
   """{"array": [3, 1, 2]} → (3, 1, 2)."""
+  check_keys(obj, ("array",))
   array = obj.get("array")
   if not isinstance(array, list):
     raise ValueError('needs a list field "array"')

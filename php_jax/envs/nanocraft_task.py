@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from php_jax.envs import nanocraft, nanocraft_oracle
-from php_jax.task import Task, TrainingDefaults
+from php_jax.task import Task, TrainingDefaults, check_keys
 
 Problem = tuple[int, int, int, int, list]
 
@@ -39,6 +39,7 @@ def _is_int(x) -> bool:
 
 def parse_problem(obj: dict) -> Problem:
   """{"x": 1, "y": 2, "w": 3, "h": 2, "preplaced": [[row, col], ...]} → (x, y, w, h, preplaced)."""
+  check_keys(obj, ("x", "y", "w", "h", "preplaced"))
   spec = [obj.get(k) for k in ("x", "y", "w", "h")]
   if not all(_is_int(v) for v in spec):
     raise ValueError('needs integer fields "x", "y", "w", "h"')
