@@ -4,10 +4,10 @@ r"""Long-hand addition (paper §5.2): `experiments.train --task=addition`, 160 t
 """
 from absl import app, flags
 
-from experiments import train, training
+from experiments import cli, train
 
 flags.adopt_module_key_flags(train)
 
 if __name__ == "__main__":
   flags.mark_flags_as_required(["workdir"])
-  app.run(train.main_for("addition"), flags_parser=training.parse_flags)
+  app.run(train.main_for("addition"), flags_parser=cli.parse_flags)

@@ -2,17 +2,19 @@ r"""Runs a hierarchy on a file of problems and writes one JSON outcome line per 
 
   python -m experiments.evaluate --task=NAME --policy=oracle --problems=IN.jsonl --out=OUT.jsonl
 
---policy is `oracle` (the supervisor) or a training workdir holding a saved model (PHP or flat LSTM). A
-malformed problem line is reported with its line number and exit status 2 before anything runs; the output
-file is written atomically, so it is either complete or absent.
+--policy is `oracle` (the supervisor) or a training workdir holding a saved model (PHP or flat LSTM). Bad
+flags (an --out that is the problem file, a directory or in a missing directory; --batch_size below 1), a
+file without problems and a malformed problem line (named by its line number) are reported in one line with
+exit status 2 before anything runs; the output file is written atomically, so it is either complete or
+absent.
 """
 from __future__ import annotations
 
 import json
-import sys
 
 from absl import app, flags
 
+from experiments import cli
 from experiments import problems as problem_files
 from php_jax import checkpoint, evaluation, tasks
 from php_jax.task import Task
@@ -22,7 +24,7 @@ _TASK = flags.DEFINE_string("task", None, f"The task: one of {', '.join(tasks.TA
 _POLICY = flags.DEFINE_string("policy", "oracle", "'oracle' or a workdir with a trained model.")
 _PROBLEMS = flags.DEFINE_string("problems", None, "Input JSON-lines file of problems.")
 _OUT = flags.DEFINE_string("out", None, "Output JSON-lines file of outcomes.")
-_BATCH_SIZE = flags.DEFINE_integer("batch_size", 64, "Problems rolled out together.")
+_BATCH_SIZE = flags.DEFINE_integer("batch_size", 64, "Problems rolled out together.", lower_bound=1)
 
 
 def load_policy(task_name: str, task: Task, policy: str):
@@ -36,14 +38,15 @@ def load_policy(task_name: str, task: Task, policy: str):
 
 
 def main(argv):
-  del argv
+  if argv[1:]:
+    cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
   try:
+    problem_files.check_out(_PROBLEMS.value, _OUT.value)
     task = tasks.get(_TASK.value)
     problems = problem_files.read_problems(_PROBLEMS.value, task)
     policy = load_policy(_TASK.value, task, _POLICY.value)
-  except (problem_files.ProblemFileError, OSError, ValueError) as e:
-    print(f"error: {e}", file=sys.stderr)
-    sys.exit(2)
+  except (OSError, ValueError) as e:  # ProblemFileError and CheckpointError are ValueErrors
+    cli.fail(str(e))
   outcomes = evaluation.solve(task, policy, problems, batch_size=_BATCH_SIZE.value)
   checkpoint.write_atomically(_OUT.value, "".join(json.dumps(o) + "\n" for o in outcomes).encode())
   correct = sum(o["correct"] for o in outcomes)
@@ -52,4 +55,4 @@ def main(argv):
 
 if __name__ == "__main__":
   flags.mark_flags_as_required(["task", "problems", "out"])
-  app.run(main)
+  app.run(main, flags_parser=cli.parse_flags)

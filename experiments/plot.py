@@ -15,7 +15,6 @@ from __future__ import annotations
 import glob
 import json
 import os
-import sys
 from collections import defaultdict
 
 import matplotlib
@@ -25,6 +24,7 @@ from absl import app, flags
 matplotlib.use("Agg")
 from matplotlib import pyplot as plt  # noqa: E402  (after choosing the file-only backend)
 
+from experiments import cli  # noqa: E402
 from php_jax import checkpoint  # noqa: E402
 
 _RUNS = flags.DEFINE_multi_string("runs", None, "Directories searched (recursively) for results.json.")
@@ -41,12 +41,23 @@ def load_results(directories: list[str]) -> list[dict]:
       try:
         with open(path, encoding="utf-8") as f:
           result = json.load(f)
-        if not (isinstance(result.get("task"), str) and isinstance(result.get("test"), dict)):
-          raise ValueError('needs "task" and "test"')
-      except (ValueError, UnicodeDecodeError, AttributeError) as e:
+        _check_result(result)
+      except (OSError, ValueError) as e:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
         raise ValueError(f"{path}: not a training run's results ({e})") from None
       results.append(result)
   return results
+
+
+def _check_result(result) -> None:
+  """Raises ValueError unless result has what the tables and figures read."""
+  if not (isinstance(result, dict) and isinstance(result.get("task"), str) and isinstance(result.get("test"), dict)):
+    raise ValueError('needs "task" and "test"')
+  if not all(isinstance(a, (int, float)) and not isinstance(a, bool) for a in result["test"].values()):
+    raise ValueError('"test" must map test sets to accuracies')
+  if not isinstance(result.get("model", "php"), str) or not isinstance(result.get("num_demos", 0), int):
+    raise ValueError('"model" must be a string and "num_demos" an integer')
+  if result.get("model", "php") == "php" and not isinstance(result.get("num_strong"), int):
+    raise ValueError('a PHP run needs an integer "num_strong"')
 
 
 def group_runs(results: list[dict]) -> dict[str, dict[Key, list[dict]]]:
@@ -127,15 +138,16 @@ def figure(runs: dict[Key, list[dict]], path: str) -> None:
 
 
 def main(argv):
-  del argv
+  if argv[1:]:
+    cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
+  if os.path.exists(_OUT.value) and not os.path.isdir(_OUT.value):
+    cli.fail(f"--out={_OUT.value} is a file, not a directory")
   try:
     results = load_results(_RUNS.value)
   except ValueError as e:
-    print(f"error: {e}", file=sys.stderr)
-    sys.exit(2)
+    cli.fail(str(e))
   if not results:
-    print(f"error: no results.json under {_RUNS.value}", file=sys.stderr)
-    sys.exit(2)
+    cli.fail(f"no results.json under {_RUNS.value}")
   os.makedirs(_OUT.value, exist_ok=True)
   written = []
   for task, runs in group_runs(results).items():
@@ -159,4 +171,4 @@ def _draw_atomically(draw, path: str) -> None:
 
 if __name__ == "__main__":
   flags.mark_flags_as_required(["runs"])
-  app.run(main)
+  app.run(main, flags_parser=cli.parse_flags)

@@ -1,28 +1,48 @@
-"""Problem files (JSON lines) for `experiments.evaluate`: parsing with line-numbered errors."""
+"""Problem files (JSON lines) for `experiments.evaluate`: parsing with line-numbered errors, and checking
+where the outcomes go."""
 from __future__ import annotations
 
 import json
+import os
 
 from php_jax.task import Task
 
 
 class ProblemFileError(ValueError):
-  """A malformed problem line; the message starts with 'PATH:LINE:'."""
+  """A malformed problem line (the message starts with 'PATH:LINE:'), or a file without problems."""
+
+
+def check_out(problems: str, out: str) -> None:
+  """Raises ValueError naming --out if the outcomes could not be written there: a directory, a file in a
+  missing directory, or the problem file itself."""
+  if os.path.isdir(out):
+    raise ValueError(f"--out={out} is a directory")
+  directory = os.path.dirname(os.path.abspath(out))
+  if not os.path.isdir(directory):
+    raise ValueError(f"--out={out}: directory {directory} does not exist")
+  if os.path.realpath(out) == os.path.realpath(problems) or (
+      os.path.exists(out) and os.path.exists(problems) and os.path.samefile(out, problems)):
+    raise ValueError(f"--out={out} is the problem file --problems={problems}")
 
 
 def read_problems(path: str, task: Task) -> list:
   """All problems of a JSON-lines file (blank lines skipped), parsed by the task. Raises ProblemFileError
-  at the first bad line."""
+  at the first bad line (not UTF-8, not JSON, not a problem), or naming the file if it holds no problem."""
   problems = []
-  with open(path, encoding="utf-8") as f:
-    for number, line in enumerate(f, start=1):
-      if not line.strip():
-        continue
+  with open(path, "rb") as f:
+    for number, raw in enumerate(f, start=1):
       try:
+        line = raw.decode("utf-8")
+        if not line.strip():
+          continue
         obj = json.loads(line)
         if not isinstance(obj, dict):
           raise ValueError("a problem must be a JSON object")
         problems.append(task.parse_problem(obj))
-      except (ValueError, json.JSONDecodeError) as e:
+      except UnicodeDecodeError as e:
+        raise ProblemFileError(f"{path}:{number}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+      except ValueError as e:
         raise ProblemFileError(f"{path}:{number}: malformed {task.name} problem: {e}") from None
+  if not problems:
+    raise ProblemFileError(f"no problems in {path}")
   return problems

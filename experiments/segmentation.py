@@ -17,11 +17,12 @@ import os
 import numpy as np
 from absl import app, flags
 
+from experiments import cli
 from php_jax import agreement, checkpoint, datasets, tasks, views
 
 _RUN = flags.DEFINE_string("run", None, "A training run's workdir (results.json, checkpoint.msgpack).")
 _LEVEL = flags.DEFINE_integer("level", None, "Level to report (default: every level below the root).")
-_SHOW = flags.DEFINE_integer("show", 3, "Wrong demonstrations printed side by side, per level.")
+_SHOW = flags.DEFINE_integer("show", 3, "Wrong demonstrations printed side by side, per level.", lower_bound=0)
 
 
 def classify(truth_procs, truth_taus, procs, taus) -> tuple[str, list[int]]:
@@ -59,31 +60,63 @@ def level_report(demos, view: views.LevelView, level: int, procs, taus, names) -
   return {"kinds": dict(kinds), "where": dict(where), "wrong": wrong}
 
 
-def main(argv):
-  del argv
-  paths = [os.path.join(_RUN.value, name) for name in ("results.json", "checkpoint.msgpack")]
+def _read_results(path: str) -> dict:
+  """A finished PHP run's results.json; raises ValueError naming the file if it is not one."""
+  try:
+    with open(path, encoding="utf-8") as f:
+      results = json.load(f)
+  except (OSError, ValueError) as e:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
+    raise ValueError(f"{path}: not a training run's results ({e})") from None
+  if not isinstance(results, dict):
+    raise ValueError(f"{path}: not a training run's results (not a JSON object)")
+  if results.get("model", "php") != "php":
+    raise ValueError(f"{path} is a {results['model']} run, which has no hierarchy to decode")
+  for key, kind in (("task", str), ("seed", int), ("num_demos", int), ("num_strong", int)):
+    if not isinstance(results.get(key), kind):
+      raise ValueError(f"{path}: not a training run's results (needs {kind.__name__} {key!r})")
+  return results
+
+
+def report(run: str, level: int | None, show: int) -> None:
+  """Prints the report of the run's workdir for one level (None: every level below the root). Raises
+  ValueError naming the file or flag at fault before printing anything."""
+  paths = [os.path.join(run, name) for name in ("results.json", "checkpoint.msgpack")]
   for path in paths:
     if not os.path.isfile(path):
-      raise app.UsageError(f"{path} does not exist: --run must be a finished training run's workdir")
-  with open(paths[0]) as f:
-    results = json.load(f)
-  if results.get("model", "php") != "php":
-    raise app.UsageError(f"{_RUN.value} holds a {results['model']} run, which has no hierarchy to decode")
-  task = tasks.get(results["task"])
-  demos = datasets.training_demos(task, results["seed"], results["num_demos"], results["num_strong"])
+      raise ValueError(f"{path} does not exist: --run must be a finished training run's workdir")
+  results = _read_results(paths[0])
+  try:
+    task = tasks.get(results["task"])
+  except ValueError as e:
+    raise ValueError(f"{paths[0]}: {e}") from None
   spec = task.spec
+  if level is not None and not 1 <= level < spec.num_levels:
+    raise ValueError(f"--level must be in 1..{spec.num_levels - 1} for {task.name}; got {level}")
   decoded = checkpoint.read_decoded(paths[1])
+  missing = [k for k in range(1, spec.num_levels) if k not in decoded]
+  if missing:
+    raise ValueError(f"{paths[1]}: no decoded views of level {missing[0]} (training did not finish?)")
+  demos = datasets.training_demos(task, results["seed"], results["num_demos"], results["num_strong"])
   view = views.lowest_view(demos, spec.num_levels)
-  for level in range(spec.num_levels - 1, 0, -1):
-    if _LEVEL.value in (None, level):
-      report = level_report(demos, view, level, *decoded[level], spec.levels[level])
-      print(json.dumps({"level": level, "kinds": report["kinds"], "where": report["where"]}))
-      for row in report["wrong"][:_SHOW.value]:
+  for k in range(spec.num_levels - 1, 0, -1):
+    if level in (None, k):
+      found = level_report(demos, view, k, *decoded[k], spec.levels[k])
+      print(json.dumps({"level": k, "kinds": found["kinds"], "where": found["where"]}))
+      for row in found["wrong"][:show]:
         print(f"  demo {row['demo']} ({row['kind']})\n    supervisor {' '.join(row['truth'])}\n"
               f"    decoded    {' '.join(row['decoded'])}")
-    view = views.view_above(demos, view, level, *decoded[level])
+    view = views.view_above(demos, view, k, *decoded[k])
+
+
+def main(argv):
+  if argv[1:]:
+    cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
+  try:
+    report(_RUN.value, _LEVEL.value, _SHOW.value)
+  except ValueError as e:  # CheckpointError is one
+    cli.fail(str(e))
 
 
 if __name__ == "__main__":
   flags.mark_flags_as_required(["run"])
-  app.run(main)
+  app.run(main, flags_parser=cli.parse_flags)

@@ -21,21 +21,33 @@ import sys
 
 from absl import app, flags
 
+from experiments import cli
+
 _TASK = flags.DEFINE_string("task", None, "The task trained (what experiments.train --task takes).")
 _WORKDIR = flags.DEFINE_string("workdir", None, "Parent directory of the runs' workdirs.")
 _GRID = flags.DEFINE_multi_string("grid", [], "name=v1,v2,...: a flag of the experiment and its values.")
-_PARALLEL = flags.DEFINE_integer("parallel", 1, "Runs at a time.")
+_PARALLEL = flags.DEFINE_integer("parallel", 1, "Runs at a time.", lower_bound=1)
 
 
 def parse_grid(entries: list[str]) -> list[dict[str, str]]:
   """['a=1,2', 'b=x'] → [{'a': '1', 'b': 'x'}, {'a': '2', 'b': 'x'}], without num_strong > num_demos.
-  Values that are themselves lists are separated by '|' instead: 'tau_in_termination=1,1,1|1,0,1'."""
-  axes = []
+  Values that are themselves lists are separated by '|' instead: 'tau_in_termination=1,1,1|1,0,1'. Raises
+  ValueError naming the --grid entry that is not name=values, names a flag twice or the sweep's own
+  (--task, --workdir), has an empty value, or a num_demos / num_strong value that is not an integer."""
+  axes, names = [], set()
   for entry in entries:
     name, sep, values = entry.partition("=")
-    if not sep or not name or not values:
+    if not sep or not name.isidentifier() or not values:
       raise ValueError(f"--grid={entry!r}: expected name=value[,value...] or name=list[|list...]")
-    axes.append([(name, v) for v in values.split("|" if "|" in values else ",")])
+    if name in names or name in ("task", "workdir"):
+      raise ValueError(f"--grid={entry!r}: --{name} is " + ("given twice" if name in names else "the sweep's own"))
+    names.add(name)
+    axis = values.split("|" if "|" in values else ",")
+    if not all(axis):
+      raise ValueError(f"--grid={entry!r}: an empty value")
+    if name in ("num_demos", "num_strong") and not all(v.isdigit() for v in axis):
+      raise ValueError(f"--grid={entry!r}: {name} values must be non-negative integers")
+    axes.append([(name, v) for v in axis])
   combos = [dict(c) for c in itertools.product(*axes)]
   return [c for c in combos
           if not ("num_strong" in c and "num_demos" in c and int(c["num_strong"]) > int(c["num_demos"]))]
@@ -59,8 +71,9 @@ def main(argv):
   try:
     combos = parse_grid(_GRID.value)
   except ValueError as e:
-    print(f"error: {e}", file=sys.stderr)
-    sys.exit(2)
+    cli.fail(str(e))
+  if os.path.exists(_WORKDIR.value) and not os.path.isdir(_WORKDIR.value):
+    cli.fail(f"--workdir={_WORKDIR.value} is a file, not a directory")
   todo = [(os.path.join(_WORKDIR.value, run_name(c)), c) for c in combos]
   todo = [(w, c) for w, c in todo if not os.path.isfile(os.path.join(w, "results.json"))]
   print(f"{len(combos)} runs, {len(combos) - len(todo)} already done, {len(todo)} to run", flush=True)
@@ -77,4 +90,4 @@ def main(argv):
 
 if __name__ == "__main__":
   flags.mark_flags_as_required(["task", "workdir"])
-  app.run(main)
+  app.run(main, flags_parser=cli.parse_flags)

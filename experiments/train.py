@@ -14,7 +14,7 @@ import sys
 
 from absl import app, flags
 
-from experiments import training
+from experiments import cli, training
 from php_jax import checkpoint, datasets, evaluation, tasks, train
 
 _TASK = flags.DEFINE_string("task", None, f"The task: one of {', '.join(tasks.TASKS)}, or module:attribute "
@@ -79,4 +79,4 @@ def main_for(task_name: str | None):
 
 if __name__ == "__main__":
   flags.mark_flags_as_required(["workdir"])
-  app.run(main_for(None), flags_parser=training.parse_flags)
+  app.run(main_for(None), flags_parser=cli.parse_flags)

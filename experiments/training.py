@@ -6,7 +6,6 @@ import json
 import os
 import platform
 import subprocess
-import sys
 import time
 from typing import Callable
 
@@ -67,15 +66,6 @@ RUN_FILES = ("checkpoint.msgpack", "metrics.jsonl", "results.json", checkpoint.A
 
 class UsageError(ValueError):
   """A flag value the command refuses; the message names the flag."""
-
-
-def parse_flags(argv: list[str]) -> list[str]:
-  """absl's flag parsing, with a bad flag reported in one line and exit status 2 (for app.run's flags_parser)."""
-  try:
-    return flags.FLAGS(argv)
-  except flags.Error as e:
-    print(f"error: {e}", file=sys.stderr)
-    sys.exit(2)
 
 
 def config_from_flags(defaults: TrainingDefaults) -> train.TrainConfig:

@@ -205,8 +205,11 @@ def decoded_views(saved: tuple[dict, dict]) -> dict[int, tuple[np.ndarray, np.nd
 
 
 def read_decoded(path: str) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-  """decoded_views of the training checkpoint at path."""
+  """decoded_views of the training checkpoint at path. Raises CheckpointError if the file is corrupt."""
   saved = read_training(path)
   if saved is None:
     raise FileNotFoundError(f"no training checkpoint at {path}")
-  return decoded_views(saved)
+  try:
+    return decoded_views(saved)
+  except (KeyError, TypeError, AttributeError, ValueError) as e:
+    raise CheckpointError(f"{path}: no decoded views ({e!r})") from None

@@ -23,7 +23,8 @@ def _rollout(task: Task, policy, states, keys, max_steps) -> executor.Rollout:
 
 def solve(task: Task, policy, problems: list, batch_size: int = 64, budget_factor: int = 2) -> list[dict]:
   """One outcome per problem, in order: the task's fields (e.g. "result"), then "terminated", "valid",
-  "steps" and "correct" (terminated with the right answer).
+  "steps" and "correct" (terminated with the right answer), and for an episode that did not terminate
+  validly "failure": why (the invalid action and its step, or the exhausted step budget).
 
   The step budget is budget_factor × the oracle's need for the bucket's largest problem.
   """
@@ -47,6 +48,11 @@ def solve(task: Task, policy, problems: list, batch_size: int = 64, budget_facto
         fields, right = task.outcome(problems[index], r.final_state)
         outcomes[index] = {**fields, "terminated": bool(r.terminated), "valid": bool(r.valid),
                            "steps": int(r.length), "correct": bool(r.terminated) and bool(right)}
+        if not r.valid:
+          action = task.action_name([int(a) for a in r.failed_action])
+          outcomes[index]["failure"] = f"invalid action {action} at step {int(r.length)}"
+        elif not r.terminated:
+          outcomes[index]["failure"] = f"step budget exhausted after {int(r.length)} steps"
   return outcomes
 
 

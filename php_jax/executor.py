@@ -28,6 +28,7 @@ class Rollout(NamedTuple):
     length: [B] int32 elementary steps taken.
     terminated: [B] bool the root returned within the budget with no invalid action.
     valid: [B] bool no invalid action was taken.
+    failed_action: [B, num_factors] int32 the invalid action, always the episode's last (zero where valid).
   """
   final_state: Any
   observations: jax.Array | None
@@ -37,6 +38,7 @@ class Rollout(NamedTuple):
   length: jax.Array
   terminated: jax.Array
   valid: jax.Array
+  failed_action: jax.Array
 
 
 def _descend(policy: Policy, depth: int, procs, taus, start, obs, key):
@@ -116,7 +118,7 @@ def rollout_batch(policy: Policy, spec: HierarchySpec, env, states, keys, max_st
   done = jnp.zeros(batch, bool)
 
   def body(loop):
-    t, machines, done, returned, length, buffers = loop
+    t, machines, done, returned, length, failed_action, buffers = loop
     advanced, (obs, action, procs, taus), root_returned = advance(machines)
     active = ~done
 
@@ -129,14 +131,16 @@ def rollout_batch(policy: Policy, spec: HierarchySpec, env, states, keys, max_st
       buffers = (observations.at[:, t + 1].set(obs), actions.at[:, t].set(action),
                  stack_procs.at[:, t].set(procs), stack_taus.at[:, t].set(taus))
     returned = returned | (active & root_returned)
+    failed_action = jnp.where((active & machines.state.failed)[:, None], action, failed_action)
     done = done | root_returned | machines.state.failed
-    return t + 1, machines, done, returned, length + active, buffers
+    return t + 1, machines, done, returned, length + active, failed_action, buffers
 
   def cond(loop):
     return (loop[0] < max_steps) & ~jnp.all(loop[2])
 
-  init = (jnp.int32(0), machines, done, jnp.zeros(batch, bool), jnp.zeros(batch, jnp.int32), buffers)
-  _, machines, _, returned, length, buffers = jax.lax.while_loop(cond, body, init)
+  init = (jnp.int32(0), machines, done, jnp.zeros(batch, bool), jnp.zeros(batch, jnp.int32),
+          jnp.zeros((batch, num_factors), jnp.int32), buffers)
+  _, machines, _, returned, length, failed_action, buffers = jax.lax.while_loop(cond, body, init)
   valid = ~machines.state.failed
   if record:  # rows written after an episode ended are not part of it
     steps = jnp.arange(max_steps)[None, :] < length[:, None]
@@ -145,4 +149,5 @@ def rollout_batch(policy: Policy, spec: HierarchySpec, env, states, keys, max_st
     buffers = (jnp.where(obs_used[..., None], observations, 0), jnp.where(steps[..., None], actions, 0),
                jnp.where(steps[..., None], stack_procs, 0), jnp.where(steps[..., None], stack_taus, 0))
   recorded = buffers if record else (None,) * 4
-  return Rollout(machines.state, *recorded, length=length, terminated=returned & valid, valid=valid)
+  return Rollout(machines.state, *recorded, length=length, terminated=returned & valid, valid=valid,
+                 failed_action=failed_action)

@@ -78,7 +78,7 @@ def rollout_batch(policy: FlatLSTMPolicy, env, states, max_steps: int) -> execut
   act = jax.vmap(lambda m: _act(policy, env, m))
 
   def body(loop):
-    t, machines, done, stopped, length = loop
+    t, machines, done, stopped, length, failed_action = loop
     advanced, stop = act(machines)
     moving = ~done & ~stop & (t < max_steps)  # the last pass only decides whether to stop
 
@@ -87,18 +87,19 @@ def rollout_batch(policy: FlatLSTMPolicy, env, states, max_steps: int) -> execut
 
     machines = jax.tree.map(keep, advanced, machines)
     stopped = stopped | (~done & stop)
+    failed_action = jnp.where((moving & machines[0].failed)[:, None], machines[2], failed_action)
     done = done | stop | machines[0].failed
-    return t + 1, machines, done, stopped, length + moving
+    return t + 1, machines, done, stopped, length + moving, failed_action
 
   def cond(loop):
     return (loop[0] <= max_steps) & ~jnp.all(loop[2])
 
   init = (jnp.int32(0), (states, carry, previous), jnp.zeros(batch, bool), jnp.zeros(batch, bool),
-          jnp.zeros(batch, jnp.int32))
-  _, (final, _, _), _, stopped, length = jax.lax.while_loop(cond, body, init)
+          jnp.zeros(batch, jnp.int32), jnp.zeros((batch, len(policy.action_sizes)), jnp.int32))
+  _, (final, _, _), _, stopped, length, failed_action = jax.lax.while_loop(cond, body, init)
   valid = ~final.failed
   return executor.Rollout(final, None, None, None, None, length=length, terminated=stopped & valid,
-                          valid=valid)
+                          valid=valid, failed_action=failed_action)
 
 
 def train(policy: FlatLSTMPolicy, demos: Demonstration, iterations: int, learning_rate: float,

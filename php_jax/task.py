@@ -21,6 +21,13 @@ from php_jax.hierarchy import HierarchySpec, Policy
 Problem = Any
 
 
+def check_keys(obj: dict, known: tuple[str, ...]) -> None:
+  """For parse_problem: raises ValueError naming the first key of a problem line's object not in known."""
+  for key in obj:
+    if key not in known:
+      raise ValueError(f"unknown key {key!r}; a problem has {', '.join(map(repr, known))}")
+
+
 class Environment(Protocol):
   """A pure environment: states are pytrees with a `failed` [] bool field (an invalid action was taken)."""
 
@@ -76,10 +83,13 @@ class Task:
     bucket: problem → its bucket (int).
     make_states: (problems, bucket) → batched start states [B, ...] of that bucket's shape.
     step_budget: bucket → elementary steps the oracle needs at most on any problem of the bucket.
-    parse_problem: one problem-file line's JSON object → problem; raises ValueError saying what is wrong.
+    parse_problem: one problem-file line's JSON object → problem; raises ValueError saying what is wrong (an
+      unknown key included: see check_keys).
     outcome: (problem, final state of one episode) → (the output line's task fields, e.g. {"result": ...},
       whether the final state is the right answer).
     defaults: the training command's defaults.
+    action_name: elementary action (a list of num_factors ints) → readable text for messages, e.g.
+      "MOVE in1 RIGHT".
   """
   name: str
   env: Environment
@@ -94,6 +104,7 @@ class Task:
   parse_problem: Callable[[dict], Problem]
   outcome: Callable[[Problem, Any], tuple[dict, bool]]
   defaults: TrainingDefaults
+  action_name: Callable[[list[int]], str] = str
 
   def states_and_budget(self, problems: list) -> tuple[Any, int]:
     """Start states of problems of any sizes on the largest one's bucket, and that bucket's step budget."""

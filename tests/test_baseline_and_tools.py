@@ -7,9 +7,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from flax import nnx
+from flax import nnx, serialization
 
-from experiments import segmentation, sweep
+from experiments import plot, segmentation, sweep
 from php_jax import checkpoint, datasets, evaluation, flat_lstm, tasks, views
 from php_jax.envs import nanocraft, nanocraft_task
 
@@ -124,3 +124,69 @@ def test_segmentation_report_finds_a_split_in_the_supervisors_level_1_view():
   assert report["kinds"] == {"correct": 3, "split": 1}
   assert report["where"] == {f"split in {spec.levels[1][procs[weak, second]]}": 1}
   assert report["wrong"][0]["demo"] == weak
+
+
+@pytest.mark.parametrize("entries, message", [
+    (["num_demos"], "name=value"), (["=1,2"], "name=value"), (["seed="], "name=value"),
+    (["seed=1", "seed=2"], "given twice"), (["workdir=a"], "the sweep's own"), (["seed=1,,2"], "empty value"),
+    (["num_demos=16,x"], "non-negative integers"), (["num_strong=-1"], "non-negative integers"),
+])
+def test_sweep_refuses_bad_grids(entries, message):
+  with pytest.raises(ValueError, match=message):
+    sweep.parse_grid(entries)
+
+
+def test_sweep_command_refuses_bad_flags_and_writes_nothing(tmp_path):
+  workdir = tmp_path / "sweep"
+  for flags, message in [(["--grid=num_demos=16,x"], "num_demos values"), (["--parallel=0"], "parallel"),
+                         (["--grid=seed=1", "--grid=seed=2"], "given twice")]:
+    proc = subprocess.run([sys.executable, "-m", "experiments.sweep", "--task=nanocraft", f"--workdir={workdir}",
+                           *flags], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, (
+        flags, proc.stderr)
+  assert not workdir.exists()
+
+
+def test_plot_names_a_corrupt_results_file(tmp_path):
+  for name, text in [("truncated", '{"task": "nanocraft", "te'), ("list", "[1]"), ("no_test", '{"task": "x"}'),
+                     ("accuracy", '{"task": "x", "num_strong": 1, "test": {"accuracy": "high"}}'),
+                     ("no_strong", '{"task": "x", "test": {"accuracy": 1.0}}')]:
+    (tmp_path / name).mkdir()
+    (tmp_path / name / "results.json").write_text(text)
+    with pytest.raises(ValueError, match=f"{tmp_path / name / 'results.json'}: not a training run's results"):
+      plot.load_results([str(tmp_path / name)])
+  (tmp_path / "bytes").mkdir()
+  (tmp_path / "bytes" / "results.json").write_bytes(b'{"task": "\xff"}')
+  out = tmp_path / "out"
+  proc = subprocess.run([sys.executable, "-m", "experiments.plot", f"--runs={tmp_path / 'bytes'}", f"--out={out}"],
+                        capture_output=True, text=True, timeout=300)
+  assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+  assert f"{tmp_path / 'bytes' / 'results.json'}: not a training run's results" in proc.stderr
+  assert not out.exists()
+
+
+def test_segmentation_refuses_bad_runs_and_levels(tmp_path):
+  run = tmp_path / "run"
+  with pytest.raises(ValueError, match="results.json does not exist"):
+    segmentation.report(str(run), None, 3)
+  run.mkdir()
+  (run / "checkpoint.msgpack").write_bytes(b"not msgpack")
+  good = {"task": "nanocraft", "seed": 1, "num_demos": 4, "num_strong": 1}
+  for results, message in [('{"task": "nanocr', "results.json: not a training run's results"),
+                           ({**good, "seed": "1"}, "needs int 'seed'"), ({**good, "task": "nope"}, "unknown task"),
+                           ({**good, "model": "flat_lstm"}, "no hierarchy to decode")]:
+    (run / "results.json").write_text(results if isinstance(results, str) else json.dumps(results))
+    with pytest.raises(ValueError, match=message):
+      segmentation.report(str(run), None, 3)
+  (run / "results.json").write_text(json.dumps(good))
+  for level in (0, 3):
+    with pytest.raises(ValueError, match=r"--level must be in 1..2 for nanocraft"):
+      segmentation.report(str(run), level, 3)
+  with pytest.raises(checkpoint.CheckpointError, match="checkpoint.msgpack: corrupt"):
+    segmentation.report(str(run), 1, 3)
+  (run / "checkpoint.msgpack").write_bytes(serialization.msgpack_serialize({"meta": "{}"}))
+  with pytest.raises(checkpoint.CheckpointError, match="checkpoint.msgpack: no decoded views"):
+    segmentation.report(str(run), 1, 3)
+  proc = subprocess.run([sys.executable, "-m", "experiments.segmentation", f"--run={run}", "--level=7"],
+                        capture_output=True, text=True, timeout=300)
+  assert proc.returncode == 2 and proc.stderr.strip() == "error: --level must be in 1..2 for nanocraft; got 7"

@@ -3,10 +3,13 @@ import json
 import subprocess
 import sys
 
+import jax.numpy as jnp
 import pytest
+from flax import struct
 
 from experiments import problems as problem_files
-from php_jax import tasks
+from php_jax import evaluation, tasks
+from php_jax.envs import addition, bubblesort_task, nanocraft_task
 
 
 def _evaluate(tmp_path, task, lines):
@@ -42,10 +45,36 @@ def test_nanocraft_file_solved(tmp_path):
                                                                     "correct"}
 
 
-def test_empty_file_gives_empty_output(tmp_path):
-  proc, out = _evaluate(tmp_path, "nanocraft", [""])
-  assert proc.returncode == 0, proc.stderr
-  assert out.read_text() == ""
+def test_blank_file_is_refused(tmp_path):
+  proc, out = _evaluate(tmp_path, "nanocraft", ["", "  "])
+  assert proc.returncode == 2 and proc.stderr.strip() == f"error: no problems in {tmp_path / 'in.jsonl'}"
+  assert not out.exists()
+
+
+def test_bad_flags_are_refused_before_anything_runs(tmp_path):
+  problems = tmp_path / "in.jsonl"
+  problems.write_text('{"a": "1", "b": "2"}\n')
+  for flag, message in [(f"--out={problems}", "is the problem file"), ("--batch_size=0", "batch_size"),
+                        ("--batch_size=x", "batch_size"), ("--tsk=addition", "tsk")]:
+    proc = subprocess.run([sys.executable, "-m", "experiments.evaluate", "--task=addition", f"--problems={problems}",
+                           f"--out={tmp_path / 'out.jsonl'}", flag], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2 and message in proc.stderr, (flag, proc.stderr)
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+  assert problems.read_text() == '{"a": "1", "b": "2"}\n' and sorted(p.name for p in tmp_path.iterdir()) == [
+      "in.jsonl"]
+
+
+def test_unusable_out_paths_are_refused(tmp_path):
+  problems = tmp_path / "in.jsonl"
+  problems.write_text("")
+  (tmp_path / "link.jsonl").symlink_to(problems)
+  (tmp_path / "hard.jsonl").hardlink_to(problems)
+  for out, message in [(tmp_path, "is a directory"), (tmp_path / "missing" / "out.jsonl", "does not exist"),
+                       (problems, "is the problem file"), (tmp_path / "link.jsonl", "is the problem file"),
+                       (tmp_path / "hard.jsonl", "is the problem file")]:
+    with pytest.raises(ValueError, match=message):
+      problem_files.check_out(str(problems), str(out))
+  problem_files.check_out(str(problems), str(tmp_path / "out.jsonl"))
 
 
 def test_malformed_line_exits_2_with_line_number_and_writes_nothing(tmp_path):
@@ -64,6 +93,10 @@ def test_unknown_policy_exits_2(tmp_path):
   assert proc.returncode == 2 and "no trained model in" in proc.stderr
 
 
+_GOOD_LINES = {"addition": '{"a": "1", "b": "2"}', "nanocraft": '{"x": 1, "y": 1, "w": 2, "h": 2}',
+               "bubblesort": '{"array": [2, 1]}'}
+
+
 @pytest.mark.parametrize("task, line, message", [
     ("addition", '{"a": "12", "b": "3"}', "same number of digits"),
     ("addition", '{"a": "1x", "b": "23"}', "decimal digits"),
@@ -78,11 +111,50 @@ def test_unknown_policy_exits_2(tmp_path):
     ("nanocraft", '{"x": 1, "y": 1, "w": 2, "h": 2, "preplaced": [[1, 1], [1, 1]]}', "twice"),
     ("nanocraft", '{"x": 1, "y": 1, "w": 2, "h": 2, "preplaced": [[1]]}', "integer pairs"),
     ("nanocraft", '{"x": true, "y": 1, "w": 2, "h": 2}', "integer fields"),
+    ("nanocraft", '{"x": 1, "y": 1, "w": 2, "h": 2, "preplace": [[1, 1]]}', "unknown key 'preplace'"),
+    ("addition", '{"a": "1", "b": "2", "c": "3"}', "unknown key 'c'"),
+    ("bubblesort", '{"arr": [2, 1]}', "unknown key 'arr'"),
+    ("bubblesort", '{"array": [2, 1], "note": "x"}', "unknown key 'note'"),
+    ("addition", b'{"a": "1", "b": "\xff"}', "not UTF-8"),
 ])
 def test_parser_names_line_and_problem(tmp_path, task, line, message):
   path = tmp_path / "p.jsonl"
-  path.write_text('{"a": "1", "b": "2"}\n' if task == "addition" else '{"x": 1, "y": 1, "w": 2, "h": 2}\n')
-  path.write_text(path.read_text() + line + "\n")
+  path.write_bytes(_GOOD_LINES[task].encode() + b"\n" + (line if isinstance(line, bytes) else line.encode()) + b"\n")
   with pytest.raises(problem_files.ProblemFileError, match=message) as info:
     problem_files.read_problems(str(path), tasks.get(task))
   assert str(info.value).startswith(f"{path}:2:")
+
+
+@struct.dataclass
+class _Repeat:
+  """A policy that takes one elementary action forever and never returns."""
+  action: jnp.ndarray
+
+  def operation(self, level, proc, tau, obs, key):
+    return jnp.zeros(1, jnp.int32) if level < 2 else self.action
+
+  def terminates(self, level, proc, tau, obs, key):
+    return jnp.bool_(False)
+
+
+def test_failed_episodes_say_why():
+  task = tasks.get("addition")
+  problems = [("12", "34"), ("5", "6")]
+  off_the_tape = _Repeat(jnp.array([addition.MOVE, addition.IN1, addition.LEFT], jnp.int32))
+  rows = evaluation.solve(task, off_the_tape, problems)  # width 8: the 8th move leaves the tape
+  assert [r["failure"] for r in rows] == ["invalid action MOVE in1 LEFT at step 8"] * 2
+  assert rows[0]["valid"] is False and list(rows[0])[-1] == "failure"
+  writer = _Repeat(jnp.array([addition.WRITE, addition.OUT, 7], jnp.int32))
+  budget = 2 * task.step_budget(8)
+  assert [r["failure"] for r in evaluation.solve(task, writer, problems)] == [
+      f"step budget exhausted after {budget} steps"] * 2
+  assert all("failure" not in r for r in evaluation.solve(task, task.oracle, problems))
+
+
+def test_actions_have_readable_names():
+  assert tasks.get("addition").action_name([addition.WRITE, addition.OUT, 7]) == "WRITE out 7"
+  assert tasks.get("addition").action_name([addition.MOVE, addition.IN1, addition.RIGHT]) == "MOVE in1 RIGHT"
+  assert tasks.get("addition").action_name([0, 1, 5]) == "[0, 1, 5]"
+  assert nanocraft_task.action_name([4]) == "PLACE_BLOCK"
+  assert bubblesort_task.action_name([1, 0, 0]) == "SWAP i LEFT"
+  assert bubblesort_task.action_name([0, 2, 1]) == "MOVE e RIGHT"

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from php_jax.envs import addition, addition_oracle
-from php_jax.task import Task, TrainingDefaults
+from php_jax.task import Task, TrainingDefaults, check_keys
 
 TRAINING_LENGTHS = tuple(range(1, 11))
 
@@ -81,6 +81,7 @@ def bucket(problem: tuple[str, str]) -> int:
 
 def parse_problem(obj: dict) -> tuple[str, str]:
   """{"a": "0123", "b": "4567"} → ("0123", "4567")."""
+  check_keys(obj, ("a", "b"))
   a, b = obj.get("a"), obj.get("b")
   if not isinstance(a, str) or not isinstance(b, str):
     raise ValueError('needs string fields "a" and "b"')
@@ -97,6 +98,16 @@ def outcome(problem: tuple[str, str], final_state: addition.State) -> tuple[dict
   return {"result": result}, addition.is_correct(result, *problem)
 
 
+def action_name(action: list[int]) -> str:
+  """[kind, tape, arg] → "MOVE in1 RIGHT" / "WRITE out 7" (the raw list if it names no action)."""
+  kind, tape, arg = action
+  if kind == addition.MOVE and 0 <= tape < addition.NUM_TAPES and arg in (addition.LEFT, addition.RIGHT):
+    return f"MOVE {addition.TAPE_NAMES[tape]} {'LEFT' if arg == addition.LEFT else 'RIGHT'}"
+  if kind == addition.WRITE and 0 <= tape < addition.NUM_TAPES and 0 <= arg <= 9:
+    return f"WRITE {addition.TAPE_NAMES[tape]} {arg}"
+  return str(list(action))
+
+
 TASK = Task(
     name="addition", env=addition, spec=addition_oracle.SPEC, oracle=addition_oracle.AdditionOracle(),
     training_problems=lambda seed, num: training_problems(seed),
@@ -109,4 +120,5 @@ TASK = Task(
     # One hidden layer of 64: solved every test length with 1, 3, 10 strong, twice as fast as (64, 64).
     # add's ψ needs no counter; add1's and the lowest level's do.
     defaults=TrainingDefaults(num_demos=160, num_demos_fixed=True, hidden=(64,),
-                              tau_in_termination=(False, True, True), test_lengths=(20, 100), num_test=100))
+                              tau_in_termination=(False, True, True), test_lengths=(20, 100), num_test=100),
+    action_name=action_name)

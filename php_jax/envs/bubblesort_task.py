@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from php_jax.envs import bubblesort, bubblesort_oracle
-from php_jax.task import Task, TrainingDefaults
+from php_jax.task import Task, TrainingDefaults, check_keys
 
 TRAINING_LENGTHS = tuple(range(2, 10))
 
@@ -58,6 +58,7 @@ def make_states(problems: list[tuple[int, ...]], width: int) -> bubblesort.State
 
 def parse_problem(obj: dict) -> tuple[int, ...]:
   """{"array": [3, 1, 2]} → (3, 1, 2)."""
+  check_keys(obj, ("array",))
   array = obj.get("array")
   if not isinstance(array, list):
     raise ValueError('needs a list field "array"')
@@ -75,6 +76,16 @@ def outcome(problem: tuple[int, ...], final_state: bubblesort.State) -> tuple[di
   return {"result": result}, result == sorted(problem)
 
 
+def action_name(action: list[int]) -> str:
+  """[kind, pointer, direction] → e.g. "SWAP i LEFT", "MOVE e RIGHT" (the raw list if it names no action)."""
+  kind, pointer, direction = action
+  if kind in (bubblesort.MOVE, bubblesort.SWAP) and 0 <= pointer <= bubblesort.E and direction in (
+      bubblesort.LEFT, bubblesort.RIGHT):
+    return (f"{'MOVE' if kind == bubblesort.MOVE else 'SWAP'} {'ije'[pointer]} "
+            f"{'LEFT' if direction == bubblesort.LEFT else 'RIGHT'}")
+  return str(list(action))
+
+
 TASK = Task(
     name="bubblesort", env=bubblesort, spec=bubblesort_oracle.SPEC, oracle=bubblesort_oracle.BubbleSortOracle(),
     training_problems=lambda seed, num: training_problems(seed),
@@ -88,4 +99,5 @@ TASK = Task(
     # annotated one when few arrays are annotated.
     defaults=TrainingDefaults(num_demos=128, num_demos_fixed=True, hidden=(64,),
                               tau_in_termination=(False, False, True), tau_limit=(0, 1, None),
-                              min_capacity=(0, 9, 3), test_lengths=(20, 50, 100), num_test=100))
+                              min_capacity=(0, 9, 3), test_lengths=(20, 50, 100), num_test=100),
+    action_name=action_name)

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from php_jax.envs import nanocraft, nanocraft_oracle
-from php_jax.task import Task, TrainingDefaults
+from php_jax.task import Task, TrainingDefaults, check_keys
 
 Problem = tuple[int, int, int, int, list]
 
@@ -39,6 +39,7 @@ def _is_int(x) -> bool:
 
 def parse_problem(obj: dict) -> Problem:
   """{"x": 1, "y": 2, "w": 3, "h": 2, "preplaced": [[row, col], ...]} → (x, y, w, h, preplaced)."""
+  check_keys(obj, ("x", "y", "w", "h", "preplaced"))
   spec = [obj.get(k) for k in ("x", "y", "w", "h")]
   if not all(_is_int(v) for v in spec):
     raise ValueError('needs integer fields "x", "y", "w", "h"')
@@ -61,6 +62,12 @@ def outcome(problem: Problem, final_state: nanocraft.State) -> tuple[dict, bool]
   return {"grid": np.asarray(final_state.grid, int).tolist()}, bool(nanocraft.solved(final_state))
 
 
+def action_name(action: list[int]) -> str:
+  """[a] → its name in nanocraft.ACTION_NAMES, e.g. "PLACE_BLOCK" (the raw list if it names no action)."""
+  (index,) = action
+  return nanocraft.ACTION_NAMES[index] if 0 <= index < len(nanocraft.ACTION_NAMES) else str(list(action))
+
+
 TASK = Task(
     name="nanocraft", env=nanocraft, spec=nanocraft_oracle.SPEC, oracle=nanocraft_oracle.NanoCraftOracle(),
     training_problems=random_problems, validation_problems=random_problems,
@@ -71,4 +78,5 @@ TASK = Task(
     # One hidden layer of 32: the (64, 64) networks fit the training specs as well but generalized worse to
     # unseen ones (seed 1, 64 of which 32 annotated: 0.963 against 0.996).
     defaults=TrainingDefaults(num_demos=64, num_demos_fixed=False, hidden=(32,),
-                              tau_in_termination=(True, True, True), num_test=1000))
+                              tau_in_termination=(True, True, True), num_test=1000),
+    action_name=action_name)

@@ -1,0 +1,21 @@
+"""What every command shares: a bad flag or input ends in one line on stderr and exit status 2."""
+from __future__ import annotations
+
+import sys
+from typing import NoReturn
+
+from absl import flags
+
+
+def fail(message: str) -> NoReturn:
+  """Prints "error: message" to stderr and exits with status 2."""
+  print(f"error: {message}", file=sys.stderr)
+  sys.exit(2)
+
+
+def parse_flags(argv: list[str]) -> list[str]:
+  """absl's flag parsing, with a bad flag reported in one line and exit status 2 (for app.run's flags_parser)."""
+  try:
+    return flags.FLAGS(argv)
+  except flags.Error as e:
+    fail(str(e))
