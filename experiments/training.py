@@ -4,20 +4,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import platform
-import subprocess
 import time
 from typing import Callable
 
-import flax
-import jax
-import jaxlib
 import numpy as np
-import optax
 from absl import flags
 from flax import nnx
 
-import php_jax
+from experiments import provenance
 from php_jax import checkpoint, fitting, flat_lstm, objective, tasks, train
 from php_jax.demos import Demonstration
 from php_jax.task import TrainingDefaults
@@ -134,7 +128,7 @@ def train_and_evaluate(task_name: str, demos: Demonstration, config: train.Train
   task = tasks.get(task_name)
   if config.strong_weight is None:  # resolved here so that results.json records the number
     config = dataclasses.replace(config, strong_weight=train.balanced_strong_weight(np.asarray(demos.strong)))
-  start, commit = time.time(), code_version()  # the code as it was when the run started
+  start, commit = time.time(), provenance.code_version()  # the code as it was when the run started
   metrics_path = os.path.join(workdir, "metrics.jsonl")
   with open(metrics_path, "a") as metrics:
     def log(row):
@@ -154,32 +148,10 @@ def train_and_evaluate(task_name: str, demos: Demonstration, config: train.Train
   test_results = test(model)
   results = {"task": task_name, "model": MODEL.value, "config": dataclasses.asdict(config), **extra, **trained,
              "test": test_results, "wall_seconds": round(time.time() - start, 1), "commit": commit,
-             "versions": environment_versions()}
+             "versions": provenance.environment_versions()}
   checkpoint.write_atomically(os.path.join(workdir, "results.json"), json.dumps(results, indent=1).encode())
   print(json.dumps({"test": test_results, "wall_seconds": results["wall_seconds"]}), flush=True)
   return results
-
-
-def code_version() -> str | None:
-  """The git commit that ran, with "+dirty" if php_jax/ or experiments/ had uncommitted changes; None
-  outside a git checkout."""
-  root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-  try:
-    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True)
-    status = subprocess.run(["git", "status", "--porcelain", "--", "php_jax", "experiments"], cwd=root,
-                            capture_output=True, text=True, check=True)
-  except (OSError, subprocess.CalledProcessError):
-    return None
-  return head.stdout.strip() + ("+dirty" if status.stdout.strip() else "")
-
-
-def environment_versions() -> dict:
-  """What ran, for results.json, with or without a git checkout: the versions of php_jax, Python, jax, jaxlib,
-  flax and optax, and the device (its platform and kind: "cpu" and "cpu", or "gpu" and the GPU's model name)."""
-  device = jax.devices()[0]
-  return {"php_jax": php_jax.__version__, "python": platform.python_version(), "jax": jax.__version__,
-          "jaxlib": jaxlib.__version__, "flax": flax.__version__, "optax": optax.__version__,
-          "platform": device.platform, "device_kind": device.device_kind}
 
 
 def _train_flat_lstm(task, demos: Demonstration, config: train.TrainConfig, validate, log):

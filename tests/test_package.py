@@ -7,7 +7,7 @@ import jax
 import pytest
 
 import php_jax
-from experiments import training
+from experiments import provenance
 from php_jax import checkpoint
 
 
@@ -16,7 +16,7 @@ def test_version_is_the_installed_metadata_version():
 
 
 def test_environment_versions_name_the_code_and_the_device():
-  versions = training.environment_versions()
+  versions = provenance.environment_versions()
   assert versions["php_jax"] == php_jax.__version__ and versions["jax"] == jax.__version__
   for name in ("flax", "optax", "jaxlib"):
     assert versions[name] == importlib.metadata.version(name)

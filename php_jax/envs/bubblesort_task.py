@@ -99,5 +99,6 @@ TASK = Task(
     # annotated one when few arrays are annotated.
     defaults=TrainingDefaults(num_demos=128, num_demos_fixed=True, hidden=(64,),
                               tau_in_termination=(False, False, True), tau_limit=(0, 1, None),
-                              min_capacity=(0, 9, 3), test_lengths=(20, 50, 100), num_test=100),
+                              min_capacity=(0, 9, 3), test_lengths=(20, 50, 100, 200), num_test=100,
+                              iterations=1000, learning_rate=1e-2),
     action_name=action_name)
