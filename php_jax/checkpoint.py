@@ -10,6 +10,7 @@ the decoded views of finished levels, and its metadata (the settings it was made
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import secrets
@@ -83,10 +84,9 @@ def restore_named(template, named: dict, source: str):
   return jax.tree_util.tree_unflatten(treedef, restored)
 
 
-def _read_msgpack(path: str) -> Any:
+def _unpack(data: bytes, path: str) -> Any:
   try:
-    with open(path, "rb") as f:
-      return serialization.msgpack_restore(f.read())
+    return serialization.msgpack_restore(data)
   except (ValueError, TypeError, KeyError, IndexError) as e:
     raise CheckpointError(f"{path}: corrupt or truncated ({e})") from None
 
@@ -99,10 +99,17 @@ def _read_json(path: str) -> Any:
     raise CheckpointError(f"{path}: corrupt or truncated JSON ({e})") from None
 
 
+def _digest(data: bytes) -> str:
+  return hashlib.sha256(data).hexdigest()
+
+
 def _save(workdir: str, model, architecture: dict) -> None:
-  write_atomically(os.path.join(workdir, MODEL_FILE),
-                   serialization.msgpack_serialize(named_arrays(nnx.state(model, nnx.Param))))
-  write_atomically(os.path.join(workdir, ARCHITECTURE_FILE), json.dumps(architecture, indent=1).encode())
+  """model.msgpack, then model.json with the parameters' checksum (so a model.json never describes other
+  parameters, even if a write is cut off between the two)."""
+  params = serialization.msgpack_serialize(named_arrays(nnx.state(model, nnx.Param)))
+  write_atomically(os.path.join(workdir, MODEL_FILE), params)
+  write_atomically(os.path.join(workdir, ARCHITECTURE_FILE),
+                   json.dumps({**architecture, "sha256": _digest(params)}, indent=1).encode())
 
 
 def save_hierarchy(workdir: str, task_name: str, hierarchy: PHPHierarchy, hidden) -> None:
@@ -140,7 +147,12 @@ def load_policy(workdir: str) -> tuple[str, PHPHierarchy | FlatLSTMPolicy]:
   arch_path, model_path = (os.path.join(workdir, f) for f in (ARCHITECTURE_FILE, MODEL_FILE))
   if not (os.path.isfile(arch_path) and os.path.isfile(model_path)):
     raise FileNotFoundError(f"no trained model in {workdir!r} (expected {ARCHITECTURE_FILE} and {MODEL_FILE})")
-  task_name, kind, hidden, tau = _architecture(arch_path, _read_json(arch_path))
+  architecture = _read_json(arch_path)
+  task_name, kind, hidden, tau = _architecture(arch_path, architecture)
+  with open(model_path, "rb") as f:
+    params = f.read()
+  if architecture.get("sha256") != _digest(params):
+    raise CheckpointError(f"{model_path} does not match {arch_path} (checksum): corrupt, or from another run")
   task = tasks.get(task_name)
   if kind == "flat_lstm":
     model = FlatLSTMPolicy(task.spec.obs_dim, task.spec.action_sizes, hidden, rngs=nnx.Rngs(0))
@@ -151,7 +163,7 @@ def load_policy(workdir: str) -> tuple[str, PHPHierarchy | FlatLSTMPolicy]:
                             f"has {task.spec.num_levels} levels")
     model = PHPHierarchy(task.spec, hidden=hidden, tau_in_termination=tau_in_termination, tau_limit=tau_limit,
                          rngs=nnx.Rngs(0))
-  nnx.update(model, restore_named(nnx.state(model, nnx.Param), _read_msgpack(model_path), model_path))
+  nnx.update(model, restore_named(nnx.state(model, nnx.Param), _unpack(params, model_path), model_path))
   return task_name, model
 
 
@@ -162,12 +174,13 @@ def write_training(path: str, hierarchy: PHPHierarchy, meta: dict, progress: fit
   meta = {**meta, "progress": None if progress is None else {
       "iteration": progress.iteration, "best_iteration": progress.best_iteration,
       "best_score": progress.best_score, "losses": progress.losses}}
-  state = {"hierarchy": named_arrays(nnx.state(hierarchy, nnx.Param)),
-           "progress": {} if progress is None else named_arrays(
-               (progress.params, progress.opt_state, progress.best_params)),
-           "decoded": {str(k): {"procedures": v[0], "counters": v[1]} for k, v in decoded.items()},
-           "meta": json.dumps(meta)}
-  write_atomically(path, serialization.msgpack_serialize(state))
+  arrays = serialization.msgpack_serialize({
+      "hierarchy": named_arrays(nnx.state(hierarchy, nnx.Param)),
+      "progress": {} if progress is None else named_arrays((progress.params, progress.opt_state,
+                                                             progress.best_params)),
+      "decoded": {str(k): {"procedures": v[0], "counters": v[1]} for k, v in decoded.items()}})
+  write_atomically(path, serialization.msgpack_serialize(
+      {"arrays": arrays, "sha256": _digest(arrays), "meta": json.dumps(meta)}))
 
 
 def read_training(path: str | None) -> tuple[dict, dict] | None:
@@ -175,11 +188,15 @@ def read_training(path: str | None) -> tuple[dict, dict] | None:
   is corrupt."""
   if not path or not os.path.isfile(path):
     return None
-  state = _read_msgpack(path)
+  with open(path, "rb") as f:
+    state = _unpack(f.read(), path)
   try:
-    return json.loads(state["meta"]), state
+    meta, arrays, digest = json.loads(state["meta"]), state["arrays"], state["sha256"]
   except (TypeError, KeyError, ValueError) as e:
-    raise CheckpointError(f"{path}: not a training checkpoint ({e})") from None
+    raise CheckpointError(f"{path}: not a training checkpoint ({e!r})") from None
+  if not isinstance(arrays, bytes) or _digest(arrays) != digest:
+    raise CheckpointError(f"{path}: corrupt (checksum mismatch)")
+  return meta, _unpack(arrays, path)
 
 
 def restore_hierarchy(path: str, saved: tuple[dict, dict], hierarchy: PHPHierarchy) -> None:

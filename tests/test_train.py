@@ -1,5 +1,6 @@
 """Level views, the EG loss, decoding agreement, checkpoints, and end-to-end training."""
 import dataclasses
+import json
 
 import jax
 import jax.numpy as jnp
@@ -105,6 +106,43 @@ def test_checkpoint_round_trip(tmp_path):
     np.testing.assert_array_equal(a, b)
   with pytest.raises(FileNotFoundError, match="no trained model"):
     checkpoint.load_policy(str(tmp_path / "empty"))
+
+
+def test_corrupt_or_mismatched_saved_files_are_refused_naming_the_file(tmp_path):
+  config = train.TrainConfig(hidden=(8,), seed=1)
+  hierarchy = train.make_hierarchy(NANOCRAFT.spec, config)
+  workdir = tmp_path / "model"
+  checkpoint.save_hierarchy(str(workdir), "nanocraft", hierarchy, config.hidden)
+  params, description = (workdir / "model.msgpack").read_bytes(), (workdir / "model.json").read_text()
+  flipped = bytearray(params)
+  for i in range(100, len(flipped), len(flipped) // 50):
+    flipped[i] ^= 0xFF
+  architecture = json.loads(description)
+  for name, content, message in [
+      ("model.msgpack", bytes(flipped), "does not match"), ("model.msgpack", params[:len(params) // 2], "does not match"),
+      ("model.json", json.dumps({**architecture, "hidden": [16]}), "does not match|needs"),
+      ("model.json", description[:20], "corrupt or truncated JSON"), ("model.json", "[]", "not a model description")]:
+    original = (workdir / name).read_bytes()
+    (workdir / name).write_bytes(content.encode() if isinstance(content, str) else content)
+    with pytest.raises(checkpoint.CheckpointError, match=message):
+      checkpoint.load_policy(str(workdir))
+    (workdir / name).write_bytes(original)
+  wider = train.make_hierarchy(NANOCRAFT.spec, dataclasses.replace(config, hidden=(16,)))
+  checkpoint.save_hierarchy(str(tmp_path / "wide"), "nanocraft", wider, (16,))
+  (workdir / "model.msgpack").write_bytes((tmp_path / "wide" / "model.msgpack").read_bytes())
+  (workdir / "model.json").write_text(json.dumps({**architecture, "sha256": json.loads(
+      (tmp_path / "wide" / "model.json").read_text())["sha256"]}))  # a consistent checksum, other shapes
+  with pytest.raises(checkpoint.CheckpointError, match=r"is float32\[.*16.*the model needs"):
+    checkpoint.load_policy(str(workdir))
+  path = tmp_path / "checkpoint.msgpack"
+  checkpoint.write_training(str(path), hierarchy, {"level": 2, "report": {}}, None, {})
+  assert checkpoint.read_training(str(path))[0]["level"] == 2
+  saved = path.read_bytes()
+  for content, message in [(saved[:-40] + bytes(40), "corrupt"), (saved[:len(saved) // 2], "corrupt"),
+                           (b"", "corrupt"), (b"\x93\x01\x02\x03", "not a training checkpoint")]:
+    path.write_bytes(content)
+    with pytest.raises(checkpoint.CheckpointError, match=message):
+      checkpoint.read_training(str(path))
 
 
 def test_nanocraft_run_solves_held_out_episodes_and_evaluate_loads_it(tmp_path):
