@@ -10,6 +10,7 @@ the same command to resume an interrupted run. Flags left unset take the task's 
 """
 from __future__ import annotations
 
+import signal
 import sys
 
 from absl import app, flags
@@ -65,16 +66,25 @@ def main_for(task_name: str | None):
   """An absl main that trains task_name (None: the --task flag's)."""
   def main(argv):
     if len(argv) > 1:
-      raise app.UsageError(f"unexpected arguments: {' '.join(argv[1:])}")
+      cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
     name = task_name or _TASK.value
     if not name:
-      raise app.UsageError("--task is required")
+      cli.fail("--task is required")
+    signal.signal(signal.SIGTERM, _interrupt)
     try:
       run(name)
     except (training.UsageError, checkpoint.CheckpointError) as e:
-      print(f"error: {e}", file=sys.stderr)
-      sys.exit(2)
+      cli.fail(str(e))
+    except KeyboardInterrupt:
+      print(f"interrupted: {training.WORKDIR.value} keeps the last checkpoint; rerun the same command to resume",
+            file=sys.stderr)
+      sys.exit(130)
   return main
+
+
+def _interrupt(signum, frame):
+  """SIGTERM ends a run as Ctrl-C does."""
+  raise KeyboardInterrupt
 
 
 if __name__ == "__main__":

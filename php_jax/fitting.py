@@ -2,6 +2,7 @@
 levels (php_jax.train) and the flat LSTM baseline (php_jax.flat_lstm) train with."""
 from __future__ import annotations
 
+import time
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -26,13 +27,15 @@ class Progress(NamedTuple):
 def fit(model: nnx.Module, loss_fn: Callable[[nnx.Module], jax.Array], iterations: int, learning_rate: float,
         eval_every: int, on_eval: Callable[[int, float], float | None] | None = None,
         log: Callable[[dict], None] = print, resume: Progress | None = None,
-        save: Callable[[Progress], None] | None = None, snapshot: str = "latest") -> Progress:
+        save: Callable[[Progress], None] | None = None, snapshot: str = "latest",
+        save_seconds: float = 30.0) -> Progress:
   """Full-batch Adam on loss_fn(model) []. Updates `model` in place to the kept snapshot.
 
   Every eval_every iterations and at the end: on_eval(iteration, loss) may return a validation score (the
   snapshot with the highest score is kept, the latest or the earliest among equals as `snapshot` says;
-  without scores, the final iterate), then save(progress) is called (before logging). resume continues from
-  a saved Progress.
+  without scores, the final iterate), then save(progress) is called (before logging); save is also called
+  when save_seconds have passed since the last save. resume continues from a saved Progress, to the same
+  result as an uninterrupted fit.
   """
   if snapshot not in SNAPSHOT_RULES:
     raise ValueError(f"snapshot must be one of {SNAPSHOT_RULES}; got {snapshot!r}")
@@ -48,9 +51,14 @@ def fit(model: nnx.Module, loss_fn: Callable[[nnx.Module], jax.Array], iteration
     return optax.apply_updates(params, updates), opt_state, loss
 
   params, opt_state = progress.params, progress.opt_state
+  last_save = time.monotonic()
   for iteration in range(progress.iteration + 1, iterations + 1):
     params, opt_state, loss = update(params, opt_state)
-    if iteration % eval_every == 0 or iteration == iterations:
+    evaluate = iteration % eval_every == 0 or iteration == iterations
+    if save and not evaluate and time.monotonic() - last_save >= save_seconds:
+      save(progress._replace(iteration=iteration, params=params, opt_state=opt_state))
+      last_save = time.monotonic()
+    if evaluate:
       loss = float(loss)
       nnx.update(model, params)
       score = on_eval(iteration, loss) if on_eval else None
@@ -63,6 +71,7 @@ def fit(model: nnx.Module, loss_fn: Callable[[nnx.Module], jax.Array], iteration
           score if improved else progress.best_score, progress.losses + [[iteration, loss]])
       if save:
         save(progress)
+        last_save = time.monotonic()
       log({"iteration": iteration, "loss": loss, **({"validation": score} if score is not None else {})})
   nnx.update(model, progress.best_params)
   return progress

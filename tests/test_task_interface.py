@@ -3,8 +3,10 @@ one level, the training command, and evaluate (by its import path, tests.test_ta
 import dataclasses
 import json
 import pathlib
+import signal
 import subprocess
 import sys
+import time
 
 import jax
 import jax.numpy as jnp
@@ -169,3 +171,20 @@ def test_a_workdir_made_with_other_settings_is_refused_until_overwrite(tmp_path)
   proc = subprocess.run(base[:4] + [f"--workdir={as_file}", "--num_strong=2"], capture_output=True, text=True,
                         timeout=600, cwd=ROOT)
   assert proc.returncode == 2 and "is a file" in proc.stderr and as_file.read_text() == "x"
+
+
+def test_sigterm_keeps_the_checkpoint_and_says_how_to_resume(tmp_path):
+  workdir = tmp_path / "run"
+  command = [sys.executable, "-m", "experiments.train", "--task=tests.test_task_interface:COUNTDOWN",
+             f"--workdir={workdir}", "--num_strong=2", "--root=mlp", "--iterations=100000", "--eval_every=20"]
+  proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+  deadline = time.time() + 300
+  while not (workdir / "checkpoint.msgpack").exists() and time.time() < deadline and proc.poll() is None:
+    time.sleep(0.2)
+  proc.send_signal(signal.SIGTERM)
+  stderr = proc.communicate(timeout=120)[1]
+  assert proc.returncode == 130 and "Traceback" not in stderr, stderr[-2000:]
+  assert stderr.strip().splitlines()[-1].startswith("interrupted:") and "rerun the same command" in stderr
+  saved = checkpoint.read_training(str(workdir / "checkpoint.msgpack"))
+  assert saved[0]["level"] == 2 and saved[0]["progress"]["iteration"] >= 20
+  assert not list(workdir.glob("*.tmp")) and not list(workdir.glob(".*.tmp"))

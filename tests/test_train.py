@@ -312,3 +312,19 @@ def test_fit_keeps_the_earliest_or_latest_of_the_best_validated_snapshots(rule, 
   np.testing.assert_array_equal(model.kernel[...], snapshots[kept])
   with pytest.raises(ValueError, match="snapshot must be one of"):
     fitting.fit(model, lambda m: jnp.sum(m(jnp.ones((1, 2)))), 1, 0.1, 1, snapshot="best")
+
+
+def test_fit_saves_by_time_between_evaluations_and_resumes_from_there():
+  def run(resume=None, saves=None):
+    model = nnx.Linear(2, 1, rngs=nnx.Rngs(0))
+    progress = fitting.fit(model, lambda m: jnp.sum((m(jnp.ones((1, 2))) - 3.0) ** 2), 40, 0.1, 10,
+                           log=lambda row: None, resume=resume, save=saves.append if saves is not None else None,
+                           save_seconds=0.0)
+    return progress, model
+
+  saves = []
+  reference, model = run(saves=saves)
+  assert [s.iteration for s in saves] == list(range(1, 41))  # every iteration, evaluations included
+  resumed, resumed_model = run(resume=saves[14])  # iteration 15, between evaluations
+  np.testing.assert_array_equal(resumed_model.kernel[...], model.kernel[...])
+  assert resumed.losses == reference.losses
