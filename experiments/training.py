@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import glob
 import json
 import os
 import time
@@ -125,6 +126,8 @@ def train_and_evaluate(task_name: str, demos: Demonstration, config: train.Train
       if os.path.exists(os.path.join(workdir, name)):
         os.remove(os.path.join(workdir, name))
   os.makedirs(workdir, exist_ok=True)
+  for leftover in glob.glob(os.path.join(workdir, ".*.tmp")):  # a write cut off by SIGKILL
+    os.remove(leftover)
   task = tasks.get(task_name)
   if config.strong_weight is None:  # resolved here so that results.json records the number
     config = dataclasses.replace(config, strong_weight=train.balanced_strong_weight(np.asarray(demos.strong)))
