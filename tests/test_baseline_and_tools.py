@@ -185,7 +185,7 @@ def test_segmentation_refuses_bad_runs_and_levels(tmp_path):
   with pytest.raises(checkpoint.CheckpointError, match="checkpoint.msgpack: corrupt"):
     segmentation.report(str(run), 1, 3)
   (run / "checkpoint.msgpack").write_bytes(serialization.msgpack_serialize({"meta": "{}"}))
-  with pytest.raises(checkpoint.CheckpointError, match="checkpoint.msgpack: no decoded views"):
+  with pytest.raises(checkpoint.CheckpointError, match="checkpoint.msgpack: not a training checkpoint"):
     segmentation.report(str(run), 1, 3)
   proc = subprocess.run([sys.executable, "-m", "experiments.segmentation", f"--run={run}", "--level=7"],
                         capture_output=True, text=True, timeout=300)

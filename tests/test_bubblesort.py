@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from experiments import problems as problem_files
 from php_jax import datasets, demos, evaluation, tasks
 from php_jax.envs import bubblesort as bs
 from php_jax.envs import bubblesort_task
@@ -92,11 +93,17 @@ def test_the_oracle_sorts_long_arrays():
 @pytest.mark.parametrize("line, message", [
     ('{"array": "312"}', 'list field "array"'), ('{"array": [3, 1, "2"]}', "entry 2"),
     ('{"array": [3, 1, 12]}', "entry 2"), ('{"array": [3, true]}', "entry 1"), ('{"array": [3]}', "at least 2"),
-    ('{"list": [3, 1]}', 'list field "array"'), ('[3, 1]', "JSON object")])
+    ('{"list": [3, 1]}', "unknown key 'list'"), ('[3, 1]', "JSON object")])
 def test_malformed_lines_are_refused_with_their_line_number(tmp_path, line, message):
-  proc, out = _evaluate(tmp_path, ['{"array": [2, 1]}', line])
-  assert proc.returncode == 2 and ":2: malformed bubblesort problem" in proc.stderr and message in proc.stderr
-  assert not out.exists()
+  path = tmp_path / "in.jsonl"
+  path.write_text('{"array": [2, 1]}\n' + line + "\n")
+  with pytest.raises(problem_files.ProblemFileError, match=f"{path}:2: malformed bubblesort problem: .*{message}"):
+    problem_files.read_problems(str(path), BUBBLESORT)
+
+
+def test_evaluate_refuses_a_malformed_file_before_writing(tmp_path):
+  proc, out = _evaluate(tmp_path, ['{"array": [2, 1]}', '{"array": [3]}'])
+  assert proc.returncode == 2 and ":2: malformed bubblesort problem" in proc.stderr and not out.exists()
 
 
 def test_training_set_compares_every_pair_and_demonstrations_follow_the_call_stack_rules():
