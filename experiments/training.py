@@ -94,6 +94,14 @@ def _config(defaults: TrainingDefaults) -> train.TrainConfig:
                            eval_every=EVAL_EVERY.value, snapshot=SNAPSHOT.value, seed=SEED.value)
 
 
+def _keep_rows(metrics, path: str, count: int) -> float:
+  """Truncates the open metrics file to its first `count` rows; returns the last kept row's "seconds"."""
+  with open(path, "rb") as f:
+    rows = f.read().splitlines(keepends=True)[:count]
+  metrics.truncate(sum(map(len, rows)))
+  return json.loads(rows[-1])["seconds"] if rows else 0.0
+
+
 def _flag_bool(value: str) -> bool:
   if value.lower() not in ("0", "1", "true", "false", "yes", "no"):
     raise ValueError(f"tau_in_termination values must be 0/1 (or true/false); got {value!r}")
@@ -135,6 +143,11 @@ def train_and_evaluate(task_name: str, demos: Demonstration, config: train.Train
   metrics_path = os.path.join(workdir, "metrics.jsonl")
   with open(metrics_path, "a") as metrics:
     def log(row):
+      nonlocal start
+      if row.get("resumed"):  # keep the rows the checkpoint covers; the clock goes on from the last of them
+        start -= _keep_rows(metrics, metrics_path, row["logged"])
+        print(json.dumps(row), flush=True)
+        return
       row = {**row, "seconds": round(time.time() - start, 2)}
       metrics.write(json.dumps(row) + "\n")
       metrics.flush()

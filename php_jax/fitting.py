@@ -33,7 +33,7 @@ def fit(model: nnx.Module, loss_fn: Callable[[nnx.Module], jax.Array], iteration
 
   Every eval_every iterations and at the end: on_eval(iteration, loss) may return a validation score (the
   snapshot with the highest score is kept, the latest or the earliest among equals as `snapshot` says;
-  without scores, the final iterate), then save(progress) is called (before logging); save is also called
+  without scores, the final iterate), then the row is logged and save(progress) called; save is also called
   when save_seconds have passed since the last save. resume continues from a saved Progress, to the same
   result as an uninterrupted fit.
   """
@@ -69,9 +69,9 @@ def fit(model: nnx.Module, loss_fn: Callable[[nnx.Module], jax.Array], iteration
           params if improved or progress.best_iteration is None else progress.best_params,
           iteration if improved else progress.best_iteration,
           score if improved else progress.best_score, progress.losses + [[iteration, loss]])
+      log({"iteration": iteration, "loss": loss, **({"validation": score} if score is not None else {})})
       if save:
         save(progress)
         last_save = time.monotonic()
-      log({"iteration": iteration, "loss": loss, **({"validation": score} if score is not None else {})})
   nnx.update(model, progress.best_params)
   return progress

@@ -178,7 +178,8 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
   """Trains every level from the lowest to the root. validate(hierarchy) → validation accuracy, used to pick
   the root level's snapshot. With checkpoint_path, progress is saved there atomically every eval_every
   iterations and an interrupted run resumes from it, ending with the same result as an uninterrupted one (a
-  checkpoint made with other settings raises CheckpointError). Returns the hierarchy and a report (per level:
+  checkpoint made with other settings raises CheckpointError); on resuming, log gets {"resumed": True, ...,
+  "logged": n}: the first n rows logged before stay valid, later ones will be logged again. Returns the hierarchy and a report (per level:
   losses, capacity, decoding agreement with the supervisor on weak demonstrations, wall time)."""
   check_config(spec, config)
   validate_demos(demos, spec)  # malformed annotations are refused, naming the demonstration and step
@@ -187,25 +188,31 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
   hierarchy = make_hierarchy(spec, config)
   settings = run_settings(spec, demos, config)
   saved = checkpoint.read_training(checkpoint_path)
-  report, decoded = {}, {}
+  report, decoded, logged = {}, {}, [0]
   if saved is not None:
     _check_resumable(checkpoint_path, saved[0].get("settings", {}), settings)
     checkpoint.restore_hierarchy(checkpoint_path, saved, hierarchy)
     report = {int(k): v for k, v in saved[0]["report"].items()}
     decoded = checkpoint.decoded_views(saved)
+    logged[0] = saved[0]["logged"]
     log({"resumed": True, "level": saved[0]["level"], "iteration": saved[0]["progress"] and
-         saved[0]["progress"]["iteration"]})
+         saved[0]["progress"]["iteration"], "logged": logged[0]})
+
+  def counted_log(row: dict) -> None:  # a checkpoint records how many rows were logged before it
+    logged[0] += 1
+    log(row)
 
   def save(level: int, progress: fitting.Progress | None) -> None:
     if checkpoint_path:
       checkpoint.write_training(checkpoint_path, hierarchy, {"level": level, "report": report,
-                                                             "settings": settings}, progress, decoded)
+                                                             "settings": settings, "logged": logged[0]},
+                                progress, decoded)
 
   view = views.lowest_view(demos, spec.num_levels)
   for level in range(spec.num_levels - 1, -1, -1):
     if level not in report:
       in_progress = saved is not None and saved[0]["progress"] is not None and saved[0]["level"] == level
-      report[level] = _train_one_level(spec, demos, view, level, hierarchy, config, validate, log, decoded,
+      report[level] = _train_one_level(spec, demos, view, level, hierarchy, config, validate, counted_log, decoded,
                                        lambda progress, level=level: save(level, progress),
                                        saved if in_progress else None, checkpoint_path)
       save(level - 1, None)  # the level is complete: its result survives a restart
@@ -223,7 +230,8 @@ def _train_one_level(spec, demos, view, level, hierarchy, config, validate, log,
                      config.call_penalty[level] if config.call_penalty else 0.0)
   resume = checkpoint.restore_progress(checkpoint_path, saved, model) if saved is not None else None
   on_eval = (lambda it, loss: validate(hierarchy)) if (level == 0 and validate) else None
-  log({"level": level, "capacity": capacity, "view_length": int(view.length.max())})
+  if resume is None:
+    log({"level": level, "capacity": capacity, "view_length": int(view.length.max())})
   progress = train_level(model, view, capacity, config, on_eval,
                          log=lambda row: log({"level": level, **row}), resume=resume,
                          save=save if checkpoint_path else None)

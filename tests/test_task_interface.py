@@ -173,18 +173,29 @@ def test_a_workdir_made_with_other_settings_is_refused_until_overwrite(tmp_path)
   assert proc.returncode == 2 and "is a file" in proc.stderr and as_file.read_text() == "x"
 
 
-def test_sigterm_keeps_the_checkpoint_and_says_how_to_resume(tmp_path):
+def test_sigterm_keeps_the_checkpoint_says_how_to_resume_and_the_rerun_continues_one_record(tmp_path):
   workdir = tmp_path / "run"
   command = [sys.executable, "-m", "experiments.train", "--task=tests.test_task_interface:COUNTDOWN",
-             f"--workdir={workdir}", "--num_strong=2", "--root=mlp", "--iterations=100000", "--eval_every=20"]
+             f"--workdir={workdir}", "--num_strong=2", "--root=mlp", "--iterations=1000", "--eval_every=20"]
   proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT)
   deadline = time.time() + 300
   while not (workdir / "checkpoint.msgpack").exists() and time.time() < deadline and proc.poll() is None:
-    time.sleep(0.2)
+    time.sleep(0.1)
   proc.send_signal(signal.SIGTERM)
   stderr = proc.communicate(timeout=120)[1]
   assert proc.returncode == 130 and "Traceback" not in stderr, stderr[-2000:]
   assert stderr.strip().splitlines()[-1].startswith("interrupted:") and "rerun the same command" in stderr
   saved = checkpoint.read_training(str(workdir / "checkpoint.msgpack"))
   assert saved[0]["level"] == 2 and saved[0]["progress"]["iteration"] >= 20
-  assert not list(workdir.glob("*.tmp")) and not list(workdir.glob(".*.tmp"))
+  assert not list(workdir.glob(".*.tmp"))
+  before = [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
+  rerun = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=ROOT)
+  assert rerun.returncode == 0, rerun.stderr[-3000:]
+  rows = [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
+  steps = [(row["level"], row["iteration"]) for row in rows if "iteration" in row]
+  assert len(steps) == len(set(steps)) == 3 * 1000 // 20  # every evaluation once, none twice
+  assert sum("capacity" in row for row in rows) == 3 and not any("resumed" in row for row in rows)
+  seconds = [row["seconds"] for row in rows]
+  assert seconds == sorted(seconds) and seconds[-1] >= before[-1]["seconds"]  # the clock went on
+  results = json.loads((workdir / "results.json").read_text())
+  assert results["wall_seconds"] >= seconds[-1]
