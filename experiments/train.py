@@ -43,7 +43,11 @@ def run(task_name: str) -> dict:
     raise training.UsageError(f"--num_strong must be in 0..--num_demos={num_demos} and --num_demos ≥ 1; got "
                               f"{training.NUM_STRONG.value} of {num_demos}")
   num_test = defaults.num_test if _NUM_TEST.value is None else _NUM_TEST.value
-  lengths = defaults.test_lengths if _TEST_LENGTHS.value is None else [int(n) for n in _TEST_LENGTHS.value]
+  lengths = defaults.test_lengths
+  if _TEST_LENGTHS.value is not None:
+    if not all(n.isdigit() for n in _TEST_LENGTHS.value):
+      raise training.UsageError(f"--test_lengths must list positive integers; got {','.join(_TEST_LENGTHS.value)}")
+    lengths = [int(n) for n in _TEST_LENGTHS.value]
   if num_test < 1 or any(n < 1 for n in lengths):
     raise training.UsageError(f"--num_test and --test_lengths must be positive; got {num_test}, {list(lengths)}")
   config = training.config_from_flags(defaults)
