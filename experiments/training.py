@@ -77,6 +77,8 @@ def _config(defaults: TrainingDefaults) -> train.TrainConfig:
   tau = (tuple(_flag_bool(v) for v in TAU_IN_TERMINATION.value) if TAU_IN_TERMINATION.value
          else defaults.tau_in_termination)
   iterations = defaults.iterations if ITERATIONS.value is None else ITERATIONS.value
+  if iterations < 1:
+    raise ValueError(f"iterations must be a positive integer; got {iterations}")
   learning_rate = defaults.learning_rate if LEARNING_RATE.value is None else LEARNING_RATE.value
   return train.TrainConfig(iterations=iterations, learning_rate=learning_rate,
                            hidden=tuple(_flag_int("hidden", h) for h in HIDDEN.value) if HIDDEN.value

@@ -53,12 +53,12 @@ class TrainConfig:
 
   def __post_init__(self):
     """Raises ValueError naming the first setting that is not allowed."""
-    positive_ints = ("iterations", "root_hidden", "capacity", "eval_every", "length_buckets")
-    for name in positive_ints:
+    for name in ("root_hidden", "capacity", "eval_every", "length_buckets"):
       if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
         raise ValueError(f"{name} must be a positive integer; got {getattr(self, name)!r}")
-    if not (isinstance(self.strong_warmup, int) and self.strong_warmup >= 0):
-      raise ValueError(f"strong_warmup must be a non-negative integer; got {self.strong_warmup!r}")
+    for name in ("iterations", "strong_warmup"):  # 0 iterations: a warm-up alone
+      if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 0):
+        raise ValueError(f"{name} must be a non-negative integer; got {getattr(self, name)!r}")
     if not (math.isfinite(self.learning_rate) and self.learning_rate > 0):
       raise ValueError(f"learning_rate must be a positive finite number; got {self.learning_rate!r}")
     if not (self.hidden and all(isinstance(h, int) and h >= 1 for h in self.hidden)):

@@ -11,6 +11,10 @@ import jax
 ROOT = str(pathlib.Path(__file__).resolve().parents[1])
 os.environ["PYTHONPATH"] = os.pathsep.join([ROOT, *filter(None, [os.environ.get("PYTHONPATH")])])
 
-jax.config.update("jax_compilation_cache_dir", tempfile.mkdtemp(prefix="php_jax_xla_cache_"))
+CACHE = tempfile.mkdtemp(prefix="php_jax_xla_cache_")
+jax.config.update("jax_compilation_cache_dir", CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+# The commands the tests run share the cache: each compiles the same programs as the others.
+os.environ.update(JAX_COMPILATION_CACHE_DIR=CACHE, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+                  JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
