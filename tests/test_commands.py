@@ -4,6 +4,8 @@ import pathlib
 import subprocess
 import sys
 
+import pytest
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
@@ -16,6 +18,7 @@ def test_embedding_example_learns_and_decodes(capsys):
   assert "procedure:" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_benchmark_commands_run_and_cross_check(tmp_path):
   out = tmp_path / "estep.json"
   proc = subprocess.run([sys.executable, "-m", "experiments.benchmark", "estep", "--sizes=4x12x2x3,2x5x1x4",

@@ -149,6 +149,7 @@ def test_a_checkpoint_made_with_other_settings_or_data_is_refused(tmp_path):
   assert pathlib.Path(path).read_bytes() == saved
 
 
+@pytest.mark.slow
 def test_a_workdir_made_with_other_settings_is_refused_until_overwrite(tmp_path):
   workdir = tmp_path / "run"
   base = [sys.executable, "-m", "experiments.train", "--task=tests.test_task_interface:COUNTDOWN",

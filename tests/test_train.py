@@ -145,6 +145,7 @@ def test_corrupt_or_mismatched_saved_files_are_refused_naming_the_file(tmp_path)
       checkpoint.read_training(str(path))
 
 
+@pytest.mark.slow
 def test_nanocraft_run_solves_held_out_episodes_and_evaluate_loads_it(tmp_path):
   """A small strongly supervised run through the CLI learns a hierarchy that solves fresh episodes."""
   import json
@@ -182,6 +183,7 @@ def test_nanocraft_run_solves_held_out_episodes_and_evaluate_loads_it(tmp_path):
   assert wrong_task.returncode == 2 and "holds a nanocraft model" in wrong_task.stderr
 
 
+@pytest.mark.slow
 def test_small_addition_run_solves_longer_problems_and_decodes_the_supervisors_segmentation():
   """Trained on 5-digit sums (strong: a set covering all 200 columns; weak: 10 random sums of 1–5 digits),
   the hierarchy adds 20-digit numbers, and decoding the weak demonstrations recovers the supervisor's stacks."""
@@ -202,7 +204,8 @@ class _Interrupt(Exception):
   pass
 
 
-@pytest.mark.parametrize("warmup, stops", [(0, [(1, 40), (0, 60)]), (20, [(2, 20), (1, 60), (0, 60)])])
+@pytest.mark.parametrize("warmup, stops", [(0, [(1, 40), (0, 60)]),
+                                           pytest.param(20, [(2, 20), (1, 60), (0, 60)], marks=pytest.mark.slow)])
 def test_interrupted_training_resumes_to_the_same_result(tmp_path, warmup, stops):
   problems = nanocraft_task.random_problems(3, 8)
   demos = datasets.oracle_demonstrations(NANOCRAFT, nanocraft_task.make_states(problems), 4,
