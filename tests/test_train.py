@@ -204,8 +204,8 @@ class _Interrupt(Exception):
   pass
 
 
-@pytest.mark.parametrize("warmup, stops", [(0, [(1, 40), (0, 60)]),
-                                           pytest.param(20, [(2, 20), (1, 60), (0, 60)], marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("warmup, stops", [(0, [(1, 40), (0, 60)]), (20, [(2, 20), (1, 60), (0, 60)])])
 def test_interrupted_training_resumes_to_the_same_result(tmp_path, warmup, stops):
   problems = nanocraft_task.random_problems(3, 8)
   demos = datasets.oracle_demonstrations(NANOCRAFT, nanocraft_task.make_states(problems), 4,
