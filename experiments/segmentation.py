@@ -80,7 +80,7 @@ def _read_results(path: str) -> dict:
 def report(run: str, level: int | None, show: int) -> None:
   """Prints the report of the run's workdir for one level (None: every level below the root). Raises
   ValueError naming the file or flag at fault before printing anything."""
-  paths = [os.path.join(run, name) for name in ("results.json", "checkpoint.msgpack")]
+  paths = [os.path.join(run, name) for name in ("results.json", checkpoint.TRAINING_FILE)]
   for path in paths:
     if not os.path.isfile(path):
       raise ValueError(f"{path} does not exist: --run must be a finished training run's workdir")

@@ -55,7 +55,7 @@ NUM_VALIDATION = flags.DEFINE_integer("num_validation", 50, "Validation problems
 OVERWRITE = flags.DEFINE_bool("overwrite", False, "Start afresh in a workdir that holds another run (its "
                               "checkpoint, model, metrics and results are deleted); without it such a run is "
                               "resumed if its settings match, and refused if they do not.")
-RUN_FILES = ("checkpoint.msgpack", "metrics.jsonl", "results.json", checkpoint.ARCHITECTURE_FILE,
+RUN_FILES = (checkpoint.TRAINING_FILE, "metrics.jsonl", "results.json", checkpoint.ARCHITECTURE_FILE,
              checkpoint.MODEL_FILE)
 
 
@@ -159,7 +159,7 @@ def train_and_evaluate(task_name: str, demos: Demonstration, config: train.Train
       checkpoint.save_flat_lstm(workdir, task_name, model)
     else:
       model, report = train.train_hierarchy(task.spec, demos, config, validate, log=log,
-                                            checkpoint_path=os.path.join(workdir, "checkpoint.msgpack"))
+                                            checkpoint_path=os.path.join(workdir, checkpoint.TRAINING_FILE))
       checkpoint.save_hierarchy(workdir, task_name, model, config.hidden)
       trained = {"levels": {str(level): {k: v for k, v in entry.items() if k != "losses"} | {
           "final_loss": entry["losses"][-1][1] if entry["losses"] else None} for level, entry in report.items()}}

@@ -26,7 +26,7 @@ from php_jax import fitting, tasks
 from php_jax.flat_lstm import FlatLSTMPolicy
 from php_jax.model import PHPHierarchy
 
-MODEL_FILE, ARCHITECTURE_FILE = "model.msgpack", "model.json"
+MODEL_FILE, ARCHITECTURE_FILE, TRAINING_FILE = "model.msgpack", "model.json", "checkpoint.msgpack"
 
 
 class CheckpointError(ValueError):

@@ -179,8 +179,9 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
   the root level's snapshot. With checkpoint_path, progress is saved there atomically every eval_every
   iterations and an interrupted run resumes from it, ending with the same result as an uninterrupted one (a
   checkpoint made with other settings raises CheckpointError); on resuming, log gets {"resumed": True, ...,
-  "logged": n}: the first n rows logged before stay valid, later ones will be logged again. Returns the hierarchy and a report (per level:
-  losses, capacity, decoding agreement with the supervisor on weak demonstrations, wall time)."""
+  "logged": n}: the first n rows logged before stay valid, later ones will be logged again. Returns the
+  hierarchy and a report (per level: losses, capacity, decoding agreement with the supervisor on weak
+  demonstrations, wall time)."""
   check_config(spec, config)
   validate_demos(demos, spec)  # malformed annotations are refused, naming the demonstration and step
   if config.strong_weight is None:
