@@ -200,3 +200,18 @@ def test_sigterm_keeps_the_checkpoint_says_how_to_resume_and_the_rerun_continues
   assert seconds == sorted(seconds) and seconds[-1] >= before[-1]["seconds"]  # the clock went on
   results = json.loads((workdir / "results.json").read_text())
   assert results["wall_seconds"] >= seconds[-1]
+
+
+def test_bad_training_settings_are_refused_naming_the_setting(tmp_path):
+  for changes, message in [({"learning_rate": float("nan")}, "learning_rate"), ({"iterations": -1}, "iterations"),
+                           ({"tau_limit": (0, -1, None)}, "tau_limit"), ({"min_capacity": (0, -2, 3)}, "min_capacity"),
+                           ({"root": "gru"}, "root"), ({"hidden": (0,)}, "hidden")]:
+    with pytest.raises(ValueError, match=message):
+      train.TrainConfig(**changes)
+  with pytest.raises(ValueError, match="min_capacity needs one value per level"):
+    train.check_config(SPEC, train.TrainConfig(min_capacity=(0, 9)))
+  proc = subprocess.run([sys.executable, "-m", "experiments.train", "--task=tests.test_task_interface:COUNTDOWN",
+                         f"--workdir={tmp_path / 'run'}", "--tau_limit=0,x,none"], capture_output=True, text=True,
+                        timeout=300, cwd=ROOT)
+  assert proc.returncode == 2 and proc.stderr.strip() == "error: --tau_limit: values must be integers; got 'x'"
+  assert not (tmp_path / "run").exists()
