@@ -60,7 +60,7 @@ def run(task_name: str) -> dict:
   test_sets = ({str(n): task.test_problems(seed + 20_000, num_test, n) for n in lengths} if lengths
                else {"accuracy": task.test_problems(seed + 20_000, num_test, None)})
   return training.train_and_evaluate(
-      task_name, demos, config, training.WORKDIR.value,
+      task_name, task.spec, demos, config, training.WORKDIR.value,
       validate=lambda model: evaluation.accuracy(task, model, validation),
       test=lambda model: {key: evaluation.accuracy(task, model, problems) for key, problems in test_sets.items()},
       extra={"seed": seed, "num_demos": num_demos, "num_strong": int(demos.strong.sum()), "num_test": num_test})

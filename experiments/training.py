@@ -13,8 +13,9 @@ from absl import flags
 from flax import nnx
 
 from experiments import provenance
-from php_jax import checkpoint, fitting, flat_lstm, objective, tasks, train
+from php_jax import checkpoint, fitting, flat_lstm, objective, train
 from php_jax.demos import Demonstration
+from php_jax.hierarchy import HierarchySpec
 from php_jax.task import TrainingDefaults
 
 WORKDIR = flags.DEFINE_string("workdir", None, "Directory for results.json, metrics.jsonl and the model.")
@@ -124,8 +125,8 @@ def _flag_float(name: str, value: str) -> float:
     raise ValueError(f"{name} values must be numbers; got {value!r}") from None
 
 
-def train_and_evaluate(task_name: str, demos: Demonstration, config: train.TrainConfig, workdir: str,
-                       validate: Callable, test: Callable[[object], dict], extra: dict) -> dict:
+def train_and_evaluate(task_name: str, spec: HierarchySpec, demos: Demonstration, config: train.TrainConfig,
+                       workdir: str, validate: Callable, test: Callable[[object], dict], extra: dict) -> dict:
   """Trains the --model (a PHP hierarchy level by level, resuming from workdir/checkpoint.msgpack if an
   earlier run was interrupted; or the flat LSTM baseline), saves it, tests it, writes results.json; returns
   the results."""
@@ -138,7 +139,6 @@ def train_and_evaluate(task_name: str, demos: Demonstration, config: train.Train
   os.makedirs(workdir, exist_ok=True)
   for leftover in glob.glob(os.path.join(workdir, ".*.tmp")):  # a write cut off by SIGKILL
     os.remove(leftover)
-  task = tasks.get(task_name)
   if config.strong_weight is None:  # resolved here so that results.json records the number
     config = dataclasses.replace(config, strong_weight=train.balanced_strong_weight(np.asarray(demos.strong)))
   start, commit = time.time(), provenance.code_version()  # the code as it was when the run started
@@ -155,12 +155,13 @@ def train_and_evaluate(task_name: str, demos: Demonstration, config: train.Train
       metrics.flush()
       print(json.dumps(row), flush=True)
     if MODEL.value == "flat_lstm":
-      model, trained = _train_flat_lstm(task, demos, config, validate, log)
-      checkpoint.save_flat_lstm(workdir, task_name, model)
+      model, trained = _train_flat_lstm(spec, demos, config, validate, log)
+      checkpoint.save_flat_lstm(workdir, task_name, model, spec)
     else:
-      model, report = train.train_hierarchy(task.spec, demos, config, validate, log=log,
+      model, report = train.train_hierarchy(spec, demos, config, validate, log=log,
                                             checkpoint_path=os.path.join(workdir, checkpoint.TRAINING_FILE))
-      checkpoint.save_hierarchy(workdir, task_name, model, config.hidden)
+      checkpoint.save_hierarchy(workdir, task_name, model, config.hidden,
+                                [report[level]["capacity"] for level in range(spec.num_levels)])
       trained = {"levels": {str(level): {k: v for k, v in entry.items() if k != "losses"} | {
           "final_loss": entry["losses"][-1][1] if entry["losses"] else None} for level, entry in report.items()}}
   test_results = test(model)
@@ -172,10 +173,10 @@ def train_and_evaluate(task_name: str, demos: Demonstration, config: train.Train
   return results
 
 
-def _train_flat_lstm(task, demos: Demonstration, config: train.TrainConfig, validate, log):
+def _train_flat_lstm(spec: HierarchySpec, demos: Demonstration, config: train.TrainConfig, validate, log):
   """The baseline on the same demonstrations' elementary actions (annotations unused), same iterations,
   learning rate, seed and snapshot rule."""
-  policy = flat_lstm.FlatLSTMPolicy(task.spec.obs_dim, task.spec.action_sizes, LSTM_HIDDEN.value,
+  policy = flat_lstm.FlatLSTMPolicy(spec.obs_dim, spec.action_sizes, LSTM_HIDDEN.value,
                                     rngs=nnx.Rngs(config.seed))
   report = flat_lstm.train(policy, demos, config.iterations, config.learning_rate, config.eval_every,
                            on_eval=lambda iteration: validate(policy), log=log, snapshot=config.snapshot)

@@ -24,6 +24,7 @@ from flax import nnx, serialization
 
 from php_jax import fitting, tasks
 from php_jax.flat_lstm import FlatLSTMPolicy
+from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy
 
 MODEL_FILE, ARCHITECTURE_FILE, TRAINING_FILE = "model.msgpack", "model.json", "checkpoint.msgpack"
@@ -112,16 +113,44 @@ def _save(workdir: str, model, architecture: dict) -> None:
                    json.dumps({**architecture, "sha256": _digest(params)}, indent=1).encode())
 
 
-def save_hierarchy(workdir: str, task_name: str, hierarchy: PHPHierarchy, hidden) -> None:
-  """Writes workdir/model.json (task and architecture) and workdir/model.msgpack (parameters)."""
-  _save(workdir, hierarchy, {"task": task_name, "kind": "php", "hidden": list(hidden),
+def _spec_json(spec: HierarchySpec) -> dict:
+  return {"name": spec.name, "levels": [list(level) for level in spec.levels],
+          "action_sizes": list(spec.action_sizes), "obs_dim": spec.obs_dim}
+
+
+def save_hierarchy(workdir: str, task_name: str, hierarchy: PHPHierarchy, hidden,
+                   capacity: list[int] | None = None) -> None:
+  """Writes workdir/model.json (task, hierarchy spec, architecture and, when given, the counter capacity per
+  level it was trained with, root first) and workdir/model.msgpack (parameters)."""
+  _save(workdir, hierarchy, {"task": task_name, "kind": "php", "spec": _spec_json(hierarchy.spec),
+                             "hidden": list(hidden),
                              "tau_in_termination": [level.tau_in_termination for level in hierarchy.levels],
-                             "tau_limit": [level.tau_limit for level in hierarchy.levels]})
+                             "tau_limit": [level.tau_limit for level in hierarchy.levels],
+                             **({"capacity": list(capacity)} if capacity else {})})
 
 
-def save_flat_lstm(workdir: str, task_name: str, policy: FlatLSTMPolicy) -> None:
+def save_flat_lstm(workdir: str, task_name: str, policy: FlatLSTMPolicy, spec: HierarchySpec) -> None:
   """The flat LSTM baseline, in the same two files."""
-  _save(workdir, policy, {"task": task_name, "kind": "flat_lstm", "hidden": policy.hidden})
+  _save(workdir, policy, {"task": task_name, "kind": "flat_lstm", "spec": _spec_json(spec),
+                          "hidden": policy.hidden})
+
+
+def _saved_spec(path: str, architecture: dict) -> HierarchySpec:
+  """The spec model.json records (or, for a model saved without one, its registered task's)."""
+  if "spec" not in architecture:
+    return tasks.get(architecture["task"]).spec
+  spec = architecture["spec"]
+  try:
+    return HierarchySpec(str(spec["name"]), tuple(tuple(map(str, level)) for level in spec["levels"]),
+                         tuple(int(n) for n in spec["action_sizes"]), int(spec["obs_dim"]))
+  except (TypeError, KeyError, ValueError):
+    raise CheckpointError(f"{path}: malformed hierarchy spec {spec}") from None
+
+
+def saved_capacity(workdir: str) -> tuple[int, ...] | None:
+  """The counter capacity per level (root first) a saved PHP hierarchy was trained with, if recorded."""
+  capacity = _read_json(os.path.join(workdir, ARCHITECTURE_FILE)).get("capacity")
+  return tuple(capacity) if capacity else None
 
 
 def _architecture(path: str, architecture) -> tuple:
@@ -153,15 +182,15 @@ def load_policy(workdir: str) -> tuple[str, PHPHierarchy | FlatLSTMPolicy]:
     params = f.read()
   if architecture.get("sha256") != _digest(params):
     raise CheckpointError(f"{model_path} does not match {arch_path} (checksum): corrupt, or from another run")
-  task = tasks.get(task_name)
+  spec = _saved_spec(arch_path, architecture)
   if kind == "flat_lstm":
-    model = FlatLSTMPolicy(task.spec.obs_dim, task.spec.action_sizes, hidden, rngs=nnx.Rngs(0))
+    model = FlatLSTMPolicy(spec.obs_dim, spec.action_sizes, hidden, rngs=nnx.Rngs(0))
   else:
     tau_in_termination, tau_limit = tau
-    if len(tau_in_termination) != task.spec.num_levels:
+    if len(tau_in_termination) != spec.num_levels:
       raise CheckpointError(f"{arch_path}: tau_in_termination has {len(tau_in_termination)} entries; {task_name} "
-                            f"has {task.spec.num_levels} levels")
-    model = PHPHierarchy(task.spec, hidden=hidden, tau_in_termination=tau_in_termination, tau_limit=tau_limit,
+                            f"has {spec.num_levels} levels")
+    model = PHPHierarchy(spec, hidden=hidden, tau_in_termination=tau_in_termination, tau_limit=tau_limit,
                          rngs=nnx.Rngs(0))
   nnx.update(model, restore_named(nnx.state(model, nnx.Param), _unpack(params, model_path), model_path))
   return task_name, model

@@ -21,8 +21,8 @@ class Demonstration(NamedTuple):
     procedures: [T, d] int32 procedure per level at each step; UNKNOWN where not annotated or padding.
     counters: [T, d] int32 τ per level at each step; UNKNOWN where not annotated or padding.
     length: [] int32 steps used.
-    strong: [] bool whether training may use the annotation (weak demonstrations may still carry the
-      supervisor's stack, for measuring how well decoding recovers it).
+    strong: [] bool whether training may use the annotation, complete or partial (weak demonstrations may
+      still carry the supervisor's stack, for measuring how well decoding recovers it).
   """
   observations: jax.Array
   actions: jax.Array
@@ -74,7 +74,8 @@ def validate(batch: Demonstration, spec) -> None:
   """Checks a batch of demonstrations [B, ...] against a HierarchySpec (host side).
 
   Raises ValueError naming the demonstration and step of the first problem: shapes, lengths over capacity,
-  actions or procedure ids out of range, or annotated stacks that break the call-stack semantics.
+  actions or procedure ids out of range, or annotated stacks that break the call-stack semantics. A strong
+  demonstration may leave stack entries UNKNOWN (partial annotation).
   """
   actions = np.asarray(batch.actions)
   procs, taus = np.asarray(batch.procedures), np.asarray(batch.counters)
@@ -97,16 +98,34 @@ def validate(batch: Demonstration, spec) -> None:
       t, f = bad[0]
       raise ValueError(f"demonstration {b}, step {t}: action factor {f} = {actions[b, t, f]} is outside "
                        f"0..{spec.action_sizes[f] - 1}")
-    if not strong[b]:
-      continue
-    for t in range(length):
-      for level in range(spec.num_levels):
-        if not 0 <= procs[b, t, level] < spec.num_procs(level):
-          raise ValueError(f"demonstration {b}, step {t}: procedure id {procs[b, t, level]} at level {level} "
-                           f"is unknown (level {level} has {spec.num_procs(level)} procedures)")
-      if t == 0 and np.any(taus[b, 0] != 0):
-        raise ValueError(f"demonstration {b}, step 0: counters must start at 0; got {taus[b, 0].tolist()}")
-      if t > 0:
-        error = _stack_error(procs[b, t - 1], taus[b, t - 1], procs[b, t], taus[b, t])
-        if error:
-          raise ValueError(f"demonstration {b}, step {t}: {error}")
+    if strong[b]:
+      error = stack_error(procs[b, :length], taus[b, :length], spec)
+      if error:
+        raise ValueError(f"demonstration {b}, {error}")
+
+
+def stack_error(procs: np.ndarray, taus: np.ndarray, spec) -> str | None:
+  """Why an annotated stack [length, d] (UNKNOWN where not annotated) is impossible, or None.
+
+  Known entries must be in range (a procedure with its counter), counters start at 0, and consecutive
+  steps whose whole stacks are known must follow the call-stack semantics.
+  """
+  known = (procs != UNKNOWN) & (taus != UNKNOWN)
+  half = np.argwhere((procs != UNKNOWN) != (taus != UNKNOWN))
+  if half.size:
+    t, level = half[0]
+    return f"step {t}: level {level} has a procedure without a counter or a counter without a procedure"
+  for t in range(len(procs)):
+    for level in range(spec.num_levels):
+      if known[t, level] and not 0 <= procs[t, level] < spec.num_procs(level):
+        return (f"step {t}: procedure id {procs[t, level]} at level {level} is unknown (level {level} has "
+                f"{spec.num_procs(level)} procedures)")
+      if known[t, level] and taus[t, level] < 0:
+        return f"step {t}: counter {taus[t, level]} at level {level} is negative"
+    if t == 0 and np.any(taus[0][known[0]] != 0):
+      return f"step 0: counters must start at 0; got {taus[0].tolist()}"
+    if t > 0 and known[t - 1].all() and known[t].all():
+      error = _stack_error(procs[t - 1], taus[t - 1], procs[t], taus[t])
+      if error:
+        return f"step {t}: {error}"
+  return None

@@ -18,7 +18,7 @@ import numpy as np
 from flax import nnx
 
 from php_jax import agreement, checkpoint, fitting, views
-from php_jax.demos import Demonstration
+from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.demos import validate as validate_demos
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy, RootLSTM, RootMLP
@@ -241,8 +241,8 @@ def _train_one_level(spec, demos, view, level, hierarchy, config, validate, log,
   if level > 0:
     key = jax.random.fold_in(jax.random.key(config.seed), level)
     procs, taus = decode(model, view, capacity, config.decode, key)
-    decoded[level] = (np.where(view.strong[:, None], view.procedures, procs),
-                      np.where(view.strong[:, None], view.counters, taus))
+    known = view.strong[:, None] & (view.procedures != UNKNOWN)  # a strong view's path follows its annotation
+    decoded[level] = (np.where(known, view.procedures, procs), np.where(known, view.counters, taus))
     counts = agreement.agreement_counts(demos, view, level, *decoded[level])  # counted once for both measures
     entry["decoding_agreement"] = agreement.exact_fraction(*counts)
     entry["relabelled_agreement"] = agreement.relabelled_fraction(*counts)

@@ -4,7 +4,9 @@ The level-i view of a demonstration is the sequence of operations that level i's
 level-(i+1) calls (for the lowest level, the elementary actions), each with the observation at the call's
 start, then the final observation. A call at level j starts at elementary step t exactly when every counter
 at levels ≥ j is 0 at t (a fresh chain of pushes). Strong views come from the annotated stack; weak views
-from decoding the trained level below, one level at a time.
+from decoding the trained level below, one level at a time. A partly annotated demonstration's view is
+strong at the lowest level and at each level above whose lower levels are all annotated; its unknown
+entries are latent.
 """
 from __future__ import annotations
 
@@ -26,7 +28,9 @@ class LevelView(NamedTuple):
     counters: [B, T] int32 this level's annotated τ per operation, UNKNOWN where not annotated.
     length: [B] int32 operations used.
     times: [B, T] int32 elementary step at which each operation starts (−1 on padding).
-    strong: [B] bool whether the annotation may be trained on.
+    strong: [B] bool whether the annotation may be trained on: the demonstration is annotated (partly or
+      completely) and every level below this one is annotated on every step. Unannotated operations of a
+      strong view are UNKNOWN and summed over by the lattice.
   """
   observations: np.ndarray
   actions: np.ndarray
@@ -79,6 +83,9 @@ def _pack(demos: Demonstration, level: int, times: list[np.ndarray], actions: li
       length=np.array([len(t) for t in times], np.int32),
       times=np.full((num_demos, width), -1, np.int32), strong=strong.copy())
   for b, (t, a) in enumerate(zip(times, actions)):
+    # A level's annotation is usable when the levels below are annotated throughout: only then are its
+    # operations (their calls) the annotated ones.
+    view.strong[b] &= bool(np.all(procs[b, :lengths[b], level + 1:] != UNKNOWN))
     n = len(t)
     view.observations[b, :n] = obs[b, t]
     view.observations[b, n] = obs[b, lengths[b]]

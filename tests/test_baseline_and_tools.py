@@ -45,7 +45,7 @@ def test_flat_lstm_clones_its_training_demonstrations_and_survives_saving(tmp_pa
   assert report["losses"][-1][1] < 0.05 * report["losses"][0][1]
   outcomes = evaluation.solve(NANOCRAFT, policy, problems)
   assert np.mean([o["correct"] for o in outcomes]) >= 0.75  # its own training problems
-  checkpoint.save_flat_lstm(str(tmp_path), "nanocraft", policy)
+  checkpoint.save_flat_lstm(str(tmp_path), "nanocraft", policy, NANOCRAFT.spec)
   name, loaded = checkpoint.load_policy(str(tmp_path))
   assert name == "nanocraft" and isinstance(loaded, flat_lstm.FlatLSTMPolicy)
   assert evaluation.solve(NANOCRAFT, loaded, problems) == outcomes
