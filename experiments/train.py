@@ -10,14 +10,16 @@ the same command to resume an interrupted run. Flags left unset take the task's 
 """
 from __future__ import annotations
 
-import signal
-import sys
-
 from absl import app, flags
 
 from experiments import cli, training
-from php_jax import checkpoint, datasets, evaluation, tasks, train
+from php_jax import datasets, evaluation, tasks, train
 
+NUM_STRONG = flags.DEFINE_integer("num_strong", 1, "Strongly supervised (call-stack annotated) demonstrations.")
+MODEL = flags.DEFINE_enum("model", "php", ["php", "flat_lstm"],
+                          "php: the hierarchy by level-wise EG; flat_lstm: the behaviour-cloning baseline.")
+LSTM_HIDDEN = flags.DEFINE_integer("lstm_hidden", 128, "Hidden units of the flat LSTM baseline.")
+NUM_VALIDATION = flags.DEFINE_integer("num_validation", 50, "Validation problems (training distribution).")
 _TASK = flags.DEFINE_string("task", None, f"The task: one of {', '.join(tasks.TASKS)}, or module:attribute "
                             "of a php_jax.task.Task defined elsewhere.")
 _NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "Demonstrations in the training set, where the task offers "
@@ -39,9 +41,9 @@ def run(task_name: str) -> dict:
   if defaults.num_demos_fixed and num_demos != defaults.num_demos:
     raise training.UsageError(f"--num_demos: {task.name}'s training set has {defaults.num_demos} "
                               f"demonstrations; got {num_demos}")
-  if num_demos < 1 or not 0 <= training.NUM_STRONG.value <= num_demos:
+  if num_demos < 1 or not 0 <= NUM_STRONG.value <= num_demos:
     raise training.UsageError(f"--num_strong must be in 0..--num_demos={num_demos} and --num_demos ≥ 1; got "
-                              f"{training.NUM_STRONG.value} of {num_demos}")
+                              f"{NUM_STRONG.value} of {num_demos}")
   num_test = defaults.num_test if _NUM_TEST.value is None else _NUM_TEST.value
   lengths = defaults.test_lengths
   if _TEST_LENGTHS.value is not None:
@@ -55,15 +57,16 @@ def run(task_name: str) -> dict:
     train.check_config(task.spec, config)
   except ValueError as e:
     raise training.UsageError(f"--{e}") from None
-  demos = datasets.training_demos(task, seed, num_demos, training.NUM_STRONG.value)
-  validation = task.validation_problems(seed + 10_000, training.NUM_VALIDATION.value)
+  demos = datasets.training_demos(task, seed, num_demos, NUM_STRONG.value)
+  validation = task.validation_problems(seed + 10_000, NUM_VALIDATION.value)
   test_sets = ({str(n): task.test_problems(seed + 20_000, num_test, n) for n in lengths} if lengths
                else {"accuracy": task.test_problems(seed + 20_000, num_test, None)})
   return training.train_and_evaluate(
       task_name, task.spec, demos, config, training.WORKDIR.value,
       validate=lambda model: evaluation.accuracy(task, model, validation),
       test=lambda model: {key: evaluation.accuracy(task, model, problems) for key, problems in test_sets.items()},
-      extra={"seed": seed, "num_demos": num_demos, "num_strong": int(demos.strong.sum()), "num_test": num_test})
+      extra={"seed": seed, "num_demos": num_demos, "num_strong": int(demos.strong.sum()), "num_test": num_test},
+      flat_lstm_hidden=LSTM_HIDDEN.value if MODEL.value == "flat_lstm" else None)
 
 
 def main_for(task_name: str | None):
@@ -74,21 +77,8 @@ def main_for(task_name: str | None):
     name = task_name or _TASK.value
     if not name:
       cli.fail("--task is required")
-    signal.signal(signal.SIGTERM, _interrupt)
-    try:
-      run(name)
-    except (training.UsageError, checkpoint.CheckpointError) as e:
-      cli.fail(str(e))
-    except KeyboardInterrupt:
-      print(f"interrupted: {training.WORKDIR.value} keeps the last checkpoint; rerun the same command to resume",
-            file=sys.stderr)
-      sys.exit(130)
+    training.run_resumable(lambda: run(name))
   return main
-
-
-def _interrupt(signum, frame):
-  """SIGTERM ends a run as Ctrl-C does."""
-  raise KeyboardInterrupt
 
 
 if __name__ == "__main__":

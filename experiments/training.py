@@ -5,6 +5,8 @@ import dataclasses
 import glob
 import json
 import os
+import signal
+import sys
 import time
 from typing import Callable
 
@@ -12,14 +14,13 @@ import numpy as np
 from absl import flags
 from flax import nnx
 
-from experiments import provenance
+from experiments import cli, provenance
 from php_jax import checkpoint, fitting, flat_lstm, objective, train
 from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
 from php_jax.task import TrainingDefaults
 
 WORKDIR = flags.DEFINE_string("workdir", None, "Directory for results.json, metrics.jsonl and the model.")
-NUM_STRONG = flags.DEFINE_integer("num_strong", 1, "Strongly supervised (call-stack annotated) demonstrations.")
 SEED = flags.DEFINE_integer("seed", 0, "Seed for data, initialisation and decoding.")
 ITERATIONS = flags.DEFINE_integer("iterations", None, "Adam iterations per level. Default: the task's (the "
                                   "paper's 2000 for its two tasks).")
@@ -49,10 +50,6 @@ EVAL_EVERY = flags.DEFINE_integer("eval_every", 100, "Iterations between logged 
 SNAPSHOT = flags.DEFINE_enum("snapshot", "latest", list(fitting.SNAPSHOT_RULES),
                              "Snapshot kept among those with the best validation accuracy (the PHP root level's, or "
                              "the flat LSTM's).")
-MODEL = flags.DEFINE_enum("model", "php", ["php", "flat_lstm"],
-                          "php: the hierarchy by level-wise EG; flat_lstm: the behaviour-cloning baseline.")
-LSTM_HIDDEN = flags.DEFINE_integer("lstm_hidden", 128, "Hidden units of the flat LSTM baseline.")
-NUM_VALIDATION = flags.DEFINE_integer("num_validation", 50, "Validation problems (training distribution).")
 OVERWRITE = flags.DEFINE_bool("overwrite", False, "Start afresh in a workdir that holds another run (its "
                               "checkpoint, model, metrics and results are deleted); without it such a run is "
                               "resumed if its settings match, and refused if they do not.")
@@ -126,10 +123,11 @@ def _flag_float(name: str, value: str) -> float:
 
 
 def train_and_evaluate(task_name: str, spec: HierarchySpec, demos: Demonstration, config: train.TrainConfig,
-                       workdir: str, validate: Callable, test: Callable[[object], dict], extra: dict) -> dict:
-  """Trains the --model (a PHP hierarchy level by level, resuming from workdir/checkpoint.msgpack if an
-  earlier run was interrupted; or the flat LSTM baseline), saves it, tests it, writes results.json; returns
-  the results."""
+                       workdir: str, validate: Callable, test: Callable[[object], dict], extra: dict,
+                       flat_lstm_hidden: int | None = None) -> dict:
+  """Trains a PHP hierarchy level by level (resuming from workdir/checkpoint.msgpack if an earlier run was
+  interrupted), or with flat_lstm_hidden the flat LSTM baseline of that many units; saves it, tests it,
+  writes results.json; returns the results."""
   if os.path.exists(workdir) and not os.path.isdir(workdir):
     raise UsageError(f"--workdir={workdir} is a file, not a directory")
   if OVERWRITE.value:
@@ -154,8 +152,8 @@ def train_and_evaluate(task_name: str, spec: HierarchySpec, demos: Demonstration
       metrics.write(json.dumps(row) + "\n")
       metrics.flush()
       print(json.dumps(row), flush=True)
-    if MODEL.value == "flat_lstm":
-      model, trained = _train_flat_lstm(spec, demos, config, validate, log)
+    if flat_lstm_hidden:
+      model, trained = _train_flat_lstm(spec, demos, config, flat_lstm_hidden, validate, log)
       checkpoint.save_flat_lstm(workdir, task_name, model, spec)
     else:
       model, report = train.train_hierarchy(spec, demos, config, validate, log=log,
@@ -165,7 +163,7 @@ def train_and_evaluate(task_name: str, spec: HierarchySpec, demos: Demonstration
       trained = {"levels": {str(level): {k: v for k, v in entry.items() if k != "losses"} | {
           "final_loss": entry["losses"][-1][1] if entry["losses"] else None} for level, entry in report.items()}}
   test_results = test(model)
-  results = {"task": task_name, "model": MODEL.value, "config": dataclasses.asdict(config), **extra, **trained,
+  results = {"task": task_name, "model": "flat_lstm" if flat_lstm_hidden else "php", "config": dataclasses.asdict(config), **extra, **trained,
              "test": test_results, "wall_seconds": round(time.time() - start, 1), "commit": commit,
              "versions": provenance.environment_versions()}
   checkpoint.write_atomically(os.path.join(workdir, "results.json"), json.dumps(results, indent=1).encode())
@@ -173,12 +171,32 @@ def train_and_evaluate(task_name: str, spec: HierarchySpec, demos: Demonstration
   return results
 
 
-def _train_flat_lstm(spec: HierarchySpec, demos: Demonstration, config: train.TrainConfig, validate, log):
+def _train_flat_lstm(spec: HierarchySpec, demos: Demonstration, config: train.TrainConfig, hidden: int, validate,
+                     log):
   """The baseline on the same demonstrations' elementary actions (annotations unused), same iterations,
   learning rate, seed and snapshot rule."""
-  policy = flat_lstm.FlatLSTMPolicy(spec.obs_dim, spec.action_sizes, LSTM_HIDDEN.value,
+  policy = flat_lstm.FlatLSTMPolicy(spec.obs_dim, spec.action_sizes, hidden,
                                     rngs=nnx.Rngs(config.seed))
   report = flat_lstm.train(policy, demos, config.iterations, config.learning_rate, config.eval_every,
                            on_eval=lambda iteration: validate(policy), log=log, snapshot=config.snapshot)
-  return policy, {"flat_lstm": {"hidden": LSTM_HIDDEN.value, "best_iteration": report["best_iteration"],
+  return policy, {"flat_lstm": {"hidden": hidden, "best_iteration": report["best_iteration"],
                                 "validation": report["validation"], "final_loss": report["losses"][-1][1]}}
+
+
+def run_resumable(body: Callable[[], object]) -> None:
+  """Runs a training command's body: a UsageError or CheckpointError ends in one line and exit status 2;
+  Ctrl-C or SIGTERM in one line saying how to resume, and exit status 130."""
+  signal.signal(signal.SIGTERM, _interrupt)
+  try:
+    body()
+  except (UsageError, checkpoint.CheckpointError) as e:
+    cli.fail(str(e))
+  except KeyboardInterrupt:
+    print(f"interrupted: {WORKDIR.value} keeps the last checkpoint; rerun the same command to resume",
+          file=sys.stderr)
+    sys.exit(130)
+
+
+def _interrupt(signum, frame):
+  """SIGTERM ends a run as Ctrl-C does."""
+  raise KeyboardInterrupt

@@ -54,7 +54,7 @@ def test_blank_file_is_refused(tmp_path):
 def test_bad_flags_are_refused_before_anything_runs(tmp_path):
   problems = tmp_path / "in.jsonl"
   problems.write_text('{"a": "1", "b": "2"}\n')
-  for flag, message in [(f"--out={problems}", "is the problem file"), ("--batch_size=0", "batch_size"),
+  for flag, message in [(f"--out={problems}", "is the input file"), ("--batch_size=0", "batch_size"),
                         ("--batch_size=x", "batch_size"), ("--tsk=addition", "tsk")]:
     proc = subprocess.run([sys.executable, "-m", "experiments.evaluate", "--task=addition", f"--problems={problems}",
                            f"--out={tmp_path / 'out.jsonl'}", flag], capture_output=True, text=True, timeout=300)
@@ -70,8 +70,8 @@ def test_unusable_out_paths_are_refused(tmp_path):
   (tmp_path / "link.jsonl").symlink_to(problems)
   (tmp_path / "hard.jsonl").hardlink_to(problems)
   for out, message in [(tmp_path, "is a directory"), (tmp_path / "missing" / "out.jsonl", "does not exist"),
-                       (problems, "is the problem file"), (tmp_path / "link.jsonl", "is the problem file"),
-                       (tmp_path / "hard.jsonl", "is the problem file")]:
+                       (problems, "is the input file"), (tmp_path / "link.jsonl", "is the input file"),
+                       (tmp_path / "hard.jsonl", "is the input file")]:
     with pytest.raises(ValueError, match=message):
       problem_files.check_out(str(problems), str(out))
   problem_files.check_out(str(problems), str(tmp_path / "out.jsonl"))

@@ -1,0 +1,91 @@
+r"""Decodes demonstrations with a fitted hierarchy: per demonstration its log-likelihood, its most likely
+call stack at every step, and whether the hierarchy replays it.
+
+  python -m experiments.decode --policy=DIR --demos=IN.jsonl --out=OUT.jsonl
+
+--policy is a workdir of `experiments.fit` (or of `experiments.train`). Each output line, in input order:
+
+  {"log_likelihood": float,             log P(actions | observations), summed over every call stack
+   "stack": [[[h, tau], ...], ...],     per step, root first: the most likely stack (exact, whole-stack Viterbi)
+   "replayed": bool,                    the argmax policy, run on the recorded observations, takes every
+                                        recorded action and its root returns after the last
+   "first_mismatch": int or null}       the first step where it does not (null when replayed)
+
+Stacks in the input are not used for decoding; where they are given, the agreement of the decoded stacks
+with them is printed per level (exact, and up to a renaming of each level's procedures). A bad flag or a
+malformed line ends in one line and exit status 2 before anything runs; the output is written atomically.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from absl import app, flags
+
+from experiments import cli
+from experiments import problems as problem_files
+from php_jax import agreement, checkpoint, decoding, demo_files, replay
+from php_jax.demos import UNKNOWN
+from php_jax.model import PHPHierarchy
+
+_POLICY = flags.DEFINE_string("policy", None, "Workdir holding a fitted hierarchy.")
+_DEMOS = flags.DEFINE_string("demos", None, "Demonstrations to decode, JSON lines.")
+_OUT = flags.DEFINE_string("out", None, "Output JSON-lines file.")
+_BATCH_SIZE = flags.DEFINE_integer("batch_size", 512, "Demonstrations decoded together.", lower_bound=1)
+
+
+def decode_lines(hierarchy: PHPHierarchy, capacity, batch) -> tuple[list[dict], decoding.Decoded]:
+  """The output lines of a batch of demonstrations, and the decoded stacks."""
+  decoded = decoding.decode(hierarchy, capacity, batch, chunk=_BATCH_SIZE.value)
+  replayed = replay.replay(hierarchy, hierarchy.spec, batch)
+  lines = []
+  for b, n in enumerate(np.asarray(batch.length)):
+    stack = np.stack([decoded.procedures[b, :n], decoded.counters[b, :n]], axis=-1).tolist()
+    mismatch = int(replayed.first_mismatch[b])
+    lines.append({"log_likelihood": float(decoded.log_likelihood[b]), "stack": stack,
+                  "replayed": bool(replayed.replayed[b]), "first_mismatch": None if mismatch < 0 else mismatch})
+  return lines, decoded
+
+
+def stack_agreement(batch, decoded: decoding.Decoded, level: int) -> tuple[float, float | None] | None:
+  """(exact, up to renaming) fraction of annotated steps whose decoded frame at level equals the given one;
+  None if no step is annotated there."""
+  procs, taus = np.asarray(batch.procedures)[..., level], np.asarray(batch.counters)[..., level]
+  known = procs != UNKNOWN
+  if not known.any():
+    return None
+  size = int(max(procs.max(), decoded.procedures[..., level].max())) + 1
+  counts = np.zeros((size, size), np.int64)
+  same_tau = known & (decoded.counters[..., level] == taus)
+  np.add.at(counts, (decoded.procedures[..., level][same_tau], procs[same_tau]), 1)
+  return agreement.exact_fraction(counts, known.sum()), agreement.relabelled_fraction(counts, known.sum())
+
+
+def main(argv):
+  if argv[1:]:
+    cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
+  try:
+    problem_files.check_out(_DEMOS.value, _OUT.value, "demos")
+    _, hierarchy = checkpoint.load_policy(_POLICY.value)
+    capacity = checkpoint.saved_capacity(_POLICY.value)
+    if not isinstance(hierarchy, PHPHierarchy) or capacity is None:
+      raise ValueError(f"--policy={_POLICY.value} holds no hierarchy with its counter capacities (a flat LSTM, "
+                       "or a model saved before they were recorded)")
+    batch, _ = demo_files.read_demonstrations(_DEMOS.value, hierarchy.spec)
+  except (OSError, ValueError) as e:  # DemoFileError and CheckpointError are ValueErrors
+    cli.fail(str(e))
+  lines, decoded = decode_lines(hierarchy, capacity, batch)
+  checkpoint.write_atomically(_OUT.value, "".join(json.dumps(line) + "\n" for line in lines).encode())
+  replayed = sum(line["replayed"] for line in lines)
+  print(f"{hierarchy.spec.name}: {replayed}/{len(lines)} replayed -> {_OUT.value}")
+  for level in range(1, hierarchy.spec.num_levels):
+    measured = stack_agreement(batch, decoded, level)
+    if measured:
+      exact, renamed = measured
+      print(f"level {level}: decoded stacks agree with the given ones on {exact:.3f} of annotated steps"
+            + (f" ({renamed:.3f} up to renaming)" if renamed is not None else ""))
+
+
+if __name__ == "__main__":
+  flags.mark_flags_as_required(["policy", "demos", "out"])
+  app.run(main, flags_parser=cli.parse_flags)

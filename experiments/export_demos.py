@@ -1,0 +1,58 @@
+r"""Writes a task's supervisor demonstrations, and its hierarchy, in the file formats `experiments.fit` and
+`experiments.decode` read.
+
+  python -m experiments.export_demos --task=nanocraft --num_demos=64 --num_strong=16 --seed=1 \
+      --out=train.jsonl --hierarchy_out=nanocraft.json
+  python -m experiments.export_demos --task=nanocraft --split=test --num_demos=200 --num_strong=200 --seed=1 \
+      --out=held_out.jsonl
+
+--split=training gives exactly the training set `experiments.train` builds for the same --seed, --num_demos
+and --num_strong (num_strong of them carry their call stack, chosen at random by the seed); validation and
+test draw fresh problems with train's seeds for those sets.
+"""
+from __future__ import annotations
+
+from absl import app, flags
+
+from experiments import cli
+from php_jax import checkpoint, datasets, demo_files, tasks
+
+_TASK = flags.DEFINE_string("task", None, f"The task: one of {', '.join(tasks.TASKS)}, or module:attribute.")
+_SPLIT = flags.DEFINE_enum("split", "training", ["training", "validation", "test"], "Which problems.")
+_NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "Demonstrations. Default: the task's training set size.")
+_NUM_STRONG = flags.DEFINE_integer("num_strong", 0, "How many carry their call stack.")
+_SEED = flags.DEFINE_integer("seed", 0, "Seed (the training command's --seed for the same data).")
+_OUT = flags.DEFINE_string("out", None, "Output demonstration file (JSON lines).")
+_HIERARCHY_OUT = flags.DEFINE_string("hierarchy_out", None, "Also write the task's hierarchy file here.")
+SEED_OFFSETS = {"training": 0, "validation": 10_000, "test": 20_000}  # as experiments.train draws its sets
+
+
+def main(argv):
+  if argv[1:]:
+    cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
+  try:
+    task = tasks.get(_TASK.value)
+  except ValueError as e:
+    cli.fail(f"--task: {e}")
+  num = task.defaults.num_demos if _NUM_DEMOS.value is None else _NUM_DEMOS.value
+  if num < 1 or not 0 <= _NUM_STRONG.value <= num:
+    cli.fail(f"--num_strong must be in 0..--num_demos={num} and --num_demos ≥ 1; got {_NUM_STRONG.value} of {num}")
+  seed = _SEED.value + SEED_OFFSETS[_SPLIT.value]
+  if _SPLIT.value == "training":
+    problems = task.training_problems(seed, num)
+  elif _SPLIT.value == "validation":
+    problems = task.validation_problems(seed, num)
+  else:
+    problems = task.test_problems(seed, num, None)
+  batch = datasets.problem_demonstrations(task, problems, 0)
+  annotated = datasets.strong_mask(len(problems), _NUM_STRONG.value, _SEED.value)
+  lines = demo_files.demonstration_lines(batch, annotated)
+  checkpoint.write_atomically(_OUT.value, "".join(line + "\n" for line in lines).encode())
+  if _HIERARCHY_OUT.value:
+    demo_files.write_hierarchy(_HIERARCHY_OUT.value, task.spec)
+  print(f"{task.name}: {len(lines)} {_SPLIT.value} demonstrations ({int(annotated.sum())} annotated) -> {_OUT.value}")
+
+
+if __name__ == "__main__":
+  flags.mark_flags_as_required(["task", "out"])
+  app.run(main, flags_parser=cli.parse_flags)

@@ -1,0 +1,91 @@
+r"""Fits a PHP hierarchy to your own demonstrations: no environment code needed.
+
+  python -m experiments.fit --demos=TRAIN.jsonl --hierarchy=H.json --workdir=DIR [--validation=VAL.jsonl]
+
+Reads the hierarchy file and the demonstrations (JSON lines; annotated ones carry their call stack, fully or
+partly: see php_jax.demo_files or README), trains every level from the lowest up to the root (level 0), and
+keeps the root level's snapshot that replays the most held-out demonstrations (--validation, or else
+--validation_fraction of TRAIN, held out at random by --seed). A demonstration is replayed when the learned
+hierarchy's argmax policy, run on its recorded observations, takes every recorded action and returns from
+its root after the last. Writes the model (`experiments.decode --policy=DIR` reads it) and results.json with
+the held-out replay rate. Rerun the same command to resume an interrupted run.
+"""
+from __future__ import annotations
+
+import numpy as np
+from absl import app, flags
+
+from experiments import cli, training
+from php_jax import demo_files, replay, train
+from php_jax.demos import Demonstration
+from php_jax.task import TrainingDefaults
+
+_DEMOS = flags.DEFINE_string("demos", None, "Training demonstrations, JSON lines.")
+_HIERARCHY = flags.DEFINE_string("hierarchy", None, "Hierarchy file (JSON): procedure names per level, root "
+                                 "first, and the action factor sizes.")
+_VALIDATION = flags.DEFINE_string("validation", None, "Held-out demonstrations for choosing the snapshot. "
+                                  "Default: --validation_fraction of --demos.")
+_VALIDATION_FRACTION = flags.DEFINE_float("validation_fraction", 0.1, "Share of --demos held out when "
+                                          "--validation is not given (at least one demonstration).")
+flags.adopt_module_key_flags(training)
+
+
+def fit_defaults(hierarchy: demo_files.Hierarchy, num_demos: int) -> TrainingDefaults:
+  """Training defaults for a hierarchy file: the paper's iterations and learning rate, one hidden layer of
+  64 (or the file's "hidden"), ψ sees τ at every level, the file's "capacity" as each level's least one."""
+  depth = hierarchy.spec.num_levels
+  return TrainingDefaults(
+      num_demos=num_demos, num_demos_fixed=True, hidden=hierarchy.hidden or (64,),
+      tau_in_termination=(True,) * depth,
+      min_capacity=tuple(c or 0 for c in hierarchy.capacity) if hierarchy.capacity else None)
+
+
+def split(batch: Demonstration, fraction: float, seed: int) -> tuple[Demonstration, Demonstration]:
+  """(training, held out): round(fraction × B) demonstrations (at least 1) held out at random by seed."""
+  num = len(batch.length)
+  held = np.zeros(num, bool)
+  held[np.random.default_rng(seed).permutation(num)[:max(1, round(fraction * num))]] = True
+  return tuple(Demonstration(*(np.asarray(x)[mask] for x in batch)) for mask in (~held, held))
+
+
+def run() -> dict:
+  """Fits the flags' demonstrations; returns the results written to results.json."""
+  try:
+    hierarchy = demo_files.read_hierarchy(_HIERARCHY.value)
+    demos, spec = demo_files.read_demonstrations(_DEMOS.value, hierarchy.spec)
+    if _VALIDATION.value:
+      held_out, spec = demo_files.read_demonstrations(_VALIDATION.value, spec)
+    else:
+      if not 0 < _VALIDATION_FRACTION.value < 1:
+        raise training.UsageError(f"--validation_fraction must be between 0 and 1; got {_VALIDATION_FRACTION.value}")
+      if len(demos.length) < 2:
+        raise training.UsageError(f"--demos={_DEMOS.value} has one demonstration: give --validation, or more")
+      demos, held_out = split(demos, _VALIDATION_FRACTION.value, training.SEED.value)
+  except demo_files.DemoFileError as e:
+    raise training.UsageError(str(e)) from None
+  config = training.config_from_flags(fit_defaults(hierarchy, len(demos.length)))
+  try:
+    train.check_config(spec, config)
+  except ValueError as e:
+    raise training.UsageError(f"--{e}") from None
+
+  def rate(model) -> float:
+    return replay.replayed_fraction(model, spec, held_out)
+
+  return training.train_and_evaluate(
+      spec.name, spec, demos, config, training.WORKDIR.value, validate=rate,
+      test=lambda model: {"held_out_replayed": rate(model)},
+      extra={"demos": _DEMOS.value, "hierarchy": _HIERARCHY.value, "validation": _VALIDATION.value,
+             "num_demos": len(demos.length), "num_annotated": int(np.sum(demos.strong)),
+             "num_held_out": len(held_out.length)})
+
+
+def main(argv):
+  if len(argv) > 1:
+    cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
+  training.run_resumable(run)
+
+
+if __name__ == "__main__":
+  flags.mark_flags_as_required(["demos", "hierarchy", "workdir"])
+  app.run(main, flags_parser=cli.parse_flags)
