@@ -28,16 +28,20 @@ _VALIDATION = flags.DEFINE_string("validation", None, "Held-out demonstrations f
 _VALIDATION_FRACTION = flags.DEFINE_float("validation_fraction", 0.1, "Share of --demos held out when "
                                           "--validation is not given (at least one demonstration).")
 flags.adopt_module_key_flags(training)
+DEFAULT_CAPACITY = 8
 
 
 def fit_defaults(hierarchy: demo_files.Hierarchy, num_demos: int) -> TrainingDefaults:
   """Training defaults for a hierarchy file: the paper's iterations and learning rate, one hidden layer of
-  64 (or the file's "hidden"), ψ sees τ at every level, the file's "capacity" as each level's least one."""
+  64 (or the file's "hidden"), ψ sees τ at every level, and below the root a counter capacity of at least
+  the file's "capacity" (default 8), more where an annotated call is longer: weak demonstrations may hold
+  longer calls than the few annotated ones."""
   depth = hierarchy.spec.num_levels
+  least = hierarchy.capacity or (None,) * depth
   return TrainingDefaults(
       num_demos=num_demos, num_demos_fixed=True, hidden=hierarchy.hidden or (64,),
       tau_in_termination=(True,) * depth,
-      min_capacity=tuple(c or 0 for c in hierarchy.capacity) if hierarchy.capacity else None)
+      min_capacity=(0,) + tuple(DEFAULT_CAPACITY if c is None else c for c in least[1:]))
 
 
 def split(batch: Demonstration, fraction: float, seed: int) -> tuple[Demonstration, Demonstration]:

@@ -15,7 +15,7 @@ one JSON object:
    "action_sizes": [2, 4, 10],                elementary action factor sizes
    "name": "mytask",                          optional (default: the file name without .json)
    "capacity": [null, 8, 3],                  optional: per level, root first, the least counter capacity
-                                              (default: the longest annotated call, or 8)
+                                              below the root (`experiments.fit`'s default: 8)
    "hidden": [64]}                            optional: hidden layer sizes of every network
 
 Every reader raises DemoFileError with "PATH:LINE: what is wrong" at the first problem.
