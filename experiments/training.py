@@ -15,7 +15,7 @@ from absl import flags
 from flax import nnx
 
 from experiments import cli, provenance
-from php_jax import checkpoint, fitting, flat_lstm, objective, train
+from php_jax import checkpoint, fitting, flat_lstm, joint, objective, train
 from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
 from php_jax.task import TrainingDefaults
@@ -45,6 +45,9 @@ STRONG_WARMUP = flags.DEFINE_integer("strong_warmup", 0, "Per level below the ro
 CALL_PENALTY = flags.DEFINE_list("call_penalty", None, "Per level (root first; the root's must be 0), a log-prior "
                                  "cost of each call the stand-in root pushes: weak views' posteriors favour fewer, "
                                  "longer calls. Default: 0 everywhere.")
+TRAINING = flags.DEFINE_enum("training", "levelwise", list(train.TRAININGS),
+                             "levelwise: one level at a time from the lowest, a stand-in root for the levels above "
+                             "(the paper); joint: every level at once by exact inference over the whole call stack.")
 DECODE = flags.DEFINE_enum("decode", "sample", list(objective.DECODERS), "Decoding of weak views for the level above.")
 EVAL_EVERY = flags.DEFINE_integer("eval_every", 100, "Iterations between logged losses / root snapshots.")
 SNAPSHOT = flags.DEFINE_enum("snapshot", "latest", list(fitting.SNAPSHOT_RULES),
@@ -90,7 +93,7 @@ def _config(defaults: TrainingDefaults) -> train.TrainConfig:
                            root_strong_weight=ROOT_STRONG_WEIGHT.value, strong_warmup=STRONG_WARMUP.value,
                            call_penalty=(tuple(_flag_float("call_penalty", v) for v in CALL_PENALTY.value)
                                          if CALL_PENALTY.value else None),
-                           decode=DECODE.value,
+                           decode=DECODE.value, training=TRAINING.value,
                            eval_every=EVAL_EVERY.value, snapshot=SNAPSHOT.value, seed=SEED.value)
 
 
@@ -156,12 +159,8 @@ def train_and_evaluate(task_name: str, spec: HierarchySpec, demos: Demonstration
       model, trained = _train_flat_lstm(spec, demos, config, flat_lstm_hidden, validate, log)
       checkpoint.save_flat_lstm(workdir, task_name, model, spec)
     else:
-      model, report = train.train_hierarchy(spec, demos, config, validate, log=log,
-                                            checkpoint_path=os.path.join(workdir, checkpoint.TRAINING_FILE))
-      checkpoint.save_hierarchy(workdir, task_name, model, config.hidden,
-                                [report[level]["capacity"] for level in range(spec.num_levels)])
-      trained = {"levels": {str(level): {k: v for k, v in entry.items() if k != "losses"} | {
-          "final_loss": entry["losses"][-1][1] if entry["losses"] else None} for level, entry in report.items()}}
+      model, trained, capacity = _train_php(spec, demos, config, validate, log, workdir)
+      checkpoint.save_hierarchy(workdir, task_name, model, config.hidden, capacity)
   test_results = test(model)
   results = {"task": task_name, "model": "flat_lstm" if flat_lstm_hidden else "php", "config": dataclasses.asdict(config), **extra, **trained,
              "test": test_results, "wall_seconds": round(time.time() - start, 1), "commit": commit,
@@ -169,6 +168,24 @@ def train_and_evaluate(task_name: str, spec: HierarchySpec, demos: Demonstration
   checkpoint.write_atomically(os.path.join(workdir, "results.json"), json.dumps(results, indent=1).encode())
   print(json.dumps({"test": test_results, "wall_seconds": results["wall_seconds"]}), flush=True)
   return results
+
+
+def _train_php(spec: HierarchySpec, demos: Demonstration, config: train.TrainConfig, validate, log, workdir: str):
+  """(hierarchy, its results.json entries, capacity per level) by config.training: {"levels": {level: summary}}
+  level-wise, {"joint": summary} joint."""
+  path = os.path.join(workdir, checkpoint.TRAINING_FILE)
+  if config.training == "joint":
+    hierarchy, report = joint.train_joint(spec, demos, config, validate, log=log, checkpoint_path=path)
+    return hierarchy, {"joint": _summary(report)}, report["capacity"]
+  hierarchy, report = train.train_hierarchy(spec, demos, config, validate, log=log, checkpoint_path=path)
+  return (hierarchy, {"levels": {str(level): _summary(entry) for level, entry in report.items()}},
+          [report[level]["capacity"] for level in range(spec.num_levels)])
+
+
+def _summary(entry: dict) -> dict:
+  """A training report entry without its loss curve (metrics.jsonl has it), with the final loss."""
+  return {k: v for k, v in entry.items() if k != "losses"} | {
+      "final_loss": entry["losses"][-1][1] if entry["losses"] else None}
 
 
 def _train_flat_lstm(spec: HierarchySpec, demos: Demonstration, config: train.TrainConfig, hidden: int, validate,

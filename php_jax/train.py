@@ -26,6 +26,7 @@ from php_jax.objective import DECODERS, LevelModel, decode, level_loss
 
 
 ROOTS = ("lstm", "mlp")
+TRAININGS = ("levelwise", "joint")  # one level at a time (the paper), or every level at once (php_jax.joint)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,6 +51,7 @@ class TrainConfig:
   snapshot: str = "latest"          # root snapshot among the equally best-validated: "latest" or "earliest"
   length_buckets: int = 4           # views are batched by length into this many buckets
   seed: int = 0
+  training: str = "levelwise"       # TRAININGS
 
   def __post_init__(self):
     """Raises ValueError naming the first setting that is not allowed."""
@@ -73,7 +75,8 @@ class TrainConfig:
       raise ValueError(f"min_capacity values must be non-negative integers; got {self.min_capacity!r}")
     if self.call_penalty is not None and not all(math.isfinite(v) and v >= 0 for v in self.call_penalty):
       raise ValueError(f"call_penalty values must be finite and non-negative; got {self.call_penalty!r}")
-    for name, allowed in (("root", ROOTS), ("decode", DECODERS), ("snapshot", fitting.SNAPSHOT_RULES)):
+    for name, allowed in (("root", ROOTS), ("decode", DECODERS), ("snapshot", fitting.SNAPSHOT_RULES),
+                          ("training", TRAININGS)):
       if getattr(self, name) not in allowed:
         raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
 
@@ -160,7 +163,7 @@ def run_settings(spec: HierarchySpec, demos: Demonstration, config: TrainConfig)
   return json.loads(json.dumps(settings))  # as a checkpoint stores it: tuples become lists
 
 
-def _check_resumable(path: str, saved_settings: dict, settings: dict) -> None:
+def check_resumable(path: str, saved_settings: dict, settings: dict) -> None:
   """Raises CheckpointError naming the settings that differ between a checkpoint and this run."""
   if saved_settings == settings:
     return
@@ -191,7 +194,7 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
   saved = checkpoint.read_training(checkpoint_path)
   report, decoded, logged = {}, {}, [0]
   if saved is not None:
-    _check_resumable(checkpoint_path, saved[0].get("settings", {}), settings)
+    check_resumable(checkpoint_path, saved[0].get("settings", {}), settings)
     checkpoint.restore_hierarchy(checkpoint_path, saved, hierarchy)
     report = {int(k): v for k, v in saved[0]["report"].items()}
     decoded = checkpoint.decoded_views(saved)

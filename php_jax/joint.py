@@ -1,0 +1,125 @@
+"""Joint Expectation–Gradient training: every level at once, with the hierarchy's own root (no stand-in).
+
+The loss is −(w_strong Σ_annotated log P(ζ_known, ξ) + Σ_weak log P(ξ)) / N, each term the exact
+log-likelihood of a demonstration's elementary actions under the whole hierarchy, summed over every call
+stack that agrees with its (complete, partial or absent) annotation (`stack_lattice`); its gradient is the
+EG gradient of every level's networks at once. Demonstrations are batched by length into buckets.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from php_jax import checkpoint, fitting, stack_lattice, train
+from php_jax.decoding import stack_inputs
+from php_jax.demos import UNKNOWN, Demonstration
+from php_jax.demos import validate as validate_demos
+from php_jax.hierarchy import HierarchySpec
+from php_jax.model import PHPHierarchy
+
+
+def joint_capacity(demos: Demonstration, spec: HierarchySpec, config: train.TrainConfig) -> tuple[int, ...]:
+  """Counter capacity per level, root first. Below the root: the longest annotated call (config.capacity
+  when nothing is annotated), at least config.min_capacity. The root: its most annotated operations, scaled
+  by how much longer the longest demonstration is than the longest annotated one (weak demonstrations may
+  need more root operations), or config.capacity when nothing is annotated; at least config.min_capacity[0]."""
+  taus, strong = np.asarray(demos.counters), np.asarray(demos.strong)
+  lengths = np.asarray(demos.length)
+  capacity = []
+  for level in range(spec.num_levels):
+    annotated = taus[strong][..., level]
+    annotated = annotated[annotated != UNKNOWN]
+    needed = int(annotated.max()) + 1 if annotated.size else config.capacity
+    if level == 0 and annotated.size:
+      needed = math.ceil(needed * lengths.max() / lengths[strong].max())
+    least = config.min_capacity[level] if config.min_capacity else 0
+    capacity.append(max(needed, least))
+  return tuple(capacity)
+
+
+def _buckets(demos: Demonstration, num_buckets: int) -> list[Demonstration]:
+  """Demonstrations sorted by length into up to num_buckets groups, each trimmed to its longest, as device
+  arrays with the annotation kept only on strong ones."""
+  lengths = np.asarray(demos.length)
+  order = np.argsort(lengths, kind="stable")
+  arrays = [np.asarray(x) for x in demos]
+  strong = arrays[5][:, None, None]
+  buckets = []
+  for group in np.array_split(order, min(num_buckets, len(order))):
+    width = int(lengths[group].max())
+    obs, act, procs, taus, length, is_strong = (x[group] for x in arrays)
+    buckets.append(Demonstration(
+        jnp.asarray(obs[:, :width + 1]), jnp.asarray(act[:, :width]),
+        jnp.asarray(np.where(strong[group], procs, UNKNOWN)[:, :width]),
+        jnp.asarray(np.where(strong[group], taus, UNKNOWN)[:, :width]), jnp.asarray(length), jnp.asarray(is_strong)))
+  return buckets
+
+
+def log_likelihoods(hierarchy: PHPHierarchy, batch: Demonstration, capacity: tuple[int, ...]) -> jax.Array:
+  """[B] log P(ζ_known, ξ) of each demonstration of batch under the whole hierarchy."""
+  def one(obs, act, procs, taus, n):
+    inputs = stack_inputs(hierarchy, capacity, obs, act, n)
+    return stack_lattice.forward_backward(inputs, procs, taus).log_likelihood
+  return jax.vmap(one)(batch.observations, batch.actions, batch.procedures, batch.counters, batch.length)
+
+
+def joint_loss(hierarchy: PHPHierarchy, buckets: list[Demonstration], capacity: tuple[int, ...],
+               strong_weight: float) -> jax.Array:
+  """−(w_strong Σ_strong log P(ζ, ξ) + Σ_weak log P(ξ)) / N over every bucket."""
+  total, count = 0.0, 0
+  for batch in buckets:
+    weights = jnp.where(batch.strong, strong_weight, 1.0)
+    total = total - jnp.sum(weights * log_likelihoods(hierarchy, batch, capacity))
+    count += batch.length.shape[0]
+  return total / count
+
+
+def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainConfig,
+                validate: Callable[[PHPHierarchy], float] | None = None, log: Callable[[dict], None] = print,
+                checkpoint_path: str | None = None) -> tuple[PHPHierarchy, dict]:
+  """Trains every level together for config.iterations Adam iterations, keeping the snapshot with the best
+  validate(hierarchy) (config.snapshot's rule). Checkpoints and resumes as train.train_hierarchy does
+  (the same log protocol); a checkpoint made with other settings raises CheckpointError. Returns the
+  hierarchy and a report {capacity, losses, best_iteration, validation, seconds}."""
+  train.check_config(spec, config)
+  validate_demos(demos, spec)
+  if config.strong_weight is None:
+    config = dataclasses.replace(config, strong_weight=train.balanced_strong_weight(np.asarray(demos.strong)))
+  hierarchy = train.make_hierarchy(spec, config)
+  settings = train.run_settings(spec, demos, config)
+  capacity = joint_capacity(demos, spec, config)
+  saved = checkpoint.read_training(checkpoint_path)
+  logged, resume = [0], None
+  if saved is not None:
+    train.check_resumable(checkpoint_path, saved[0].get("settings", {}), settings)
+    checkpoint.restore_hierarchy(checkpoint_path, saved, hierarchy)
+    resume = checkpoint.restore_progress(checkpoint_path, saved, hierarchy) if saved[0]["progress"] else None
+    logged[0] = saved[0]["logged"]
+    log({"resumed": True, "iteration": resume and resume.iteration, "logged": logged[0]})
+  if resume is None:
+    log({"training": "joint", "capacity": list(capacity)})
+    logged[0] += 1
+
+  def counted_log(row: dict) -> None:
+    logged[0] += 1
+    log(row)
+
+  def save(progress: fitting.Progress) -> None:
+    if checkpoint_path:
+      checkpoint.write_training(checkpoint_path, hierarchy, {"level": "joint", "report": {}, "settings": settings,
+                                                             "logged": logged[0]}, progress, {})
+
+  start = time.time()
+  buckets = _buckets(demos, config.length_buckets)
+  progress = fitting.fit(hierarchy, lambda h: joint_loss(h, buckets, capacity, config.strong_weight),
+                         config.iterations, config.learning_rate, config.eval_every,
+                         (lambda it, loss: validate(hierarchy)) if validate else None, counted_log, resume,
+                         save if checkpoint_path else None, config.snapshot)
+  return hierarchy, {"capacity": list(capacity), "losses": progress.losses, "best_iteration": progress.best_iteration,
+                     "validation": progress.best_score, "seconds": time.time() - start}

@@ -1,0 +1,81 @@
+"""Whole-stack decoding with a hierarchy's own networks: the stack lattice's inputs built from a PHP
+hierarchy give, on an annotated demonstration, exactly the log-probability that following the executor's
+semantics step by step with the same networks gives; the joint loss trains."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from php_jax import datasets, decoding, joint, stack_lattice, tasks, train
+from php_jax.model import PHPHierarchy
+
+NANOCRAFT = tasks.get("nanocraft")
+
+
+def _by_hand(hierarchy: PHPHierarchy, obs, actions, procs, taus, length) -> float:
+  """log P(actions, stack | observations) by walking the executor's semantics with the networks."""
+  depth = len(hierarchy.levels)
+
+  def call(level, t, proc, tau, callee):
+    return hierarchy.levels[level].op_log_probs(obs[t][None], jnp.array([float(tau)]))[0][0, proc, 0, callee]
+
+  def stop(level, t, proc, tau, stops):
+    z = hierarchy.levels[level].termination_logits(obs[t + 1][None], jnp.array([float(tau)]))[0, proc, 0]
+    return jax.nn.log_sigmoid(z if stops else -z)
+
+  total = 0.0
+  for t in range(length):
+    if t == 0:
+      fresh = 0
+    else:
+      resumed = max(i for i in range(depth) if taus[t, i] == taus[t - 1, i] + 1)
+      fresh = resumed
+    for level in range(fresh, depth - 1):  # the push chain below the resuming level (from the root at t = 0)
+      total += call(level, t, procs[t, level], taus[t, level], procs[t, level + 1])
+    total += hierarchy.levels[-1].log_op(obs[t][None], jnp.array([float(taus[t, -1])]),
+                                         actions[t][None])[0, procs[t, -1], 0]
+    last = t == length - 1
+    resumes = -1 if last else max(i for i in range(depth) if taus[t + 1, i] == taus[t, i] + 1)
+    for level in range(depth - 1, resumes - 1, -1):  # stops from the lowest level up, then one continue
+      total += stop(level, t, procs[t, level], taus[t, level], level != resumes)
+  return float(total)
+
+
+def test_stack_inputs_give_the_executor_semantics_log_probability():
+  batch = datasets.training_demos(NANOCRAFT, 2, 3, 3)
+  hierarchy = PHPHierarchy(NANOCRAFT.spec, hidden=(16,), rngs=nnx.Rngs(4))
+  capacity = (20, 6, 4)
+  for b in range(3):
+    n = int(batch.length[b])
+    obs, act = np.asarray(batch.observations[b]), np.asarray(batch.actions[b])
+    procs, taus = np.asarray(batch.procedures[b]), np.asarray(batch.counters[b])
+    inputs = decoding.stack_inputs(hierarchy, capacity, jnp.asarray(obs), jnp.asarray(act), jnp.asarray(n))
+    annotated = stack_lattice.forward_backward(inputs, jnp.asarray(procs), jnp.asarray(taus)).log_likelihood
+    np.testing.assert_allclose(annotated, _by_hand(hierarchy, obs, act, procs, taus, n), rtol=1e-4)
+    free = stack_lattice.forward_backward(inputs).log_likelihood
+    assert annotated < free < 0  # the sum over every stack exceeds one of its paths
+
+
+def test_decode_returns_the_viterbi_stacks_and_likelihoods():
+  batch = datasets.training_demos(NANOCRAFT, 2, 5, 0)
+  hierarchy = PHPHierarchy(NANOCRAFT.spec, hidden=(16,), rngs=nnx.Rngs(4))
+  capacity = (20, 6, 4)
+  decoded = decoding.decode(hierarchy, capacity, batch, chunk=2)  # chunks of 2, the last one padded
+  for b in range(5):
+    inputs = decoding.stack_inputs(hierarchy, capacity, batch.observations[b], batch.actions[b], batch.length[b])
+    path = stack_lattice.viterbi(inputs)
+    np.testing.assert_allclose(decoded.log_likelihood[b], stack_lattice.forward_backward(inputs).log_likelihood,
+                               rtol=1e-5)
+    np.testing.assert_array_equal(decoded.procedures[b], path.procedures)
+    np.testing.assert_array_equal(decoded.counters[b], path.counters)
+
+
+def test_joint_training_lowers_the_loss_and_fits_annotated_demonstrations():
+  batch = datasets.training_demos(NANOCRAFT, 1, 8, 8)
+  config = train.TrainConfig(iterations=60, learning_rate=1e-2, hidden=(32,), eval_every=30, training="joint",
+                             seed=1)
+  rows = []
+  hierarchy, report = joint.train_joint(NANOCRAFT.spec, batch, config, log=rows.append)
+  losses = [loss for _, loss in report["losses"]]
+  assert rows[0] == {"training": "joint", "capacity": report["capacity"]} and losses[-1] < 0.5 * losses[0]
+  assert report["capacity"][1:] == [int(np.max(np.asarray(batch.counters)[..., level])) + 1 for level in (1, 2)]
