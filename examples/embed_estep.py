@@ -6,15 +6,20 @@ every segmentation into procedure calls, and `jax.grad` of it is the Expectation
 
 Here the "user model" is a plain-JAX softmax policy: each of K procedures has, per counter τ, a table of action
 logits and a stop logit, and a root picks procedures from the observation. Data: demonstrations of a two-level
-program, actions only; the model learns from them where each call starts and ends, and Viterbi decoding then
-recovers the planted segmentation, which the script compares with the truth.
+program, observations and actions without call annotations; the model learns from them where each call starts
+and ends, and Viterbi decoding then recovers the planted segmentation, which the script compares with the
+truth.
 
 The planted program's procedure 1 repeats one action, (2, 2, 2). The actions alone cannot tell one call of
-it from three one-step calls: the root sees the same observation at every step of the call, so it can push
-procedure 1 again after each step, and both explanations give the demonstrations the same probability (with
-no penalty, training ends in the three-call one and agreement is low: try --call_penalty=0). A cost of
---call_penalty nats per call (a prior on the number of calls, log_root − λ: the posterior becomes
-P(ζ | ξ) ∝ P(ζ, ξ) e^(−λ·calls(ζ))) decides the tie for the fewer, longer calls. Run:
+it from three one-step calls: the observation tells the root which procedure runs at every step, so it can
+push procedure 1 again after each step, and both explanations give the demonstrations the same probability.
+With no prior, training ends in the three-call one (try --call_penalty=0: about 490 calls decoded for 256
+planted, agreement 0.625). A cost of --call_penalty nats per call (a prior on the number of calls,
+log_root − λ, so that the posterior is P(ζ | ξ) ∝ P(ζ, ξ) e^(−λ·calls(ζ))) decides the tie for the fewer,
+longer calls.
+Training, like EM, has local optima, so --restarts initialisations are trained side by side and the one with
+the lowest loss kept. With the defaults (λ = 0.5, 4 restarts, 300 steps) the decoded segmentation is the
+planted one at every step (seeds 0 to 11 tried), in about 15 s on a CPU. Run:
 
   python examples/embed_estep.py --steps=300
 """
@@ -133,7 +138,7 @@ def main(steps: int = 300, seed: int = 0, call_penalty: float = 0.5, restarts: i
   print("  decoded procedure: ", procs[0, :12].tolist())
   print("  planted counter:   ", true_taus[0, :12].tolist())
   print("  decoded counter:   ", taus[0, :12].tolist())
-  true_calls = int(np.sum(true_taus[:, :] == 0))
+  true_calls = int(np.sum(true_taus == 0))
   calls = int(np.sum(taus == 0))
   score = agreement(procs, taus, true_procs, true_taus)
   print(f"calls: {calls} decoded, {true_calls} planted ({n} steps in demonstration 0)")
