@@ -20,6 +20,11 @@ so after a log-space forward filter (one exp per cell) the smoother runs in prob
 transcendental functions, Viterbi needs one backpointer per step, and posterior sampling is exact
 forward-filter backward-sample. The forward carry is renormalised every step, so float32 stays accurate on
 traces of 10,000 steps with large logits; −inf masks give exact zeros, never NaN.
+
+Dtypes: float32 and float64 inputs are computed in their own dtype. float16 and bfloat16 inputs are computed
+in float32 and the results are float32 (a long trace's log-likelihood is beyond float16's range, −65,504,
+and the recursions' sums need more than its 3 significant digits); gradients with respect to the inputs come
+back in the inputs' dtype.
 """
 from __future__ import annotations
 
@@ -70,6 +75,15 @@ class LatticePath(NamedTuple):
   procedure: jax.Array
   counter: jax.Array
   log_prob: jax.Array
+
+
+_HALF_PRECISION = (jnp.dtype(jnp.float16), jnp.dtype(jnp.bfloat16))
+
+
+def _in_float32(*arrays):
+  """The arrays, float16 and bfloat16 ones cast to float32 (module docstring, Dtypes): the public E-step
+  functions compute in at least float32. The cast's gradient returns cotangents in the caller's dtype."""
+  return tuple(x.astype(jnp.float32) if getattr(x, "dtype", None) in _HALF_PRECISION else x for x in arrays)
 
 
 def _check_inputs(log_root, log_op, log_stop, log_cont, length):
@@ -263,6 +277,7 @@ def forward_backward(log_root, log_op, log_stop, log_cont, length=None) -> Latti
 
   Args:
     log_root: [T, K]. log_op, log_stop, log_cont: [T, K, C]. length: [] int, default T. (Module docstring.)
+      float16 / bfloat16 inputs are computed in float32 (results float32, gradients in the inputs' dtype).
       Shapes and a Python-int length are checked here; under jit or vmap a length outside 1..T is not
       (the result is then meaningless): call validate_inputs first, or use jax.experimental.checkify.
 
@@ -274,13 +289,13 @@ def forward_backward(log_root, log_op, log_stop, log_cont, length=None) -> Latti
     >>> loss = -post.log_likelihood  # jax.grad(loss) flows into the networks that made the inputs
   """
   _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
-  return LatticePosterior(*_posterior_jit(log_root, log_op, log_stop, log_cont, length))
+  return LatticePosterior(*_posterior_jit(*_in_float32(log_root, log_op, log_stop, log_cont), length))
 
 
 def viterbi(log_root, log_op, log_stop, log_cont, length=None) -> LatticePath:
   """Most likely latent path (max-product forward, one backpointer per step). Inputs as forward_backward."""
   _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
-  return _viterbi(log_root, log_op, log_stop, log_cont, length)
+  return _viterbi(*_in_float32(log_root, log_op, log_stop, log_cont), length)
 
 
 @jax.jit
@@ -313,7 +328,7 @@ def sample_posterior(key, log_root, log_op, log_stop, log_cont, length=None, tem
     >>> path = sample_posterior(jax.random.key(0), log_root, log_op, log_stop, log_cont, 5, temperature=0.5)
   """
   _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
-  return _sample_posterior(key, log_root, log_op, log_stop, log_cont, length, temperature)
+  return _sample_posterior(key, *_in_float32(log_root, log_op, log_stop, log_cont), length, temperature)
 
 
 @jax.jit
@@ -363,7 +378,7 @@ def complete_log_likelihood(log_root, log_op, log_stop, log_cont, procedure, cou
     [] the complete-data log-likelihood.
   """
   _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
-  return _complete_log_likelihood(log_root, log_op, log_stop, log_cont, procedure, counter, length)
+  return _complete_log_likelihood(*_in_float32(log_root, log_op, log_stop, log_cont), procedure, counter, length)
 
 
 @jax.jit
@@ -428,8 +443,9 @@ def top_level(log_stop, length=None):
 
 def posterior_entropy(log_root, log_op, log_stop, log_cont, length=None):
   """Entropy of P(ζ | ξ) in nats: log P(ξ) − E[log P(ζ, ξ)], from the marginals. Returns []."""
-  post = forward_backward(log_root, log_op, log_stop, log_cont, length)
-  return post.log_likelihood - _expected_log_joint(post, log_root, log_op, log_stop, log_cont)
+  inputs = _in_float32(log_root, log_op, log_stop, log_cont)
+  post = forward_backward(*inputs, length)
+  return post.log_likelihood - _expected_log_joint(post, *inputs)
 
 
 def _expected_log_joint(posterior: LatticePosterior, log_root, log_op, log_stop, log_cont):

@@ -1,6 +1,8 @@
 """More operations on the E-step's lattice (inputs and path semantics as in php_jax.lattice): the k most
 likely paths, KL divergence and cross-entropy between two posteriors, a differentiable posterior sample and
-the online forward filter. Each is exact and checked against enumeration of every path in the tests."""
+the online forward filter. Each is exact and checked against enumeration of every path in the tests.
+float16 and bfloat16 inputs are computed in float32, as in php_jax.lattice (results float32, gradients in
+the inputs' dtype)."""
 from __future__ import annotations
 
 import functools
@@ -10,7 +12,7 @@ import jax
 import jax.numpy as jnp
 
 from php_jax.lattice import (NO_FRAME, LatticeInputs, LatticePath, _check_inputs, _expected_log_joint,
-                             _finite_or_zero, _is_push, _path_from_states, _shift, forward_backward,
+                             _finite_or_zero, _in_float32, _is_push, _path_from_states, _shift, forward_backward,
                              sample_posterior)
 
 
@@ -32,7 +34,7 @@ def top_k(k: int, log_root, log_op, log_stop, log_cont, length=None) -> LatticeP
   if not isinstance(k, int) or k < 1:
     raise ValueError(f"k must be an int ≥ 1; got {k!r}")
   _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
-  return _top_k(k, log_root, log_op, log_stop, log_cont, length)
+  return _top_k(k, *_in_float32(log_root, log_op, log_stop, log_cont), length)
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -127,7 +129,7 @@ def _same_lattice(p: LatticeInputs, q: LatticeInputs):
     differ = False
   if differ:
     raise ValueError(f"p and q must have the same length; got {lengths[0]} and {lengths[1]}")
-  return p._replace(length=lengths[0]), q._replace(length=lengths[0])
+  return (LatticeInputs(*_in_float32(*p[:4]), lengths[0]), LatticeInputs(*_in_float32(*q[:4]), lengths[0]))
 
 
 def differentiable_sample(key, log_root, log_op, log_stop, log_cont, length=None, temperature=1.0,
@@ -153,7 +155,7 @@ def differentiable_sample(key, log_root, log_op, log_stop, log_cont, length=None
     >>> jax.grad(lambda op: jnp.sum(weights * differentiable_sample(key, log_root, op, log_stop, log_cont, 5)))(log_op)
   """
   _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
-  inputs = (log_root, log_op, log_stop, log_cont)
+  inputs = _in_float32(log_root, log_op, log_stop, log_cont)
   if method == "straight-through":
     path = sample_posterior(key, *inputs, length, temperature)
     v = forward_backward(*(x / temperature for x in inputs), length).v
@@ -212,7 +214,7 @@ def forward_filter(log_root, log_op, log_stop, log_cont, length=None) -> Lattice
     >>> filt.filtered[2]  # [K, C] P(h_2, τ_2 | a_0, a_1, a_2)
   """
   _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
-  return _forward_filter_public(log_root, log_op, log_stop, log_cont, length)
+  return _forward_filter_public(*_in_float32(log_root, log_op, log_stop, log_cont), length)
 
 
 @jax.jit

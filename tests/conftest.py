@@ -1,6 +1,6 @@
-"""Test-session settings: a persistent compilation cache in a fresh temporary directory, so that the many
+"""Settings for a pytest run: a persistent compilation cache in a fresh temporary directory, so that the many
 identical computations the training tests compile again (each training run jits its own closures) are
-compiled by XLA once per session. Also puts the checkout on the PYTHONPATH of the commands the tests run:
+compiled by XLA once per run. Also puts the checkout on the PYTHONPATH of the commands the tests run:
 experiments/ is not installed, and `python -m experiments.X` must find it whatever the working directory."""
 import os
 import pathlib

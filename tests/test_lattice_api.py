@@ -365,3 +365,36 @@ def test_validate_inputs_refuses_with_a_clear_message(bad, message):
 def test_validate_inputs_refuses_traced_values():
   with pytest.raises(TypeError, match="traced"):
     jax.jit(lambda x: php_jax.validate_inputs(x, *list(_valid_arrays().values())[1:]))(np.zeros((4, 2)))
+
+
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
+def test_half_precision_inputs_are_computed_in_float32(dtype):
+  """T = 10,000 with ×50 logits: log P(ξ) ≈ −66,000 is beyond float16's range (−65,504), so a float16
+  computation gave −inf. Half-precision inputs are computed in float32: finite results in float32, equal to
+  float32 on the same (rounded) inputs and close to it on the unrounded ones; gradients in the input dtype."""
+  inputs = bf.random_lattice(np.random.default_rng(0), 10_000, 3, 8, scale=50.0, mask_prob=0.2)
+  full = [jnp.asarray(x, jnp.float32) for x in inputs]
+  for i in (1, 2):  # keep one path possible
+    full[i] = full[i].at[:, :, 0].set(jnp.maximum(full[i][:, :, 0], -5.0))
+  half = [x.astype(dtype) for x in full]
+  rounded = [x.astype(jnp.float32) for x in half]
+  length = 9_000
+
+  def loglik(*a):
+    return php_jax.forward_backward(*a, length=length).log_likelihood
+
+  value, grads = jax.jit(jax.value_and_grad(loglik, argnums=(0, 1, 2, 3)))(*half)
+  expected = jax.jit(loglik)(*full)
+  assert value.dtype == jnp.float32 and np.isfinite(value) and expected < np.finfo(np.float16).min
+  np.testing.assert_allclose(value, jax.jit(loglik)(*rounded), rtol=1e-6)
+  np.testing.assert_allclose(value, expected, rtol=1e-4)
+  assert [g.dtype for g in grads] == [jnp.dtype(dtype)] * 4
+  assert all(np.all(np.isfinite(np.asarray(g, np.float32))) for g in grads)
+  v = php_jax.forward_backward(*rounded, length=length).v  # ∂ log P / ∂ log_op = v, rounded to the input dtype
+  np.testing.assert_allclose(np.asarray(grads[1], np.float32), v, atol=1e-2)
+  for result in (php_jax.viterbi(*half, length=length).log_prob,
+                 lattice_ops.forward_filter(*half, length=length).log_likelihood,
+                 lattice_ops.top_k(2, *half, length=length).log_prob,
+                 php_jax.sample_posterior(jax.random.key(0), *half, length=length).log_prob,
+                 php_jax.kl_divergence(php_jax.LatticeInputs(*half, length), php_jax.LatticeInputs(*full, length))):
+    assert result.dtype == jnp.float32 and np.all(np.isfinite(result)), result

@@ -202,6 +202,73 @@ def test_sigterm_keeps_the_checkpoint_says_how_to_resume_and_the_rerun_continues
   assert results["wall_seconds"] >= seconds[-1]
 
 
+def _checkpoint_meta(workdir):
+  """The training checkpoint's metadata (level, progress), or None before the first one."""
+  saved = checkpoint.read_training(str(workdir / checkpoint.TRAINING_FILE))
+  return saved and saved[0]
+
+
+def _kill_when(command, log, ready, moment, timeout=300):
+  """Starts command, polls ready() every few milliseconds while it runs, then SIGKILLs it."""
+  with open(log, "w") as stderr:
+    proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=stderr, cwd=ROOT)
+  deadline = time.time() + timeout
+  while not ready():
+    assert proc.poll() is None, f"the run ended before {moment}: {pathlib.Path(log).read_text()[-2000:]}"
+    assert time.time() < deadline, f"no {moment} within {timeout} s"
+    time.sleep(0.005)
+  proc.kill()
+  proc.wait(timeout=60)
+  assert proc.returncode == -signal.SIGKILL
+
+
+@pytest.mark.slow
+def test_sigkill_at_any_moment_then_a_rerun_ends_as_an_uninterrupted_run(tmp_path):
+  """The same command killed with SIGKILL mid-level, while a finished level decodes its views, at the level
+  switch and during the final writes, each time rerun, ends with the bytes and results of a run never killed."""
+  def command(workdir):
+    return [sys.executable, "-m", "experiments.train", "--task=tests.test_task_interface:COUNTDOWN",
+            f"--workdir={workdir}", "--num_strong=2", "--root=mlp", "--iterations=1000", "--eval_every=20"]
+
+  reference = tmp_path / "reference"
+  proc = subprocess.run(command(reference), capture_output=True, text=True, timeout=600, cwd=ROOT)
+  assert proc.returncode == 0, proc.stderr[-3000:]
+  workdir = tmp_path / "killed"
+  moments = [  # (what the poll waits for, the checkpoint it must have left)
+      ("level 2 mid-way", lambda m: m and m["level"] == 2 and m["progress"],
+       lambda m: m["level"] == 2 and m["progress"]["iteration"] < 1000),
+      ("level 2's last iteration saved, its views decoding", lambda m: m and m["level"] == 2 and m["progress"]
+       and m["progress"]["iteration"] == 1000, lambda m: m["level"] == 2 and m["progress"]["iteration"] == 1000),
+      ("the switch to level 1, before its first checkpoint", lambda m: m and m["level"] == 1 and not m["progress"],
+       lambda m: m["level"] == 1 and m["progress"] is None)]
+  for moment, ready, left in moments:
+    _kill_when(command(workdir), tmp_path / "stderr", lambda: ready(_checkpoint_meta(workdir)), moment)
+    assert left(_checkpoint_meta(workdir)), (moment, _checkpoint_meta(workdir))
+  _kill_when(command(workdir), tmp_path / "stderr", (workdir / checkpoint.MODEL_FILE).exists, "the model's write")
+  assert _checkpoint_meta(workdir)["level"] == -1 and not (workdir / "results.json").exists()
+  # What a kill inside a write leaves beside the files: a partly written temporary file (the target is whole).
+  for name in ("results.json", checkpoint.ARCHITECTURE_FILE):
+    (workdir / f".{name}.0123456789ab.tmp").write_bytes((reference / name).read_bytes()[:100])
+  rerun = subprocess.run(command(workdir), capture_output=True, text=True, timeout=600, cwd=ROOT)
+  assert rerun.returncode == 0, rerun.stderr[-3000:]
+
+  assert sorted(p.name for p in workdir.iterdir()) == sorted(p.name for p in reference.iterdir())  # no .tmp left
+  for name in (checkpoint.MODEL_FILE, checkpoint.ARCHITECTURE_FILE):
+    assert (workdir / name).read_bytes() == (reference / name).read_bytes(), name
+  results, expected = (json.loads((d / "results.json").read_text()) for d in (workdir, reference))
+  for entry in (*results["levels"].values(), *expected["levels"].values()):
+    del entry["seconds"]
+  for entry in (results, expected):
+    del entry["wall_seconds"], entry["commit"]  # the wall time counts every attempt (below); the checkout's commit
+  assert results == expected  # test accuracies, config, per-level losses, snapshots and decoding agreement
+  rows, expected_rows = ([json.loads(line) for line in (d / "metrics.jsonl").read_text().splitlines()]
+                         for d in (workdir, reference))
+  seconds = [row.pop("seconds") for row in rows]
+  assert rows == [{k: v for k, v in row.items() if k != "seconds"} for row in expected_rows]  # once each
+  assert seconds == sorted(seconds)  # the clock went on across the attempts
+  assert json.loads((workdir / "results.json").read_text())["wall_seconds"] >= seconds[-1]
+
+
 def test_bad_training_settings_are_refused_naming_the_setting(tmp_path):
   for changes, message in [({"learning_rate": float("nan")}, "learning_rate"), ({"iterations": -1}, "iterations"),
                            ({"tau_limit": (0, -1, None)}, "tau_limit"), ({"min_capacity": (0, -2, 3)}, "min_capacity"),
