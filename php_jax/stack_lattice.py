@@ -143,8 +143,9 @@ def _logsumexp(x):
 def _forward(inputs: StackInputs, potentials, length, semiring_max=False, keep_stops=False):
   """The forward recursion (module docstring) as one lax.scan, carry renormalised every step.
 
-  The carry is the continuing mass cont_i (τ_i < C_i − 1) of every level, relative to the running scale;
-  step t pushes with log_call[·][t] itself. The carry runs on through padding, where increments are 0.
+  The carry is the continuing mass cont_i (τ_i < C_i − 1) of every level and its maximum, the step's scale,
+  which the next step subtracts as it reads the carry (one pass fewer than renormalising in place); step t
+  pushes with log_call[·][t] itself. The carry runs on through padding, where increments are 0.
 
   Returns:
     log_increments: [T] summing to log P(ξ) (max-product: the best path's log-probability).
@@ -156,11 +157,12 @@ def _forward(inputs: StackInputs, potentials, length, semiring_max=False, keep_s
   depth, dtype = len(log_stop), log_act.dtype
 
   def step(carry, t):
-    alpha = jnp.concatenate([jnp.where(t == 0, 0.0, -jnp.inf).astype(dtype)[None, None], carry[0]], axis=-1)
+    carry, scale = carry
+    alpha = jnp.concatenate([jnp.where(t == 0, 0.0, -jnp.inf).astype(dtype)[None, None], carry[0] - scale], axis=-1)
     potential = potentials[0][t]  # over levels 0..d-2, added to every frame of step t in one pass
     for i in range(depth - 1):
       pushed = alpha[..., None] + log_call[i][t]
-      alpha = jnp.concatenate([pushed[..., None], carry[i + 1]], axis=-1)
+      alpha = jnp.concatenate([pushed[..., None], carry[i + 1] - scale], axis=-1)
       if i + 1 < depth - 1:
         potential = potential[..., None, None] + potentials[i + 1][t]
     mass = alpha + potential[..., None, None] + (log_act[t] + potentials[-1][t])
@@ -170,8 +172,9 @@ def _forward(inputs: StackInputs, potentials, length, semiring_max=False, keep_s
       scores = mass + log_stop[i][t]
       flat = scores.reshape(scores.shape[:-2] + (-1,))
       if semiring_max:
-        stops.insert(0, jnp.argmax(flat, axis=-1).astype(jnp.int32))
-        mass = jnp.max(flat, axis=-1)
+        mass = jnp.max(flat, axis=-1)  # the first maximiser by a min-reduction: much faster than argmax on CPU
+        cells = jnp.arange(flat.shape[-1], dtype=jnp.int32)
+        stops.insert(0, jnp.min(jnp.where(flat == mass[..., None], cells, flat.shape[-1]), axis=-1))
       else:
         stops.insert(0, scores)
         mass = _logsumexp(flat)
@@ -179,10 +182,11 @@ def _forward(inputs: StackInputs, potentials, length, semiring_max=False, keep_s
     scale = jax.lax.stop_gradient(_finite_or_zero(jnp.max(jnp.stack(peaks)) if peaks else jnp.zeros((), dtype)))
     increment = jnp.where(t == length - 1, mass, jnp.where(t < length - 1, scale, 0.0))
     outputs = tuple(stops) if semiring_max or keep_stops else None
-    return tuple(c - scale for c in conts), (increment, outputs)
+    return (tuple(conts), scale), (increment, outputs)
 
   init = tuple(jnp.full(_prefix_shape(log_stop, i)[:-1] + (log_stop[i].shape[2] - 1,), -jnp.inf, dtype)
                for i in range(depth))
+  init = (init, jnp.zeros((), dtype))
   _, (log_increments, stops) = jax.lax.scan(step, init, jnp.arange(log_act.shape[0]))
   return log_increments, stops
 
@@ -196,27 +200,10 @@ def _log_likelihood(inputs: StackInputs, potentials, length):
   return jnp.sum(_forward(inputs, potentials, length)[0])
 
 
-def _marginals(inputs: StackInputs, potentials, length):
+@jax.jit
+def _posterior(inputs: StackInputs, procedures, counters, length):
+  potentials = _potentials(inputs, procedures, counters)
   return jax.value_and_grad(_log_likelihood, argnums=1)(inputs, potentials, length)
-
-
-@jax.custom_jvp
-def _posterior(inputs: StackInputs, potentials, length):
-  return _marginals(inputs, potentials, length)
-
-
-@_posterior.defjvp
-def _posterior_jvp(primals, tangents):
-  """d log P = Σ (∂ log P / ∂x)·dx over inputs and potentials, the gradients of one reverse pass: reverse mode
-  transposes this linear map at no extra cost. Tangents of the marginals come from forward-mode autodiff."""
-  inputs, potentials, length = primals
-  log_likelihood, grads = jax.value_and_grad(_log_likelihood, argnums=(0, 1))(inputs, potentials, length)
-  d_log_likelihood = sum(jnp.sum(g * d) for g, d in zip(jax.tree.leaves(grads), jax.tree.leaves(tangents[:2])))
-  d_marginals = jax.jvp(lambda x, u: _marginals(x, u, length)[1], primals[:2], tangents[:2])[1]
-  return (log_likelihood, grads[1]), (d_log_likelihood, d_marginals)
-
-
-_posterior_jit = jax.jit(_posterior)
 
 
 def forward_backward(inputs: StackInputs, procedures=None, counters=None) -> StackPosterior:
@@ -234,48 +221,50 @@ def forward_backward(inputs: StackInputs, procedures=None, counters=None) -> Sta
     StackPosterior(log_likelihood [], marginals: d arrays [T, K_i, C_i]).
   """
   _, _, length = _check_inputs(inputs)
-  log_likelihood, marginals = _posterior_jit(inputs._replace(length=None), _potentials(inputs, procedures, counters),
-                                         length)
-  return StackPosterior(log_likelihood, marginals)
+  return StackPosterior(*_posterior(inputs._replace(length=None), procedures, counters, length))
 
 
-def _backtrack(stops, length, capacities, choose):
+def _backtrack(stops, length, capacities, choose, dtype):
   """Reverse scan from the last step: the frames of step t given step t+1's and step t's stop tables.
 
   Levels 0..j (j the deepest level with τ > 0 at t+1, −1 after the last step) are kept, τ_j one less; the
-  stopped levels j+1..d-1 are chosen top-down by choose(level, table at the chosen prefix, t) → flat h·C + τ.
-  Returns (procedures [T, d], counters [T, d]) with NO_FRAME on padding.
+  stopped levels j+1..d-1 are chosen top-down by choose(level, table at the chosen prefix, t) → (flat h·C + τ,
+  log-probability of that choice, of the given dtype).
+  Returns (procedures [T, d], counters [T, d]) with NO_FRAME on padding, and [] the sum of the choices'
+  log-probabilities.
   """
   depth = len(capacities)
-  levels = jnp.arange(depth)
 
   def step(state_next, xs):
     t, tables = xs
-    procs_next, taus_next = state_next
+    procs_next, taus_next, log_prob = state_next
+    used = t < length
     resumed = taus_next > 0
     deepest = jnp.where((t < length - 1) & jnp.any(resumed), depth - 1 - jnp.argmax(resumed[::-1]), -1)
     procs, taus = [], []
     for i in range(depth):
-      h, tau = jnp.divmod(choose(i, tables[i][tuple(x for frame in zip(procs, taus) for x in frame)], t),
-                          capacities[i])
+      index, log_choice = choose(i, tables[i][tuple(x for frame in zip(procs, taus) for x in frame)], t)
+      h, tau = jnp.divmod(index, capacities[i])
       procs.append(jnp.where(i <= deepest, procs_next[i], h))
       taus.append(jnp.where(i <= deepest, taus_next[i] - (i == deepest), tau))
-    used = t < length
+      log_prob = log_prob + jnp.where(used & (i > deepest), log_choice, 0.0)
     procs, taus = (jnp.where(used, jnp.stack(x).astype(jnp.int32), x_next)
                    for x, x_next in ((procs, procs_next), (taus, taus_next)))
-    return (procs, taus), (jnp.where(used, procs, NO_FRAME), jnp.where(used, taus, NO_FRAME))
+    return (procs, taus, log_prob), (jnp.where(used, procs, NO_FRAME), jnp.where(used, taus, NO_FRAME))
 
-  init = (jnp.zeros_like(levels, jnp.int32), jnp.zeros_like(levels, jnp.int32))
+  init = (jnp.zeros(depth, jnp.int32), jnp.zeros(depth, jnp.int32), jnp.zeros((), dtype))
   num_steps = jax.tree.leaves(stops)[0].shape[0]
-  _, (procedures, counters) = jax.lax.scan(step, init, (jnp.arange(num_steps), stops), reverse=True)
-  return procedures, counters
+  (_, _, log_prob), (procedures, counters) = jax.lax.scan(step, init, (jnp.arange(num_steps), stops), reverse=True)
+  return procedures, counters, log_prob
 
 
 @jax.jit
-def _viterbi(inputs: StackInputs, potentials, length):
+def _viterbi(inputs: StackInputs, procedures, counters, length):
+  potentials = _potentials(inputs, procedures, counters)
   log_increments, backpointers = _forward(inputs, potentials, length, semiring_max=True)
   capacities = tuple(x.shape[2] for x in inputs.log_stop)
-  procedures, counters = _backtrack(backpointers, length, capacities, lambda level, pointer, t: pointer)
+  procedures, counters, _ = _backtrack(backpointers, length, capacities, lambda level, pointer, t: (pointer, 0.0),
+                                       inputs.log_act.dtype)
   return StackPath(procedures, counters, jnp.sum(log_increments))
 
 
@@ -286,20 +275,26 @@ def viterbi(inputs: StackInputs, procedures=None, counters=None) -> StackPath:
   Returns StackPath(procedures [T, d], counters [T, d], log_prob []); meaningless if log_prob is −inf.
   """
   _, _, length = _check_inputs(inputs)
-  return _viterbi(inputs._replace(length=None), _potentials(inputs, procedures, counters), length)
+  return _viterbi(inputs._replace(length=None), procedures, counters, length)
 
 
 @jax.jit
-def _sample_posterior(key, inputs: StackInputs, potentials, length):
-  _, stop_scores = _forward(inputs, potentials, length, keep_stops=True)
+def _sample_posterior(key, inputs: StackInputs, procedures, counters, length):
+  """Backward sampling from the forward pass's stop scores; log P(ζ, ξ) = log P(ξ) + Σ log P(choice | ·)."""
+  potentials = _potentials(inputs, procedures, counters)
+  log_increments, stop_scores = _forward(inputs, potentials, length, keep_stops=True)
   capacities = tuple(x.shape[2] for x in inputs.log_stop)
 
   def choose(level, scores, t):
-    return jax.random.categorical(jax.random.fold_in(jax.random.fold_in(key, t), level), scores.reshape(-1))
+    scores = scores.reshape(-1)
+    index = jax.random.categorical(jax.random.fold_in(jax.random.fold_in(key, t), level), scores)
+    return index, scores[index] - _logsumexp(scores)
 
-  procedures, counters = _backtrack(stop_scores, length, capacities, choose)
-  path_potentials = _potentials(inputs, procedures, counters)
-  return StackPath(procedures, counters, _log_likelihood(inputs, path_potentials, length))
+  path_procedures, path_counters, log_posterior = _backtrack(stop_scores, length, capacities, choose,
+                                                             inputs.log_act.dtype)
+  log_likelihood = jnp.sum(log_increments)
+  return StackPath(path_procedures, path_counters, jnp.where(jnp.isfinite(log_likelihood), log_likelihood + log_posterior,
+                                                   -jnp.inf))
 
 
 def sample_posterior(key, inputs: StackInputs, procedures=None, counters=None) -> StackPath:
@@ -310,4 +305,4 @@ def sample_posterior(key, inputs: StackInputs, procedures=None, counters=None) -
   Returns StackPath(procedures [T, d], counters [T, d], log_prob [] = log P(ζ, ξ) of the drawn path).
   """
   _, _, length = _check_inputs(inputs)
-  return _sample_posterior(key, inputs._replace(length=None), _potentials(inputs, procedures, counters), length)
+  return _sample_posterior(key, inputs._replace(length=None), procedures, counters, length)

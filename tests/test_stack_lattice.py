@@ -148,6 +148,17 @@ def posterior_and_grads(inputs, procedures=None, counters=None):
                               unknown if counters is None else counters))
 
 
+KEYS = jax.random.split(jax.random.key(0), 4000)
+_sample_many = jax.jit(jax.vmap(sl.sample_posterior, (0, None, None, None)))
+
+
+def sample_many(inputs, procedures=None, counters=None):
+  """sample_posterior for each of KEYS, compiled once per shape like posterior_and_grads; numpy out."""
+  unknown = np.full((inputs.log_act.shape[0], len(inputs.log_stop)), -1, np.int32)
+  return jax.device_get(_sample_many(KEYS, inputs, unknown if procedures is None else procedures,
+                                     unknown if counters is None else counters))
+
+
 def _annotation(stack, num_steps):
   """[T, d] procedures and counters of an enumerated path, −1 on padding."""
   depth = len(stack[0])
@@ -235,15 +246,14 @@ def test_annotation_full_and_partial():
     best = int(np.argmax(sub_log_probs))
     np.testing.assert_array_equal(path.procedures, _annotation(sub_stacks[best], num_steps)[0])
     np.testing.assert_allclose(path.log_prob, sub_log_probs[best], atol=1e-6)
-    samples = jax.vmap(sl.sample_posterior, (0, None, None, None))(jax.random.split(jax.random.key(2), 100), args,
-                                                                   procedures, counters)
+    samples = sample_many(args, procedures, counters)
     used = np.arange(num_steps)[:, None] < length
     for drawn, annotated in ((samples.procedures, procedures), (samples.counters, counters)):
       known = (annotated >= 0) & used
       assert (np.asarray(drawn)[:, known] == annotated[known]).all()
     # Counters unknown (None): only procedures constrain the paths.
     log_z, _, _, _ = posterior(inputs, length, functools.partial(agrees, counters=np.full_like(counters, -1)))
-    np.testing.assert_allclose(sl.forward_backward(args, procedures).log_likelihood, log_z, atol=1e-6)
+    np.testing.assert_allclose(posterior_and_grads(args, procedures)[0].log_likelihood, log_z, atol=1e-6)
 
 
 def _path_index(stacks, num_steps):
@@ -253,13 +263,12 @@ def _path_index(stacks, num_steps):
 def test_sample_posterior_matches_enumeration():
   with jax.enable_x64(True):
     _, args, num_steps, _, (_, probs, stacks, log_probs) = _case((THREE, 4, 0.0), seed=5, scale=2.0)
-    keys = jax.random.split(jax.random.key(0), 4000)
-    paths = jax.vmap(sl.sample_posterior, in_axes=(0, None))(keys, args)
+    paths = sample_many(args)
   index = _path_index(stacks, num_steps)
   drawn = [index[np.stack([p, c], -1).tobytes()] for p, c in zip(np.asarray(paths.procedures),
                                                                   np.asarray(paths.counters))]
   np.testing.assert_allclose(paths.log_prob, log_probs[drawn], atol=1e-6)
-  counts, n = collections.Counter(drawn), len(keys)
+  counts, n = collections.Counter(drawn), len(KEYS)
   for k, p in enumerate(probs):
     assert abs(counts[k] / n - p) <= 5 * np.sqrt(p * (1 - p) / n) + 2 / n, (k, counts[k] / n, p)
 
@@ -312,18 +321,27 @@ def test_long_trace_float32_large_logits_is_finite():
 
 
 def test_padding_is_a_no_op_and_batching_works():
-  key = jax.random.key(1)
+  """Six steps padded to eight with garbage give the results of the six steps alone, sampling included."""
   with jax.enable_x64(True):
-    padded, args, _, _, _ = _case((THREE, 4, 0.15), seed=9)
-    truncated = _jnp(sl.StackInputs(*jax.tree.map(lambda x: x[:4], tuple(padded[:4]))), jnp.float64)
-    for fn in (lambda x: posterior_and_grads(x)[0], sl.viterbi, functools.partial(sl.sample_posterior, key)):
-      got, want = fn(args), fn(truncated)
-      for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
-        if g.ndim:
-          np.testing.assert_allclose(g[:4], w, rtol=1e-9, atol=1e-9)
-          np.testing.assert_array_equal(g[4:], 0 if g.dtype.kind == "f" else php_jax.NO_FRAME)
-        else:
-          np.testing.assert_allclose(g, w, rtol=1e-9)
+    (sizes, capacities, _), length = THREE, 6
+    padded = _jnp(random_stack(np.random.default_rng(9), sizes, capacities, 8, mask_prob=0.1, length=length),
+                  jnp.float64)
+    truncated = sl.StackInputs(*jax.tree.map(lambda x: x[:length], tuple(padded[:4])), length=length)
+
+    def same(got, want, pad, time_axis=0):  # got[:length] = want along the time axis; got = pad after
+      got, want = np.moveaxis(np.asarray(got), time_axis, 0), np.moveaxis(np.asarray(want), time_axis, 0)
+      np.testing.assert_allclose(got[:length], want, rtol=1e-9, atol=1e-9)
+      np.testing.assert_array_equal(got[length:], pad)
+
+    got, want = posterior_and_grads(padded)[0], posterior_and_grads(truncated)[0]
+    np.testing.assert_allclose(got.log_likelihood, want.log_likelihood, rtol=1e-9)
+    for g, w in zip(got.marginals, want.marginals):
+      same(g, w, 0.0)
+    for fn, time_axis in ((sl.viterbi, 0), (sample_many, 1)):
+      got, want = fn(padded), fn(truncated)
+      same(got.procedures, want.procedures, php_jax.NO_FRAME, time_axis)
+      same(got.counters, want.counters, php_jax.NO_FRAME, time_axis)
+      np.testing.assert_allclose(got.log_prob, want.log_prob, rtol=1e-9)
 
     # A batch of demonstrations of different lengths under jit(vmap(·)) equals the one-by-one results.
     batch = [_case((THREE, n, 0.0), seed=n)[1] for n in (6, 2, 5)]
