@@ -17,9 +17,9 @@ that continues moves to τ_j + 1 (impossible at C_j) and levels j+1..d-1 are pus
 
 The transition is never formed as an S × S matrix. It factors into a stop cascade and a push chain:
 
-  cascade (step t)   m_{d-1} = α_t + log_act_t;  cont_i = m_i + log_cont_i;  m_{i-1} = ⊕_{h_i, τ_i} m_i + log_stop_i
-  push (step t+1)    g_0 = [start | cont_0 shifted by one along τ_0];
-                     g_{i+1} = [g_i + log_call_i (τ_{i+1} = 0) | cont_{i+1} shifted along τ_{i+1}];  α_{t+1} = g_{d-1}
+  cascade (step t)   m_{d-1} = α_t + log_act_t;  cont_i = m_i + log_cont_i;  m_{i-1} = ⊕_{h_i,τ_i} m_i + log_stop_i
+  push (step t+1)    g_0 = [start | cont_0 shifted by one along τ_0];   α_{t+1} = g_{d-1};
+                     g_{i+1} = [g_i + log_call_i (at τ_{i+1} = 0) | cont_{i+1} shifted by one along τ_{i+1}]
 
 where m_i is over levels 0..i (the mass of every stack whose levels below i all stopped), ⊕ is logsumexp
 (sum-product) or max (max-product), and m_{-1} is the mass of ending the episode, used at the last step only.
@@ -85,7 +85,7 @@ class StackPath(NamedTuple):
 
 
 def _check_inputs(inputs: StackInputs):
-  """Validates shapes (static) and returns (K tuple, C tuple, length as an int32 array)."""
+  """Validates shapes (static) and a Python-int length; returns the length as an int32 array."""
   log_call, log_act, log_stop, log_cont, length = inputs
   depth = len(log_stop)
   if depth < 2 or len(log_cont) != depth or len(log_call) != depth - 1:
@@ -108,7 +108,7 @@ def _check_inputs(inputs: StackInputs):
     length = num_steps
   if isinstance(length, (int, np.integer)) and not 1 <= length <= num_steps:
     raise ValueError(f"length must be in 1..T = 1..{num_steps}; got {length}")
-  return sizes, capacities, jnp.asarray(length, jnp.int32)
+  return jnp.asarray(length, jnp.int32)
 
 
 def _potentials(inputs: StackInputs, procedures, counters):
@@ -216,11 +216,12 @@ def forward_backward(inputs: StackInputs, procedures=None, counters=None) -> Sta
   Args:
     inputs: StackInputs (module docstring). Shapes and a Python-int length are checked here.
     procedures, counters: [T, d] int annotation, −1 = unknown (either may be None); paths must agree with every
-      known entry. Fully annotated, log_likelihood is the complete-data log-likelihood of that path.
+      known entry (a value out of range matches nothing). Fully annotated, log_likelihood is the complete-data
+      log-likelihood of that path; ignored on padding.
   Returns:
     StackPosterior(log_likelihood [], marginals: d arrays [T, K_i, C_i]).
   """
-  _, _, length = _check_inputs(inputs)
+  length = _check_inputs(inputs)
   return StackPosterior(*_posterior(inputs._replace(length=None), procedures, counters, length))
 
 
@@ -263,9 +264,9 @@ def _viterbi(inputs: StackInputs, procedures, counters, length):
   potentials = _potentials(inputs, procedures, counters)
   log_increments, backpointers = _forward(inputs, potentials, length, semiring_max=True)
   capacities = tuple(x.shape[2] for x in inputs.log_stop)
-  procedures, counters, _ = _backtrack(backpointers, length, capacities, lambda level, pointer, t: (pointer, 0.0),
-                                       inputs.log_act.dtype)
-  return StackPath(procedures, counters, jnp.sum(log_increments))
+  path_procedures, path_counters, _ = _backtrack(backpointers, length, capacities,
+                                                 lambda level, pointer, t: (pointer, 0.0), inputs.log_act.dtype)
+  return StackPath(path_procedures, path_counters, jnp.sum(log_increments))
 
 
 def viterbi(inputs: StackInputs, procedures=None, counters=None) -> StackPath:
@@ -274,7 +275,7 @@ def viterbi(inputs: StackInputs, procedures=None, counters=None) -> StackPath:
   Inputs and annotation as forward_backward. Memory O(T · S / (K_{d-1} C_{d-1})) for the backpointers.
   Returns StackPath(procedures [T, d], counters [T, d], log_prob []); meaningless if log_prob is −inf.
   """
-  _, _, length = _check_inputs(inputs)
+  length = _check_inputs(inputs)
   return _viterbi(inputs._replace(length=None), procedures, counters, length)
 
 
@@ -293,16 +294,16 @@ def _sample_posterior(key, inputs: StackInputs, procedures, counters, length):
   path_procedures, path_counters, log_posterior = _backtrack(stop_scores, length, capacities, choose,
                                                              inputs.log_act.dtype)
   log_likelihood = jnp.sum(log_increments)
-  return StackPath(path_procedures, path_counters, jnp.where(jnp.isfinite(log_likelihood), log_likelihood + log_posterior,
-                                                   -jnp.inf))
+  log_prob = jnp.where(jnp.isfinite(log_likelihood), log_likelihood + log_posterior, -jnp.inf)
+  return StackPath(path_procedures, path_counters, log_prob)
 
 
 def sample_posterior(key, inputs: StackInputs, procedures=None, counters=None) -> StackPath:
   """One whole-stack path drawn exactly from P(ζ | ξ) (forward filter, backward sample).
 
-  The draw at step t uses jax.random.fold_in(key, t), so padding does not change the sample. Vmap over keys
-  for many samples. Inputs and annotation as forward_backward; meaningless if log P(ξ) is −inf.
+  Step t draws with jax.random.fold_in(key, t). Vmap over keys for many samples. Inputs and annotation as
+  forward_backward; meaningless if log P(ξ) is −inf.
   Returns StackPath(procedures [T, d], counters [T, d], log_prob [] = log P(ζ, ξ) of the drawn path).
   """
-  _, _, length = _check_inputs(inputs)
+  length = _check_inputs(inputs)
   return _sample_posterior(key, inputs._replace(length=None), procedures, counters, length)

@@ -251,6 +251,11 @@ def test_annotation_full_and_partial():
     for drawn, annotated in ((samples.procedures, procedures), (samples.counters, counters)):
       known = (annotated >= 0) & used
       assert (np.asarray(drawn)[:, known] == annotated[known]).all()
+    # An impossible annotation (a counter out of range): −inf, zero marginals and zero gradients, no NaN.
+    impossible = np.where(np.arange(num_steps)[:, None] == 1, [x.shape[2] for x in inputs.log_stop], -1)
+    post, grads = posterior_and_grads(args, None, impossible)
+    assert post.log_likelihood == -np.inf
+    assert all((x == 0).all() for x in post.marginals + tuple(jax.tree.leaves(grads)))
     # Counters unknown (None): only procedures constrain the paths.
     log_z, _, _, _ = posterior(inputs, length, functools.partial(agrees, counters=np.full_like(counters, -1)))
     np.testing.assert_allclose(posterior_and_grads(args, procedures)[0].log_likelihood, log_z, atol=1e-6)
@@ -288,7 +293,7 @@ def test_two_levels_equal_the_lattice():
   with jax.enable_x64(True):
     lattice = [jnp.asarray(x, jnp.float64) for x in lattice]
     args = _jnp(stack, jnp.float64)
-    want, got = php_jax.forward_backward(*lattice, length=length), posterior_and_grads(args)[0]
+    want, got = php_jax.forward_backward(*lattice, length=length), sl.forward_backward(args)
     want_path, got_path = php_jax.viterbi(*lattice, length=length), sl.viterbi(args)
   np.testing.assert_allclose(got.log_likelihood, want.log_likelihood, atol=1e-6)
   np.testing.assert_allclose(got.marginals[1], want.v, atol=1e-6)
@@ -321,27 +326,28 @@ def test_long_trace_float32_large_logits_is_finite():
 
 
 def test_padding_is_a_no_op_and_batching_works():
-  """Six steps padded to eight with garbage give the results of the six steps alone, sampling included."""
+  """Six steps padded to eight with garbage give the results of the six steps alone (for sampling, the
+  enumeration tests pad with garbage too)."""
   with jax.enable_x64(True):
     (sizes, capacities, _), length = THREE, 6
     padded = _jnp(random_stack(np.random.default_rng(9), sizes, capacities, 8, mask_prob=0.1, length=length),
                   jnp.float64)
     truncated = sl.StackInputs(*jax.tree.map(lambda x: x[:length], tuple(padded[:4])), length=length)
 
-    def same(got, want, pad, time_axis=0):  # got[:length] = want along the time axis; got = pad after
-      got, want = np.moveaxis(np.asarray(got), time_axis, 0), np.moveaxis(np.asarray(want), time_axis, 0)
+    def same(got, want, pad):  # got[:length] = want; got = pad after
+      got, want = np.asarray(got), np.asarray(want)
       np.testing.assert_allclose(got[:length], want, rtol=1e-9, atol=1e-9)
       np.testing.assert_array_equal(got[length:], pad)
 
-    got, want = posterior_and_grads(padded)[0], posterior_and_grads(truncated)[0]
+    (got, got_grads), (want, want_grads) = posterior_and_grads(padded), posterior_and_grads(truncated)
     np.testing.assert_allclose(got.log_likelihood, want.log_likelihood, rtol=1e-9)
-    for g, w in zip(got.marginals, want.marginals):
+    for g, w in zip(got.marginals + tuple(jax.tree.leaves(got_grads)),
+                    want.marginals + tuple(jax.tree.leaves(want_grads))):
       same(g, w, 0.0)
-    for fn, time_axis in ((sl.viterbi, 0), (sample_many, 1)):
-      got, want = fn(padded), fn(truncated)
-      same(got.procedures, want.procedures, php_jax.NO_FRAME, time_axis)
-      same(got.counters, want.counters, php_jax.NO_FRAME, time_axis)
-      np.testing.assert_allclose(got.log_prob, want.log_prob, rtol=1e-9)
+    got, want = sl.viterbi(padded), sl.viterbi(truncated)
+    same(got.procedures, want.procedures, php_jax.NO_FRAME)
+    same(got.counters, want.counters, php_jax.NO_FRAME)
+    np.testing.assert_allclose(got.log_prob, want.log_prob, rtol=1e-9)
 
     # A batch of demonstrations of different lengths under jit(vmap(·)) equals the one-by-one results.
     batch = [_case((THREE, n, 0.0), seed=n)[1] for n in (6, 2, 5)]
