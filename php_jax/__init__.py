@@ -6,8 +6,9 @@ from php_jax.lattice import (NO_FRAME, LatticeInputs, LatticePath, LatticePoster
                              sample_posterior, top_level, validate_inputs, viterbi)
 from php_jax.lattice_ops import (LatticeFilter, cross_entropy, differentiable_sample, forward_filter,
                                  kl_divergence, top_k)
+from php_jax.stack_lattice import StackInputs, StackPath, StackPosterior  # functions: php_jax.stack_lattice.*
 
-__all__ = ["NO_FRAME", "LatticeFilter", "LatticeInputs", "LatticePath", "LatticePosterior", "annotate",
-           "complete_log_likelihood", "cross_entropy", "differentiable_sample", "forward_backward",
-           "forward_filter", "kl_divergence", "max_marginal_path", "posterior_entropy", "sample_posterior",
-           "top_k", "top_level", "validate_inputs", "viterbi"]
+__all__ = ["NO_FRAME", "LatticeFilter", "LatticeInputs", "LatticePath", "LatticePosterior", "StackInputs",
+           "StackPath", "StackPosterior", "annotate", "complete_log_likelihood", "cross_entropy",
+           "differentiable_sample", "forward_backward", "forward_filter", "kl_divergence", "max_marginal_path",
+           "posterior_entropy", "sample_posterior", "top_k", "top_level", "validate_inputs", "viterbi"]

@@ -1,0 +1,309 @@
+"""Exact inference over the whole call stack of a d-level PHP (the "exponential" E-step of paper §4.2.3).
+
+Levels 0 (the root, K_0 = 1) .. d-1 (the lowest, emits elementary actions); level i has K_i procedures and
+counter capacity C_i. At every elementary step the stack holds one frame (h_i, τ_i) per level, so the latent
+state is the tensor index s = (h_0, τ_0, h_1, τ_1, ..., h_{d-1}, τ_{d-1}) of shape [1, C_0, K_1, C_1, ...]
+(S = Π K_i C_i states; the root's K_0 = 1 axis costs nothing). One demonstration of T padded steps:
+
+  log_call[i]  [T, K_i, C_i, K_{i+1}]  log η_{i,h}^τ(h' | o_t): frame (h, τ) of level i < d-1 calls h' at step t.
+  log_act      [T, K_{d-1}, C_{d-1}]   log η_{d-1,h}^τ(a_t | o_t) of the demonstrated action.
+  log_stop[i]  [T, K_i, C_i]           log ψ_{i,h}^τ(1 | o_{t+1}); log_cont[i] the same for 0 (continue).
+  length       []  int                 steps used (1..T); steps ≥ length are padding.
+
+Semantics (the executor's): at t = 0 the root frame (0, 0) pushes a chain of frames (h_i, 0) down to level
+d-1. The lowest frame emits a_t. Then, from the bottom up, each level stops or continues; the first level j
+that continues moves to τ_j + 1 (impossible at C_j) and levels j+1..d-1 are pushed afresh at step t+1 with
+τ = 0, each calling the next with log_call[·][t+1]. All d levels stop exactly after step length-1, never before.
+
+The transition is never formed as an S × S matrix. It factors into a stop cascade and a push chain:
+
+  cascade (step t)   m_{d-1} = α_t + log_act_t;  cont_i = m_i + log_cont_i;  m_{i-1} = ⊕_{h_i,τ_i} m_i + log_stop_i
+  push (step t+1)    g_0 = [start | cont_0 shifted by one along τ_0];   α_{t+1} = g_{d-1};
+                     g_{i+1} = [g_i + log_call_i (at τ_{i+1} = 0) | cont_{i+1} shifted by one along τ_{i+1}]
+
+where m_i is over levels 0..i (the mass of every stack whose levels below i all stopped), ⊕ is logsumexp
+(sum-product) or max (max-product), and m_{-1} is the mass of ending the episode, used at the last step only.
+A state's deepest level with τ > 0 is the level that continued, so each state of step t+1 has exactly one
+"shape" of predecessor: the same levels 0..j (τ_j one less) and any stopped frames below, chosen by the cascade.
+Hence Viterbi needs one backpointer table per level and step (over levels above it: tiny), and exact posterior
+sampling draws the stopped frames level by level from the cascade's stop scores (forward filter, backward sample).
+
+Marginals come from automatic differentiation: per-level potentials u_i [T, K_i, C_i] (0, or −inf outside an
+annotation) are added to the frames, and P(h_{i,t} = h, τ_{i,t} = τ | ξ) = ∂ log P(ξ) / ∂ u_i[t, h, τ], so one
+reverse pass gives every level's marginals, and jax.grad of log P(ξ) with respect to the inputs is the
+posterior of each event (the EG gradient). The carry is renormalised every step by its maximum (a constant to
+autodiff, which keeps the gradient exact), so float32 stays finite on long traces with large logits, and
+logsumexp is guarded so −inf masks give exact zeros and zero gradients, never NaN.
+"""
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from php_jax.lattice import NO_FRAME
+
+
+class StackInputs(NamedTuple):
+  """One demonstration's stack lattice (module docstring). log_call has d-1 arrays, log_stop and log_cont d.
+
+  Attributes:
+    log_call: tuple of [T, K_i, C_i, K_{i+1}]. log_act: [T, K_{d-1}, C_{d-1}].
+    log_stop, log_cont: tuples of [T, K_i, C_i]. length: [] int or None (= T).
+  """
+  log_call: tuple
+  log_act: jax.Array
+  log_stop: tuple
+  log_cont: tuple
+  length: Any = None
+
+
+class StackPosterior(NamedTuple):
+  """Result of `forward_backward`.
+
+  Attributes:
+    log_likelihood: [] log P(ξ) (restricted to the annotation, if any); −inf if no path is possible.
+    marginals: tuple of d arrays [T, K_i, C_i], P(h_{i,t} = h, τ_{i,t} = τ | ξ); zero on padding.
+  """
+  log_likelihood: jax.Array
+  marginals: tuple
+
+
+class StackPath(NamedTuple):
+  """One whole-stack latent path.
+
+  Attributes:
+    procedures: [T, d] int32 h_{i,t} (level 0 is always 0), NO_FRAME on padding.
+    counters: [T, d] int32 τ_{i,t}, NO_FRAME on padding.
+    log_prob: [] log P(ζ, ξ) of the path (its complete-data log-likelihood).
+  """
+  procedures: jax.Array
+  counters: jax.Array
+  log_prob: jax.Array
+
+
+def _check_inputs(inputs: StackInputs):
+  """Validates shapes (static) and a Python-int length; returns the length as an int32 array."""
+  log_call, log_act, log_stop, log_cont, length = inputs
+  depth = len(log_stop)
+  if depth < 2 or len(log_cont) != depth or len(log_call) != depth - 1:
+    raise ValueError(f"need d ≥ 2 levels: d arrays in log_stop and log_cont, d-1 in log_call; got "
+                     f"{len(log_call)}, {len(log_stop)}, {len(log_cont)}")
+  num_steps = jnp.shape(log_act)[0]
+  sizes = tuple(jnp.shape(x)[1] for x in log_stop)
+  capacities = tuple(jnp.shape(x)[2] for x in log_stop)
+  expected = {f"log_stop[{i}]": (log_stop[i], (num_steps, sizes[i], capacities[i])) for i in range(depth)}
+  expected.update({f"log_cont[{i}]": (log_cont[i], (num_steps, sizes[i], capacities[i])) for i in range(depth)})
+  expected.update({f"log_call[{i}]": (log_call[i], (num_steps, sizes[i], capacities[i], sizes[i + 1]))
+                   for i in range(depth - 1)})
+  expected["log_act"] = (log_act, (num_steps, sizes[-1], capacities[-1]))
+  for name, (x, shape) in expected.items():
+    if jnp.shape(x) != shape:
+      raise ValueError(f"{name} must have shape {shape}; got {jnp.shape(x)}")
+  if sizes[0] != 1:
+    raise ValueError(f"the root level has one procedure: log_stop[0] must be [T, 1, C_0]; got {jnp.shape(log_stop[0])}")
+  if length is None:
+    length = num_steps
+  if isinstance(length, (int, np.integer)) and not 1 <= length <= num_steps:
+    raise ValueError(f"length must be in 1..T = 1..{num_steps}; got {length}")
+  return jnp.asarray(length, jnp.int32)
+
+
+def _potentials(inputs: StackInputs, procedures, counters):
+  """Per-level log-potentials [T, K_i, C_i]: 0 where the frame agrees with the annotation, −inf elsewhere.
+
+  procedures, counters: [T, d] int or None; −1 is unknown, any other value outside 0..K_i−1 matches nothing."""
+  num_steps, dtype = inputs.log_act.shape[0], inputs.log_act.dtype
+  unknown = jnp.full((num_steps, len(inputs.log_stop)), -1, jnp.int32)
+  procedures = unknown if procedures is None else jnp.asarray(procedures)
+  counters = unknown if counters is None else jnp.asarray(counters)
+  potentials = []
+  for i, stop in enumerate(inputs.log_stop):
+    _, size, capacity = stop.shape
+    proc_ok = (procedures[:, i, None] < 0) | (procedures[:, i, None] == jnp.arange(size))
+    tau_ok = (counters[:, i, None] < 0) | (counters[:, i, None] == jnp.arange(capacity))
+    potentials.append(jnp.where(proc_ok[:, :, None] & tau_ok[:, None, :], 0.0, -jnp.inf).astype(dtype))
+  return tuple(potentials)
+
+
+def _finite_or_zero(x):
+  return jnp.where(jnp.isfinite(x), x, 0.0)
+
+
+def _logsumexp(x):
+  """logsumexp over the last axis; −inf (value and zero gradient, no NaN) where every entry is −inf."""
+  peak = jax.lax.stop_gradient(_finite_or_zero(jnp.max(x, axis=-1)))
+  total = jnp.sum(jnp.exp(x - peak[..., None]), axis=-1)
+  used = total > 0
+  return jnp.where(used, jnp.log(jnp.where(used, total, 1.0)) + peak, -jnp.inf)
+
+
+def _forward(inputs: StackInputs, potentials, length, semiring_max=False, keep_stops=False):
+  """The forward recursion (module docstring) as one lax.scan, carry renormalised every step.
+
+  The carry is the continuing mass cont_i (τ_i < C_i − 1) of every level and its maximum, the step's scale,
+  which the next step subtracts as it reads the carry (one pass fewer than renormalising in place); step t
+  pushes with log_call[·][t] itself. The carry runs on through padding, where increments are 0.
+
+  Returns:
+    log_increments: [T] summing to log P(ξ) (max-product: the best path's log-probability).
+    stops: per level i, [T, K_0, C_0, ..., K_i, C_i] the stop scores m_i + log_stop_i (keep_stops), or
+      max-product [T, K_0, C_0, ..., K_{i-1}, C_{i-1}] int32 the best stopped frame of level i, flat h·C_i + τ
+      (backpointers); None for a sum-product pass without keep_stops.
+  """
+  log_call, log_act, log_stop, log_cont, _ = inputs
+  depth, dtype = len(log_stop), log_act.dtype
+
+  def step(carry, t):
+    carry, scale = carry
+    alpha = jnp.concatenate([jnp.where(t == 0, 0.0, -jnp.inf).astype(dtype)[None, None], carry[0] - scale], axis=-1)
+    potential = potentials[0][t]  # over levels 0..d-2, added to every frame of step t in one pass
+    for i in range(depth - 1):
+      pushed = alpha[..., None] + log_call[i][t]
+      alpha = jnp.concatenate([pushed[..., None], carry[i + 1] - scale], axis=-1)
+      if i + 1 < depth - 1:
+        potential = potential[..., None, None] + potentials[i + 1][t]
+    mass = alpha + potential[..., None, None] + (log_act[t] + potentials[-1][t])
+    conts, stops = [], []
+    for i in reversed(range(depth)):
+      conts.insert(0, mass[..., :-1] + log_cont[i][t, :, :-1])
+      scores = mass + log_stop[i][t]
+      flat = scores.reshape(scores.shape[:-2] + (-1,))
+      if semiring_max:
+        mass = jnp.max(flat, axis=-1)  # the first maximiser by a min-reduction: much faster than argmax on CPU
+        cells = jnp.arange(flat.shape[-1], dtype=jnp.int32)
+        stops.insert(0, jnp.min(jnp.where(flat == mass[..., None], cells, flat.shape[-1]), axis=-1))
+      else:
+        stops.insert(0, scores)
+        mass = _logsumexp(flat)
+    peaks = [jnp.max(c) for c in conts if c.size]
+    scale = jax.lax.stop_gradient(_finite_or_zero(jnp.max(jnp.stack(peaks)) if peaks else jnp.zeros((), dtype)))
+    increment = jnp.where(t == length - 1, mass, jnp.where(t < length - 1, scale, 0.0))
+    outputs = tuple(stops) if semiring_max or keep_stops else None
+    return (tuple(conts), scale), (increment, outputs)
+
+  init = tuple(jnp.full(_prefix_shape(log_stop, i)[:-1] + (log_stop[i].shape[2] - 1,), -jnp.inf, dtype)
+               for i in range(depth))
+  init = (init, jnp.zeros((), dtype))
+  _, (log_increments, stops) = jax.lax.scan(step, init, jnp.arange(log_act.shape[0]))
+  return log_increments, stops
+
+
+def _prefix_shape(log_stop, level):
+  """(K_0, C_0, ..., K_level, C_level)."""
+  return tuple(n for x in log_stop[:level + 1] for n in x.shape[1:])
+
+
+def _log_likelihood(inputs: StackInputs, potentials, length):
+  return jnp.sum(_forward(inputs, potentials, length)[0])
+
+
+@jax.jit
+def _posterior(inputs: StackInputs, procedures, counters, length):
+  potentials = _potentials(inputs, procedures, counters)
+  return jax.value_and_grad(_log_likelihood, argnums=1)(inputs, potentials, length)
+
+
+def forward_backward(inputs: StackInputs, procedures=None, counters=None) -> StackPosterior:
+  """Exact log P(ξ) and every level's posterior frame marginals of one demonstration.
+
+  jax.grad of log_likelihood is the posterior of each event, for example ∂/∂ log_act = marginals[d-1] and
+  ∂/∂ log_stop[i] + ∂/∂ log_cont[i] = P(frame (h, τ) of level i at t, and every level below i stops at t).
+  Memory is linear in T (O(T·S)). Batch with jax.vmap.
+
+  Args:
+    inputs: StackInputs (module docstring). Shapes and a Python-int length are checked here.
+    procedures, counters: [T, d] int annotation, −1 = unknown (either may be None); paths must agree with every
+      known entry (a value out of range matches nothing). Fully annotated, log_likelihood is the complete-data
+      log-likelihood of that path; ignored on padding.
+  Returns:
+    StackPosterior(log_likelihood [], marginals: d arrays [T, K_i, C_i]).
+  """
+  length = _check_inputs(inputs)
+  return StackPosterior(*_posterior(inputs._replace(length=None), procedures, counters, length))
+
+
+def _backtrack(stops, length, capacities, choose, dtype):
+  """Reverse scan from the last step: the frames of step t given step t+1's and step t's stop tables.
+
+  Levels 0..j (j the deepest level with τ > 0 at t+1, −1 after the last step) are kept, τ_j one less; the
+  stopped levels j+1..d-1 are chosen top-down by choose(level, table at the chosen prefix, t) → (flat h·C + τ,
+  log-probability of that choice, of the given dtype).
+  Returns (procedures [T, d], counters [T, d]) with NO_FRAME on padding, and [] the sum of the choices'
+  log-probabilities.
+  """
+  depth = len(capacities)
+
+  def step(state_next, xs):
+    t, tables = xs
+    procs_next, taus_next, log_prob = state_next
+    used = t < length
+    resumed = taus_next > 0
+    deepest = jnp.where((t < length - 1) & jnp.any(resumed), depth - 1 - jnp.argmax(resumed[::-1]), -1)
+    procs, taus = [], []
+    for i in range(depth):
+      index, log_choice = choose(i, tables[i][tuple(x for frame in zip(procs, taus) for x in frame)], t)
+      h, tau = jnp.divmod(index, capacities[i])
+      procs.append(jnp.where(i <= deepest, procs_next[i], h))
+      taus.append(jnp.where(i <= deepest, taus_next[i] - (i == deepest), tau))
+      log_prob = log_prob + jnp.where(used & (i > deepest), log_choice, 0.0)
+    procs, taus = (jnp.where(used, jnp.stack(x).astype(jnp.int32), x_next)
+                   for x, x_next in ((procs, procs_next), (taus, taus_next)))
+    return (procs, taus, log_prob), (jnp.where(used, procs, NO_FRAME), jnp.where(used, taus, NO_FRAME))
+
+  init = (jnp.zeros(depth, jnp.int32), jnp.zeros(depth, jnp.int32), jnp.zeros((), dtype))
+  num_steps = jax.tree.leaves(stops)[0].shape[0]
+  (_, _, log_prob), (procedures, counters) = jax.lax.scan(step, init, (jnp.arange(num_steps), stops), reverse=True)
+  return procedures, counters, log_prob
+
+
+@jax.jit
+def _viterbi(inputs: StackInputs, procedures, counters, length):
+  potentials = _potentials(inputs, procedures, counters)
+  log_increments, backpointers = _forward(inputs, potentials, length, semiring_max=True)
+  capacities = tuple(x.shape[2] for x in inputs.log_stop)
+  path_procedures, path_counters, _ = _backtrack(backpointers, length, capacities,
+                                                 lambda level, pointer, t: (pointer, 0.0), inputs.log_act.dtype)
+  return StackPath(path_procedures, path_counters, jnp.sum(log_increments))
+
+
+def viterbi(inputs: StackInputs, procedures=None, counters=None) -> StackPath:
+  """The most likely whole-stack path (max-product forward, per-level backpointers, backtrack).
+
+  Inputs and annotation as forward_backward. Memory O(T · S / (K_{d-1} C_{d-1})) for the backpointers.
+  Returns StackPath(procedures [T, d], counters [T, d], log_prob []); meaningless if log_prob is −inf.
+  """
+  length = _check_inputs(inputs)
+  return _viterbi(inputs._replace(length=None), procedures, counters, length)
+
+
+@jax.jit
+def _sample_posterior(key, inputs: StackInputs, procedures, counters, length):
+  """Backward sampling from the forward pass's stop scores; log P(ζ, ξ) = log P(ξ) + Σ log P(choice | ·)."""
+  potentials = _potentials(inputs, procedures, counters)
+  log_increments, stop_scores = _forward(inputs, potentials, length, keep_stops=True)
+  capacities = tuple(x.shape[2] for x in inputs.log_stop)
+
+  def choose(level, scores, t):
+    scores = scores.reshape(-1)
+    index = jax.random.categorical(jax.random.fold_in(jax.random.fold_in(key, t), level), scores)
+    return index, scores[index] - _logsumexp(scores)
+
+  path_procedures, path_counters, log_posterior = _backtrack(stop_scores, length, capacities, choose,
+                                                             inputs.log_act.dtype)
+  log_likelihood = jnp.sum(log_increments)
+  log_prob = jnp.where(jnp.isfinite(log_likelihood), log_likelihood + log_posterior, -jnp.inf)
+  return StackPath(path_procedures, path_counters, log_prob)
+
+
+def sample_posterior(key, inputs: StackInputs, procedures=None, counters=None) -> StackPath:
+  """One whole-stack path drawn exactly from P(ζ | ξ) (forward filter, backward sample).
+
+  Step t draws with jax.random.fold_in(key, t). Vmap over keys for many samples. Inputs and annotation as
+  forward_backward; meaningless if log P(ξ) is −inf.
+  Returns StackPath(procedures [T, d], counters [T, d], log_prob [] = log P(ζ, ξ) of the drawn path).
+  """
+  length = _check_inputs(inputs)
+  return _sample_posterior(key, inputs._replace(length=None), procedures, counters, length)
