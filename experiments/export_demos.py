@@ -21,6 +21,8 @@ _TASK = flags.DEFINE_string("task", None, f"The task: one of {', '.join(tasks.TA
 _SPLIT = flags.DEFINE_enum("split", "training", ["training", "validation", "test"], "Which problems.")
 _NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "Demonstrations. Default: the task's training set size.")
 _NUM_STRONG = flags.DEFINE_integer("num_strong", 0, "How many carry their call stack.")
+_SIZE = flags.DEFINE_integer("size", None, "test: problem size (digits, array length) where the task has sizes; "
+                             "default: the training distribution.")
 _SEED = flags.DEFINE_integer("seed", 0, "Seed (the training command's --seed for the same data).")
 _OUT = flags.DEFINE_string("out", None, "Output demonstration file (JSON lines).")
 _HIERARCHY_OUT = flags.DEFINE_string("hierarchy_out", None, "Also write the task's hierarchy file here.")
@@ -37,13 +39,15 @@ def main(argv):
   num = task.defaults.num_demos if _NUM_DEMOS.value is None else _NUM_DEMOS.value
   if num < 1 or not 0 <= _NUM_STRONG.value <= num:
     cli.fail(f"--num_strong must be in 0..--num_demos={num} and --num_demos ≥ 1; got {_NUM_STRONG.value} of {num}")
+  if _SIZE.value is not None and _SPLIT.value != "test":
+    cli.fail("--size is for --split=test")
   seed = _SEED.value + SEED_OFFSETS[_SPLIT.value]
   if _SPLIT.value == "training":
     problems = task.training_problems(seed, num)
   elif _SPLIT.value == "validation":
     problems = task.validation_problems(seed, num)
   else:
-    problems = task.test_problems(seed, num, None)
+    problems = task.test_problems(seed, num, _SIZE.value)
   batch = datasets.problem_demonstrations(task, problems, 0)
   annotated = datasets.strong_mask(len(problems), _NUM_STRONG.value, _SEED.value)
   lines = demo_files.demonstration_lines(batch, annotated)

@@ -34,9 +34,9 @@ def _by_hand(hierarchy: PHPHierarchy, obs, actions, procs, taus, length) -> floa
       total += call(level, t, procs[t, level], taus[t, level], procs[t, level + 1])
     total += hierarchy.levels[-1].log_op(obs[t][None], jnp.array([float(taus[t, -1])]),
                                          actions[t][None])[0, procs[t, -1], 0]
-    last = t == length - 1
-    resumes = -1 if last else max(i for i in range(depth) if taus[t + 1, i] == taus[t, i] + 1)
-    for level in range(depth - 1, resumes - 1, -1):  # stops from the lowest level up, then one continue
+    # Stops from the lowest level up to the level that continues; after the last step every level stops.
+    resumes = None if t == length - 1 else max(i for i in range(depth) if taus[t + 1, i] == taus[t, i] + 1)
+    for level in range(depth - 1, -1 if resumes is None else resumes - 1, -1):
       total += stop(level, t, procs[t, level], taus[t, level], level != resumes)
   return float(total)
 
