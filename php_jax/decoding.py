@@ -68,6 +68,6 @@ def _compiled(hierarchy: PHPHierarchy, capacity: tuple[int, ...]):
     def one(obs, act, n):
       inputs = stack_inputs(hierarchy, capacity, obs, act, n)
       path = stack_lattice.viterbi(inputs)
-      return stack_lattice.forward_backward(inputs).log_likelihood, path.procedures, path.counters
+      return stack_lattice.log_likelihood(inputs), path.procedures, path.counters
     return jax.vmap(one)(observations, actions, length)
   return run

@@ -65,7 +65,7 @@ def log_likelihoods(hierarchy: PHPHierarchy, batch: Demonstration, capacity: tup
   """[B] log P(ζ_known, ξ) of each demonstration of batch under the whole hierarchy."""
   def one(obs, act, procs, taus, n):
     inputs = stack_inputs(hierarchy, capacity, obs, act, n)
-    return stack_lattice.forward_backward(inputs, procs, taus).log_likelihood
+    return stack_lattice.log_likelihood(inputs, procs, taus)
   return jax.vmap(one)(batch.observations, batch.actions, batch.procedures, batch.counters, batch.length)
 
 

@@ -206,6 +206,18 @@ def _posterior(inputs: StackInputs, procedures, counters, length):
   return jax.value_and_grad(_log_likelihood, argnums=1)(inputs, potentials, length)
 
 
+@jax.jit
+def _annotated_log_likelihood(inputs: StackInputs, procedures, counters, length):
+  return _log_likelihood(inputs, _potentials(inputs, procedures, counters), length)
+
+
+def log_likelihood(inputs: StackInputs, procedures=None, counters=None) -> jax.Array:
+  """forward_backward's log_likelihood [] alone (the forward pass only): for a loss, whose jax.grad gives the
+  same posteriors, or for scoring. Arguments as forward_backward's."""
+  length = _check_inputs(inputs)
+  return _annotated_log_likelihood(inputs._replace(length=None), procedures, counters, length)
+
+
 def forward_backward(inputs: StackInputs, procedures=None, counters=None) -> StackPosterior:
   """Exact log P(ξ) and every level's posterior frame marginals of one demonstration.
 

@@ -79,3 +79,14 @@ def test_joint_training_lowers_the_loss_and_fits_annotated_demonstrations():
   losses = [loss for _, loss in report["losses"]]
   assert rows[0] == {"training": "joint", "capacity": report["capacity"]} and losses[-1] < 0.5 * losses[0]
   assert report["capacity"][1:] == [int(np.max(np.asarray(batch.counters)[..., level])) + 1 for level in (1, 2)]
+
+
+def test_log_likelihood_alone_equals_forward_backward_and_has_its_gradient():
+  batch = datasets.training_demos(NANOCRAFT, 2, 2, 2)
+  hierarchy = PHPHierarchy(NANOCRAFT.spec, hidden=(16,), rngs=nnx.Rngs(4))
+  inputs = decoding.stack_inputs(hierarchy, (20, 6, 4), batch.observations[1], batch.actions[1], batch.length[1])
+  for annotation in ((None, None), (batch.procedures[1], None)):
+    posterior = stack_lattice.forward_backward(inputs, *annotation)
+    np.testing.assert_allclose(stack_lattice.log_likelihood(inputs, *annotation), posterior.log_likelihood, rtol=1e-6)
+    grad = jax.grad(lambda act: stack_lattice.log_likelihood(inputs._replace(log_act=act), *annotation))(inputs.log_act)
+    np.testing.assert_allclose(grad, posterior.marginals[-1], atol=1e-5)

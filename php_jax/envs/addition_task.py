@@ -71,7 +71,7 @@ def make_states(problems: list[tuple[str, str]], width: int | None = None) -> ad
   """Batched start states [B, ...] on a common tape width (default: fits the longest problem)."""
   width = width or addition.width_for(max(len(a) for a, _ in problems))
   states = [addition.make_problem(a, b, width) for a, b in problems]
-  return jax.tree.map(lambda *x: jnp.stack(x), *states)
+  return jax.tree.map(lambda *x: jnp.asarray(np.stack(x)), *states)  # one host copy, not a jnp.stack of B operands
 
 
 def bucket(problem: tuple[str, str]) -> int:

@@ -53,7 +53,7 @@ def bucket(problem: tuple[int, ...]) -> int:
 def make_states(problems: list[tuple[int, ...]], width: int) -> bubblesort.State:
   """Batched start states [B, ...] on a common tape width."""
   states = [bubblesort.make_problem(p, width) for p in problems]
-  return jax.tree.map(lambda *x: jnp.stack(x), *states)
+  return jax.tree.map(lambda *x: jnp.asarray(np.stack(x)), *states)  # one host copy, not a jnp.stack of B operands
 
 
 def parse_problem(obj: dict) -> tuple[int, ...]:

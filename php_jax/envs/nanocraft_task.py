@@ -30,7 +30,7 @@ def make_states(problems: list[Problem], bucket: int = 0) -> nanocraft.State:
   """Batched start states [B, ...]."""
   del bucket  # one shape for every problem
   states = [nanocraft.make_problem(x, y, w, h, pre) for x, y, w, h, pre in problems]
-  return jax.tree.map(lambda *x: jnp.stack(x), *states)
+  return jax.tree.map(lambda *x: jnp.asarray(np.stack(x)), *states)  # one host copy, not a jnp.stack of B operands
 
 
 def _is_int(x) -> bool:
