@@ -7,8 +7,9 @@ Per task: OUT/TASK.md, a table with one row per (model, demonstrations, strongly
 then the mean decoding agreement with the supervisor at level 1 (the level whose segmentation decides the
 root's training data), by exact procedure ids and up to a renaming of them; and OUT/TASK.png, per test set
 the accuracy against the number of strongly supervised demonstrations (paper Figure 2), one line per total
-number of demonstrations, mean with min–max bars, the flat LSTM (which ignores annotations) as a dashed
-level and weak-only PHP runs as a dotted one in the same colour.
+number of demonstrations, mean with min–max bars (runs trained with --training=joint as a dash-dotted line
+of their own), the flat LSTM (which ignores annotations) as a dashed level and weak-only PHP runs as a
+dotted one in the same colour.
 """
 from __future__ import annotations
 
@@ -61,12 +62,14 @@ def _check_result(result) -> None:
 
 
 def group_runs(results: list[dict]) -> dict[str, dict[Key, list[dict]]]:
-  """task → (model, num_demos, num_strong) → its trials' results (num_strong 0 for the flat LSTM, which uses
-  actions only)."""
+  """task → (model, num_demos, num_strong) → its trials' results; model is "php" (level-wise), "php-joint" or
+  "flat_lstm" (num_strong 0: it uses actions only)."""
   groups = defaultdict(lambda: defaultdict(list))
   for r in results:
     model = r.get("model", "php")
-    groups[r["task"]][(model, r.get("num_demos", 0), r["num_strong"] if model == "php" else 0)].append(r)
+    if model == "php" and r.get("config", {}).get("training") == "joint":
+      model = "php-joint"
+    groups[r["task"]][(model, r.get("num_demos", 0), r["num_strong"] if model != "flat_lstm" else 0)].append(r)
   return {task: dict(sorted(by_key.items())) for task, by_key in sorted(groups.items())}
 
 
@@ -117,13 +120,16 @@ def figure(runs: dict[Key, list[dict]], path: str) -> None:
         lines[(model, total)].append((strong, np.mean(accs), min(accs), max(accs)))
     for (model, total), points in sorted(lines.items()):
       x, mean, low, high = map(np.array, zip(*sorted(points)))
-      if model == "php" and np.any(x > 0):
+      php = model != "flat_lstm"
+      label = f"PHP-{total}" + (", joint" if model == "php-joint" else "")
+      if php and np.any(x > 0):
         annotated = x > 0
         ax.errorbar(x[annotated], mean[annotated], yerr=[(mean - low)[annotated], (high - mean)[annotated]],
-                    marker="o", capsize=3, color=color[total], label=f"PHP-{total}")
-      if model == "php" and x[0] == 0:  # weak only: no place on the log axis, one level across it
-        ax.axhline(mean[0], linestyle=":", color=color[total], label=f"PHP-{total}, weak only ({mean[0]:.3f})")
-      elif model != "php":  # actions only: one level across the axis
+                    marker="s" if model == "php-joint" else "o", linestyle="-." if model == "php-joint" else "-",
+                    capsize=3, color=color[total], label=label)
+      if php and x[0] == 0:  # weak only: no place on the log axis, one level across it
+        ax.axhline(mean[0], linestyle=":", color=color[total], label=f"{label}, weak only ({mean[0]:.3f})")
+      elif not php:  # actions only: one level across the axis
         ax.axhline(mean[0], linestyle="--", color=color[total], alpha=0.6,
                    label=f"flat LSTM-{total} ({mean[0]:.3f})")
     ax.set_xscale("log", base=2)
