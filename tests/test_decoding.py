@@ -1,12 +1,12 @@
 """Whole-stack decoding with a hierarchy's own networks: the stack lattice's inputs built from a PHP
 hierarchy give, on an annotated demonstration, exactly the log-probability that following the executor's
-semantics step by step with the same networks gives; the joint loss trains."""
+semantics step by step with the same networks gives."""
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from php_jax import datasets, decoding, joint, stack_lattice, tasks, train
+from php_jax import datasets, decoding, stack_lattice, tasks
 from php_jax.model import PHPHierarchy
 
 NANOCRAFT = tasks.get("nanocraft")
@@ -68,17 +68,6 @@ def test_decode_returns_the_viterbi_stacks_and_likelihoods():
                                rtol=1e-5)
     np.testing.assert_array_equal(decoded.procedures[b], path.procedures)
     np.testing.assert_array_equal(decoded.counters[b], path.counters)
-
-
-def test_joint_training_lowers_the_loss_and_fits_annotated_demonstrations():
-  batch = datasets.training_demos(NANOCRAFT, 1, 8, 8)
-  config = train.TrainConfig(iterations=60, learning_rate=1e-2, hidden=(32,), eval_every=30, training="joint",
-                             seed=1)
-  rows = []
-  hierarchy, report = joint.train_joint(NANOCRAFT.spec, batch, config, log=rows.append)
-  losses = [loss for _, loss in report["losses"]]
-  assert rows[0] == {"training": "joint", "capacity": report["capacity"]} and losses[-1] < 0.5 * losses[0]
-  assert report["capacity"][1:] == [int(np.max(np.asarray(batch.counters)[..., level])) + 1 for level in (1, 2)]
 
 
 def test_log_likelihood_alone_equals_forward_backward_and_has_its_gradient():
