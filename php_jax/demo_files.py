@@ -121,28 +121,54 @@ def _parse_line(obj, spec: HierarchySpec) -> tuple[np.ndarray, np.ndarray, np.nd
   if not isinstance(actions, list) or not actions:
     raise ValueError('"actions" must be a non-empty list (one elementary action per step)')
   num_factors = len(spec.action_sizes)
-  rows = []
+  rows = _as_array(actions, "i")
+  if rows is not None and rows.ndim == 1 and num_factors == 1:
+    rows = rows[:, None]
+  if rows is None or rows.ndim != 2 or rows.shape[1] != num_factors:
+    _action_error(actions, num_factors)
+  bad = np.argwhere((rows < 0) | (rows >= np.array(spec.action_sizes)))
+  if bad.size:
+    t, f = bad[0]
+    raise ValueError(f"action {t}: factor {f} = {rows[t, f]} is outside 0..{spec.action_sizes[f] - 1}")
+  if not (isinstance(observations, list) and len(observations) == len(actions) + 1):
+    raise ValueError(f'"observations" must list T+1 = {len(actions) + 1} vectors (one more than the actions)')
+  obs = _as_array(observations, "if")
+  if obs is None or obs.ndim != 2 or not obs.shape[1] or not np.isfinite(obs).all():
+    _observation_error(observations)
+  stack = obj.get("stack")
+  procs = taus = None
+  if stack is not None:
+    procs, taus = _parse_stack(stack, len(actions), spec)
+  return obs.astype(np.float32), rows.astype(np.int32), procs, taus
+
+
+def _as_array(values: list, kinds: str) -> np.ndarray | None:
+  """values as one rectangular NumPy array of a dtype kind in kinds ("i" int, "f" float), or None."""
+  try:
+    array = np.array(values)
+  except ValueError:  # ragged
+    return None
+  return array if array.dtype.kind in kinds else None
+
+
+def _action_error(actions: list, num_factors: int):
+  """Raises ValueError naming the first action that is not num_factors integers."""
   for t, action in enumerate(actions):
     action = [action] if _is_int(action) and num_factors == 1 else action
     if not (isinstance(action, list) and len(action) == num_factors and all(map(_is_int, action))):
       raise ValueError(f"action {t} must be a list of {num_factors} integers (one per factor); got {action!r}")
-    for f, (a, size) in enumerate(zip(action, spec.action_sizes)):
-      if not 0 <= a < size:
-        raise ValueError(f"action {t}: factor {f} = {a} is outside 0..{size - 1}")
-    rows.append(action)
-  if not (isinstance(observations, list) and len(observations) == len(actions) + 1):
-    raise ValueError(f'"observations" must list T+1 = {len(actions) + 1} vectors (one more than the actions)')
+  raise ValueError(f"actions must be lists of {num_factors} integers (one per factor)")
+
+
+def _observation_error(observations: list):
+  """Raises ValueError naming the first observation that is not a vector of finite numbers of one size."""
   for t, o in enumerate(observations):
     if not (isinstance(o, list) and o and all(isinstance(x, (int, float)) and not isinstance(x, bool)
                                               and math.isfinite(x) for x in o)):
       raise ValueError(f"observation {t} must be a non-empty list of finite numbers")
     if len(o) != len(observations[0]):
       raise ValueError(f"observation {t} has {len(o)} numbers; observation 0 has {len(observations[0])}")
-  stack = obj.get("stack")
-  procs = taus = None
-  if stack is not None:
-    procs, taus = _parse_stack(stack, len(actions), spec)
-  return np.asarray(observations, np.float32), np.asarray(rows, np.int32), procs, taus
+  raise ValueError("observations must be vectors of finite numbers, all of one size")
 
 
 def _parse_stack(stack, num_steps: int, spec: HierarchySpec) -> tuple[np.ndarray, np.ndarray]:
