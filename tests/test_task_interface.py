@@ -103,6 +103,7 @@ def test_a_task_defined_outside_the_library_demonstrates_and_trains_one_level():
   assert tasks.get("tests.test_task_interface:COUNTDOWN") is COUNTDOWN
 
 
+@pytest.mark.slow
 def test_the_training_command_and_evaluate_run_a_task_given_by_import_path(tmp_path):
   name = "--task=tests.test_task_interface:COUNTDOWN"
   workdir = tmp_path / "run"
@@ -132,6 +133,7 @@ def test_the_training_command_and_evaluate_run_a_task_given_by_import_path(tmp_p
   assert proc.returncode == 2 and f"{problems}:1:" in proc.stderr and not (tmp_path / "bad.jsonl").exists()
 
 
+@pytest.mark.slow
 def test_a_checkpoint_made_with_other_settings_or_data_is_refused(tmp_path):
   path = str(tmp_path / "checkpoint.msgpack")
   batch = datasets.training_demos(COUNTDOWN, seed=0, num_demos=4, num_strong=2)
@@ -174,6 +176,7 @@ def test_a_workdir_made_with_other_settings_is_refused_until_overwrite(tmp_path)
   assert proc.returncode == 2 and "is a file" in proc.stderr and as_file.read_text() == "x"
 
 
+@pytest.mark.slow
 def test_sigterm_keeps_the_checkpoint_says_how_to_resume_and_the_rerun_continues_one_record(tmp_path):
   workdir = tmp_path / "run"
   command = [sys.executable, "-m", "experiments.train", "--task=tests.test_task_interface:COUNTDOWN",

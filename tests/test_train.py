@@ -237,6 +237,7 @@ def test_interrupted_training_resumes_to_the_same_result(tmp_path, warmup, stops
     assert report[level].get("decoding_agreement") == ref_report[level].get("decoding_agreement")
 
 
+@pytest.mark.slow
 def test_strong_warmup_fits_the_strong_views_alone_first():
   problems = nanocraft_task.random_problems(3, 6)
   demos = datasets.oracle_demonstrations(NANOCRAFT, nanocraft_task.make_states(problems), 2,
@@ -256,6 +257,7 @@ def test_strong_warmup_fits_the_strong_views_alone_first():
   assert any(not np.array_equal(a, b) for a, b in zip(trained(view, strong_warmup=30, iterations=5), strong_only))
 
 
+@pytest.mark.slow
 def test_root_strong_weight_changes_only_the_root_levels_loss():
   demos = datasets.training_demos(tasks.get("nanocraft"), seed=3, num_demos=6, num_strong=2)
   config = train.TrainConfig(iterations=1, hidden=(8,), root="mlp", root_hidden=8, strong_weight=5.0, seed=2)
