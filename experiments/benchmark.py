@@ -236,9 +236,9 @@ def bench_train_step():
 def bench_scaling():
   """One EG step (jitted value and gradient of the loss) on one device against the length buckets split over
   every device (`sharding`), per level of the level-wise loss and for the joint loss; then the gradients of
-  --seeds independent parameter sets over the same data, as one vmapped program against one call per seed
-  (one device). Levels above the lowest see the supervisor's call sequences, the views a right decoding
-  gives."""
+  --seeds independent parameter sets over the same data, as one vmapped program against one call per seed,
+  each waited for before the next (one device). Levels above the lowest see the supervisor's call sequences,
+  the views a right decoding gives."""
   task = _task()
   spec, num_demos = task.spec, _NUM_DEMOS.value or task.defaults.num_demos
   demos = datasets.training_demos(task, 1, num_demos, min(_NUM_STRONG.value, num_demos))
@@ -253,8 +253,8 @@ def bench_scaling():
   print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}) x {num_devices}; {task.name}: "
         f"{num_demos} demonstrations ({int(np.sum(demos.strong))} annotated), hidden {config.hidden}, "
         f"root {config.root}, {config.length_buckets} length buckets")
-  print(f"{'one EG step':>24} {'1 device':>10} {'demos/s':>9} {f'{num_devices} devices':>11} {'demos/s':>9} "
-        f"{'speed-up':>9}")
+  print(f"{'one EG step':>24} {'1 device':>10} {'demos/s':>9}"
+        + (f" {f'{num_devices} devices':>11} {'demos/s':>9} {'speed-up':>9}" if mesh is not None else ""))
   rows, seed_losses = [], {}
 
   def devices_row(name, value_and_grad, params, one, many):
@@ -303,7 +303,8 @@ def bench_scaling():
     vmapped = jax.jit(jax.vmap(jax.value_and_grad(loss), in_axes=(0, None)))
     stacked = jax.tree.map(lambda *x: jnp.stack(x), *seed_params)
     row = {"what": f"{name}, {seeds} seeds", "one_seed_s": _median_seconds(value_and_grad, seed_params[0], one),
-           "in_turn_s": _median_seconds(lambda ps, b: [value_and_grad(p, b) for p in ps], seed_params, one),
+           "in_turn_s": _median_seconds(lambda ps, b: [jax.block_until_ready(value_and_grad(p, b)) for p in ps],
+                                        seed_params, one),
            "vmapped_s": _median_seconds(vmapped, stacked, one)}
     rows.append(row)
     print(f"{name:>24} {row['one_seed_s'] * 1e3:8.1f}ms {row['in_turn_s'] * 1e3:9.1f}ms "
