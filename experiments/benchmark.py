@@ -4,12 +4,14 @@ r"""Benchmarks as commands: ratios against baselines measured in the same proces
   python -m experiments.benchmark estep_grad  # the E-step's gradient: jax.grad of log P(ξ) vs the values alone
   python -m experiments.benchmark rollout --task=NAME --size=1000  # oracle rollouts: steps per second
   python -m experiments.benchmark train_step --task=NAME --hidden=64  # one EG iteration, split
+  python -m experiments.benchmark scaling --task=NAME --hidden=32  # one EG step on 1 vs all devices; seeds vmapped
 
 estep times values + marginals for B demonstrations of T steps (vmapped, jitted) at the paper's sizes and beyond,
 checks that the three agree on log P(ξ), and prints lattice cells (B·T·K·C) per second and ratios.
 """
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 import statistics
@@ -22,7 +24,7 @@ from absl import app, flags
 from flax import nnx
 
 import php_jax
-from php_jax import datasets, executor, objective, tasks, train, views
+from php_jax import datasets, executor, joint, objective, sharding, tasks, train, views
 
 _SIZES = flags.DEFINE_string(
     "sizes", "160x80x3x8,160x200x6x16,32x400x6x32,16x10000x3x8,4096x200x6x16",
@@ -30,13 +32,19 @@ _SIZES = flags.DEFINE_string(
 _MIN_TIME = flags.DEFINE_float("min_time", 1.0, "Seconds of repetitions per measurement (median taken).")
 _DYNAMAX_MAX_BYTES = flags.DEFINE_float("dynamax_max_gb", 4.0, "Skip dynamax above this working set (GB).")
 _OUT = flags.DEFINE_string("out", None, "Optional JSON file for the results.")
-_TASK = flags.DEFINE_string("task", None, "rollout, train_step: the task (what experiments.train --task takes).")
+_TASK = flags.DEFINE_string("task", None, "rollout, train_step, scaling: the task (what experiments.train --task "
+                            "takes).")
 _SIZE = flags.DEFINE_integer("size", 1000, "rollout: problem size (digits, array length; ignored by tasks with "
                              "one size).")
 _PROBLEMS = flags.DEFINE_integer("problems", 100, "rollout: number of problems.")
-_HIDDEN = flags.DEFINE_list("hidden", ["64"], "train_step: hidden layer sizes of the PHP networks.")
-_ROOT = flags.DEFINE_enum("root", "lstm", ["lstm", "mlp"], "train_step: root network.")
-_NUM_STRONG = flags.DEFINE_integer("num_strong", 3, "train_step: annotated demonstrations of the training set.")
+_HIDDEN = flags.DEFINE_list("hidden", ["64"], "train_step, scaling: hidden layer sizes of the PHP networks.")
+_ROOT = flags.DEFINE_enum("root", "lstm", ["lstm", "mlp"], "train_step, scaling: root network.")
+_NUM_STRONG = flags.DEFINE_integer("num_strong", 3, "train_step, scaling: annotated demonstrations of the training "
+                                   "set.")
+_NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "scaling: demonstrations of the training set (default: the "
+                                  "task's).")
+_SEEDS = flags.DEFINE_integer("seeds", 5, "scaling: parameter sets whose gradients are taken as one vmapped program "
+                              "and one after another.")
 
 
 def _median_seconds(fn, *args) -> float:
@@ -225,15 +233,95 @@ def bench_train_step():
   return rows
 
 
+def bench_scaling():
+  """One EG step (jitted value and gradient of the loss) on one device against the length buckets split over
+  every device (`sharding`), per level of the level-wise loss and for the joint loss; then the gradients of
+  --seeds independent parameter sets over the same data, as one vmapped program against one call per seed,
+  each waited for before the next (one device). Levels above the lowest see the supervisor's call sequences,
+  the views a right decoding gives."""
+  task = _task()
+  spec, num_demos = task.spec, _NUM_DEMOS.value or task.defaults.num_demos
+  demos = datasets.training_demos(task, 1, num_demos, min(_NUM_STRONG.value, num_demos))
+  config = train.TrainConfig(hidden=tuple(int(h) for h in _HIDDEN.value), root=_ROOT.value,
+                             strong_weight=train.balanced_strong_weight(demos.strong))
+  mesh, num_devices = sharding.data_mesh(), len(jax.devices())
+  annotated = demos._replace(strong=np.ones_like(demos.strong))  # every demonstration's true views, above too
+  level_views = {spec.num_levels - 1: views.lowest_view(annotated, spec.num_levels)}
+  for level in range(spec.num_levels - 1, 0, -1):
+    view = level_views[level]
+    level_views[level - 1] = views.view_above(annotated, view, level, view.procedures, view.counters)
+  print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}) x {num_devices}; {task.name}: "
+        f"{num_demos} demonstrations ({int(np.sum(demos.strong))} annotated), hidden {config.hidden}, "
+        f"root {config.root}, {config.length_buckets} length buckets")
+  print(f"{'one EG step':>24} {'1 device':>10} {'demos/s':>9}"
+        + (f" {f'{num_devices} devices':>11} {'demos/s':>9} {'speed-up':>9}" if mesh is not None else ""))
+  rows, seed_losses = [], {}
+
+  def devices_row(name, value_and_grad, params, one, many):
+    row = {"what": name, "devices": num_devices, "one_device_s": _median_seconds(value_and_grad, params, one)}
+    text = f"{name:>24} {row['one_device_s'] * 1e3:8.1f}ms {num_demos / row['one_device_s']:9.0f}"
+    if mesh is not None:
+      row["all_devices_s"] = _median_seconds(value_and_grad, params, many)
+      text += (f" {row['all_devices_s'] * 1e3:9.1f}ms {num_demos / row['all_devices_s']:9.0f} "
+               f"{row['one_device_s'] / row['all_devices_s']:8.2f}x")
+    rows.append(row)
+    print(text, flush=True)
+
+  for level in range(spec.num_levels - 1, -1, -1):
+    view = level_views[level]._replace(strong=np.asarray(demos.strong))
+    capacity = train.level_capacity(view, level, config)
+
+    def level_model(seed, level=level):
+      seeded = dataclasses.replace(config, seed=seed)
+      return objective.LevelModel(train.make_hierarchy(spec, seeded).levels[level], train.make_root(spec, level, seeded))
+
+    graphdef, params, rest = nnx.split(level_model(0), nnx.Param, ...)
+    loss = lambda p, b, graphdef=graphdef, rest=rest, capacity=capacity: objective.level_loss(
+        nnx.merge(graphdef, p, rest), b, capacity, config.strong_weight)
+    parts = views.length_buckets(view, config.length_buckets)
+    one = [views.device_view(b) for b in parts]
+    devices_row(f"level {level} loss (C = {capacity})", jax.jit(jax.value_and_grad(loss)), params, one,
+                [views.device_view(b, mesh) for b in parts])
+    if level == spec.num_levels - 1:
+      seed_losses["lowest level loss"] = (loss, [nnx.split(level_model(s), nnx.Param, ...)[1]
+                                                for s in range(_SEEDS.value)], one)
+
+  capacity = joint.joint_capacity(demos, spec, config)
+  graphdef, params, rest = nnx.split(train.make_hierarchy(spec, config), nnx.Param, ...)
+  loss = lambda p, b: joint.joint_loss(nnx.merge(graphdef, p, rest), b, capacity, config.strong_weight)
+  one = joint._buckets(demos, config.length_buckets)
+  devices_row(f"joint loss (C = {','.join(map(str, capacity))})", jax.jit(jax.value_and_grad(loss)), params, one,
+              joint._buckets(demos, config.length_buckets, mesh))
+  seed_losses["joint loss"] = (loss, [nnx.split(train.make_hierarchy(spec, dataclasses.replace(config, seed=s)),
+                                                nnx.Param, ...)[1] for s in range(_SEEDS.value)], one)
+
+  seeds = _SEEDS.value
+  print(f"{'gradient, one device':>24} {'1 seed':>10} {f'{seeds} in turn':>11} {'seeds/s':>8} "
+        f"{f'{seeds} vmapped':>11} {'seeds/s':>8} {'vmapped vs in turn':>19}")
+  for name, (loss, seed_params, one) in seed_losses.items():
+    value_and_grad = jax.jit(jax.value_and_grad(loss))
+    vmapped = jax.jit(jax.vmap(jax.value_and_grad(loss), in_axes=(0, None)))
+    stacked = jax.tree.map(lambda *x: jnp.stack(x), *seed_params)
+    row = {"what": f"{name}, {seeds} seeds", "one_seed_s": _median_seconds(value_and_grad, seed_params[0], one),
+           "in_turn_s": _median_seconds(lambda ps, b: [jax.block_until_ready(value_and_grad(p, b)) for p in ps],
+                                        seed_params, one),
+           "vmapped_s": _median_seconds(vmapped, stacked, one)}
+    rows.append(row)
+    print(f"{name:>24} {row['one_seed_s'] * 1e3:8.1f}ms {row['in_turn_s'] * 1e3:9.1f}ms "
+          f"{seeds / row['in_turn_s']:8.1f} {row['vmapped_s'] * 1e3:9.1f}ms {seeds / row['vmapped_s']:8.1f} "
+          f"{row['in_turn_s'] / row['vmapped_s']:18.2f}x", flush=True)
+  return rows
+
+
 def _task():
   if not _TASK.value:
-    raise app.UsageError("--task is required for rollout and train_step")
+    raise app.UsageError("--task is required for rollout, train_step and scaling")
   return tasks.get(_TASK.value)
 
 
 def main(argv):
   commands = {"estep": bench_estep, "estep_grad": bench_estep_grad, "rollout": bench_rollout,
-              "train_step": bench_train_step}
+              "train_step": bench_train_step, "scaling": bench_scaling}
   if len(argv) != 2 or argv[1] not in commands:
     raise app.UsageError(f"usage: python -m experiments.benchmark {{{'|'.join(commands)}}} [--flags]")
   rows = commands[argv[1]]()

@@ -28,8 +28,10 @@ def code_version() -> str | None:
 
 def environment_versions() -> dict:
   """What ran, for results.json, with or without a git checkout: the versions of php_jax, Python, jax, jaxlib,
-  flax and optax, and the device (its platform and kind: "cpu" and "cpu", or "gpu" and the GPU's model name)."""
+  flax and optax, the device (its platform and kind: "cpu" and "cpu", or "gpu" and the GPU's model name), how
+  many devices training split demonstrations over and over how many processes."""
   device = jax.devices()[0]
   return {"php_jax": php_jax.__version__, "python": platform.python_version(), "jax": jax.__version__,
           "jaxlib": jaxlib.__version__, "flax": flax.__version__, "optax": optax.__version__,
-          "platform": device.platform, "device_kind": device.device_kind}
+          "platform": device.platform, "device_kind": device.device_kind, "devices": jax.device_count(),
+          "processes": jax.process_count()}

@@ -10,14 +10,20 @@ followed by the flags after `--` (the same for every run). A combination whose r
 skipped, so an interrupted sweep resumes where it stopped (and a run interrupted mid-way resumes from its
 own checkpoint); combinations with num_strong > num_demos are left out. `python -m experiments.plot` reads
 the results.
+
+With --gpus=0,1,...: --parallel runs at a time on each of those GPUs, each run seeing only its own
+(CUDA_VISIBLE_DEVICES) and allocating GPU memory as it goes (XLA_PYTHON_CLIENT_PREALLOCATE=false), so that
+runs sharing a GPU do not each reserve most of it.
 """
 from __future__ import annotations
 
 import concurrent.futures
 import itertools
 import os
+import queue
 import subprocess
 import sys
+from typing import Callable, Iterator, TypeVar
 
 from absl import app, flags
 
@@ -26,7 +32,12 @@ from experiments import cli
 _TASK = flags.DEFINE_string("task", None, "The task trained (what experiments.train --task takes).")
 _WORKDIR = flags.DEFINE_string("workdir", None, "Parent directory of the runs' workdirs.")
 _GRID = flags.DEFINE_multi_string("grid", [], "name=v1,v2,...: a flag of the experiment and its values.")
-_PARALLEL = flags.DEFINE_integer("parallel", 1, "Runs at a time.", lower_bound=1)
+_PARALLEL = flags.DEFINE_integer("parallel", 1, "Runs at a time (with --gpus, on each GPU).", lower_bound=1)
+_GPUS = flags.DEFINE_list("gpus", None, "GPUs to run on (CUDA's ids, as CUDA_VISIBLE_DEVICES takes them): each run "
+                          "gets one of them alone, --parallel runs per GPU. Default: every run sees this process's "
+                          "devices.")
+Job = TypeVar("Job")
+Result = TypeVar("Result")
 
 
 def parse_grid(entries: list[str]) -> list[dict[str, str]]:
@@ -58,12 +69,38 @@ def run_name(combo: dict[str, str]) -> str:
   return ",".join(f"{k}={v.replace(',', ':')}" for k, v in combo.items()) or "default"
 
 
-def _run(task: str, workdir: str, combo: dict[str, str], extra: list[str]) -> tuple[str, int]:
+def device_environment(gpu: str | None) -> dict[str, str]:
+  """The environment of a run on GPU `gpu` alone, memory allocated as needed; this process's for None."""
+  if gpu is None:
+    return dict(os.environ)
+  return {**os.environ, "CUDA_VISIBLE_DEVICES": gpu, "XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+
+
+def run_on_devices(jobs: list[Job], run: Callable[[Job, str | None], Result], devices: list[str | None],
+                   parallel: int) -> Iterator[Result]:
+  """run(job, device) for every job, at most `parallel` at a time on each device; the results in job order."""
+  free = queue.Queue()
+  for device in devices * parallel:
+    free.put(device)
+
+  def one(job: Job) -> Result:
+    device = free.get()  # never empty: as many threads as slots, and each returns its slot
+    try:
+      return run(job, device)
+    finally:
+      free.put(device)
+
+  with concurrent.futures.ThreadPoolExecutor(len(devices) * parallel) as pool:
+    yield from pool.map(one, jobs)
+
+
+def _run(task: str, workdir: str, combo: dict[str, str], extra: list[str], gpu: str | None) -> tuple[str, int]:
   os.makedirs(workdir, exist_ok=True)
   command = [sys.executable, "-m", "experiments.train", f"--task={task}", f"--workdir={workdir}",
              *(f"--{k}={v}" for k, v in combo.items()), *extra]
   with open(os.path.join(workdir, "stdout.log"), "a") as out:
-    return workdir, subprocess.run(command, stdout=out, stderr=subprocess.STDOUT).returncode
+    return workdir, subprocess.run(command, stdout=out, stderr=subprocess.STDOUT,
+                                   env=device_environment(gpu)).returncode
 
 
 def main(argv):
@@ -74,15 +111,18 @@ def main(argv):
     cli.fail(str(e))
   if os.path.exists(_WORKDIR.value) and not os.path.isdir(_WORKDIR.value):
     cli.fail(f"--workdir={_WORKDIR.value} is a file, not a directory")
+  gpus = _GPUS.value or [None]
+  if _GPUS.value is not None and not (all(_GPUS.value) and len(set(_GPUS.value)) == len(_GPUS.value)):
+    cli.fail(f"--gpus={','.join(_GPUS.value)}: GPU ids must be distinct and non-empty")
   todo = [(os.path.join(_WORKDIR.value, run_name(c)), c) for c in combos]
   todo = [(w, c) for w, c in todo if not os.path.isfile(os.path.join(w, "results.json"))]
   print(f"{len(combos)} runs, {len(combos) - len(todo)} already done, {len(todo)} to run", flush=True)
   failed = []
-  with concurrent.futures.ThreadPoolExecutor(_PARALLEL.value) as pool:
-    for workdir, code in pool.map(lambda wc: _run(_TASK.value, wc[0], wc[1], extra), todo):
-      print(f"{'done' if code == 0 else f'FAILED (exit {code})'}: {workdir}", flush=True)
-      if code:
-        failed.append(workdir)
+  for workdir, code in run_on_devices(todo, lambda wc, gpu: _run(_TASK.value, wc[0], wc[1], extra, gpu), gpus,
+                                      _PARALLEL.value):
+    print(f"{'done' if code == 0 else f'FAILED (exit {code})'}: {workdir}", flush=True)
+    if code:
+      failed.append(workdir)
   if failed:
     print(f"{len(failed)} runs failed; see stdout.log in: {', '.join(failed)}", file=sys.stderr)
     sys.exit(1)

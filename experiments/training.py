@@ -1,6 +1,7 @@
 """Shared plumbing of the training experiments: flags, train_and_evaluate, results.json, metrics.jsonl."""
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import glob
 import json
@@ -10,9 +11,11 @@ import sys
 import time
 from typing import Callable
 
+import jax
 import numpy as np
 from absl import flags
 from flax import nnx
+from jax.experimental import multihost_utils
 
 from experiments import cli, provenance
 from php_jax import checkpoint, fitting, flat_lstm, joint, objective, train
@@ -53,6 +56,11 @@ EVAL_EVERY = flags.DEFINE_integer("eval_every", 100, "Iterations between logged 
 SNAPSHOT = flags.DEFINE_enum("snapshot", "latest", list(fitting.SNAPSHOT_RULES),
                              "Snapshot kept among those with the best validation accuracy (the PHP root level's, or "
                              "the flat LSTM's).")
+DISTRIBUTED = flags.DEFINE_bool("distributed", False, "One of several processes (a multi-host run): "
+                                 "jax.distributed.initialize() first, which finds the coordinator, the number of "
+                                 "processes and this one's id in the cluster's environment (SLURM, Open MPI, ...) or "
+                                 "in JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, JAX_PROCESS_ID. Demonstrations are "
+                                 "split over every process's devices; process 0 writes the workdir.")
 OVERWRITE = flags.DEFINE_bool("overwrite", False, "Start afresh in a workdir that holds another run (its "
                               "checkpoint, model, metrics and results are deleted); without it such a run is "
                               "resumed if its settings match, and refused if they do not.")
@@ -98,10 +106,12 @@ def _config(defaults: TrainingDefaults) -> train.TrainConfig:
 
 
 def _keep_rows(metrics, path: str, count: int) -> float:
-  """Truncates the open metrics file to its first `count` rows; returns the last kept row's "seconds"."""
+  """Truncates the open metrics file (None: only reads it) to its first `count` rows; returns the last kept
+  row's "seconds"."""
   with open(path, "rb") as f:
     rows = f.read().splitlines(keepends=True)[:count]
-  metrics.truncate(sum(map(len, rows)))
+  if metrics:
+    metrics.truncate(sum(map(len, rows)))
   return json.loads(rows[-1])["seconds"] if rows else 0.0
 
 
@@ -133,18 +143,22 @@ def train_and_evaluate(task_name: str, spec: HierarchySpec, demos: Demonstration
   writes results.json; returns the results."""
   if os.path.exists(workdir) and not os.path.isdir(workdir):
     raise UsageError(f"--workdir={workdir} is a file, not a directory")
-  if OVERWRITE.value:
-    for name in RUN_FILES:
-      if os.path.exists(os.path.join(workdir, name)):
-        os.remove(os.path.join(workdir, name))
-  os.makedirs(workdir, exist_ok=True)
-  for leftover in glob.glob(os.path.join(workdir, ".*.tmp")):  # a write cut off by SIGKILL
-    os.remove(leftover)
+  primary = jax.process_index() == 0  # of several processes (--distributed), the one that writes files
+  if primary:
+    if OVERWRITE.value:
+      for name in RUN_FILES:
+        if os.path.exists(os.path.join(workdir, name)):
+          os.remove(os.path.join(workdir, name))
+    os.makedirs(workdir, exist_ok=True)
+    for leftover in glob.glob(os.path.join(workdir, ".*.tmp")):  # a write cut off by SIGKILL
+      os.remove(leftover)
+  if jax.process_count() > 1:  # the others read the workdir (to resume) once process 0 has cleared it
+    multihost_utils.sync_global_devices("workdir ready")
   if config.strong_weight is None:  # resolved here so that results.json records the number
     config = dataclasses.replace(config, strong_weight=train.balanced_strong_weight(np.asarray(demos.strong)))
   start, commit = time.time(), provenance.code_version()  # the code as it was when the run started
   metrics_path = os.path.join(workdir, "metrics.jsonl")
-  with open(metrics_path, "a") as metrics:
+  with open(metrics_path, "a") if primary else contextlib.nullcontext() as metrics:
     def log(row):
       nonlocal start
       if row.get("resumed"):  # keep the rows the checkpoint covers; the clock goes on from the last of them
@@ -152,8 +166,9 @@ def train_and_evaluate(task_name: str, spec: HierarchySpec, demos: Demonstration
         print(json.dumps(row), flush=True)
         return
       row = {**row, "seconds": round(time.time() - start, 2)}
-      metrics.write(json.dumps(row) + "\n")
-      metrics.flush()
+      if metrics:
+        metrics.write(json.dumps(row) + "\n")
+        metrics.flush()
       print(json.dumps(row), flush=True)
     if flat_lstm_hidden:
       model, trained = _train_flat_lstm(spec, demos, config, flat_lstm_hidden, validate, log)
@@ -201,8 +216,12 @@ def _train_flat_lstm(spec: HierarchySpec, demos: Demonstration, config: train.Tr
 
 
 def run_resumable(body: Callable[[], object]) -> None:
-  """Runs a training command's body: a UsageError or CheckpointError ends in one line and exit status 2;
-  Ctrl-C or SIGTERM in one line saying how to resume, and exit status 130."""
+  """Runs a training command's body (after jax.distributed.initialize() with --distributed): a UsageError or
+  CheckpointError ends in one line and exit status 2; Ctrl-C or SIGTERM in one line saying how to resume, and
+  exit status 130."""
+  if DISTRIBUTED.value:  # before anything uses JAX; JAX reads JAX_COORDINATOR_ADDRESS and the clusters' variables
+    jax.distributed.initialize(num_processes=_environment_int("JAX_NUM_PROCESSES"),
+                               process_id=_environment_int("JAX_PROCESS_ID"))
   signal.signal(signal.SIGTERM, _interrupt)
   try:
     body()
@@ -212,6 +231,11 @@ def run_resumable(body: Callable[[], object]) -> None:
     print(f"interrupted: {WORKDIR.value} keeps the last checkpoint; rerun the same command to resume",
           file=sys.stderr)
     sys.exit(130)
+
+
+def _environment_int(name: str) -> int | None:
+  value = os.environ.get(name)
+  return int(value) if value else None
 
 
 def _interrupt(signum, frame):

@@ -38,7 +38,9 @@ def write_atomically(path: str, data: bytes) -> None:
   """Writes data to path through a temporary file in the same directory renamed into place: readers see the
   old file or the new one, never part of one. The file gets mode 0o666 & ~umask (0644 under umask 022), as
   open() would give it; if the write or the rename fails (KeyboardInterrupt included) the temporary file is
-  removed."""
+  removed. Of several processes (jax.distributed), only the first writes: the others hold the same data."""
+  if jax.process_index() != 0:
+    return
   directory = os.path.dirname(os.path.abspath(path))
   os.makedirs(directory, exist_ok=True)
   while True:  # O_CREAT | O_EXCL with mode 0o666: the kernel applies the umask, no need to read or change it

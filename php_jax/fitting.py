@@ -2,13 +2,16 @@
 levels (php_jax.train) and the flat LSTM baseline (php_jax.flat_lstm) train with."""
 from __future__ import annotations
 
+import functools
 import time
 from typing import Any, Callable, NamedTuple
 
 import jax
 import optax
 from flax import nnx
+from jax.sharding import Mesh
 
+from php_jax import sharding
 
 SNAPSHOT_RULES = ("earliest", "latest")  # which of the equally best-validated snapshots fit keeps
 
@@ -24,12 +27,16 @@ class Progress(NamedTuple):
   losses: list
 
 
-def fit(model: nnx.Module, loss_fn: Callable[[nnx.Module], jax.Array], iterations: int, learning_rate: float,
+def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array], iterations: int, learning_rate: float,
         eval_every: int, on_eval: Callable[[int, float], float | None] | None = None,
         log: Callable[[dict], None] = print, resume: Progress | None = None,
         save: Callable[[Progress], None] | None = None, snapshot: str = "latest",
-        save_seconds: float = 30.0) -> Progress:
-  """Full-batch Adam on loss_fn(model) []. Updates `model` in place to the kept snapshot.
+        save_seconds: float = 30.0, args: tuple = (), mesh: Mesh | None = None) -> Progress:
+  """Full-batch Adam on loss_fn(model, *args) []. Updates `model` in place to the kept snapshot.
+
+  args (the data) follow the model into loss_fn: as constants of the compiled update without a mesh, as its
+  arguments with one (arrays split over `mesh`); then the parameters and optimizer state are replicated on
+  the mesh, and the model gets them back as arrays of the default device.
 
   Every eval_every iterations and at the end: on_eval(iteration, loss) may return a validation score (the
   snapshot with the highest score is kept, the latest or the earliest among equals as `snapshot` says;
@@ -44,13 +51,16 @@ def fit(model: nnx.Module, loss_fn: Callable[[nnx.Module], jax.Array], iteration
   progress = resume if resume is not None else Progress(0, params, optimizer.init(params), params, None, None,
                                                         [])
 
-  @jax.jit
-  def update(params, opt_state):
-    loss, grads = jax.value_and_grad(lambda p: loss_fn(nnx.merge(graphdef, p, rest)))(params)
+  def step(params, opt_state, args):
+    loss, grads = jax.value_and_grad(lambda p: loss_fn(nnx.merge(graphdef, p, rest), *args))(params)
     updates, opt_state = optimizer.update(grads, opt_state, params)
     return optax.apply_updates(params, updates), opt_state, loss
 
-  params, opt_state = progress.params, progress.opt_state
+  if mesh is None:  # the data as constants, folded into the program by XLA: one device's numbers as before meshes
+    update = jax.jit(lambda params, opt_state: step(params, opt_state, args))
+  else:  # as arguments: a constant would sit whole on one device
+    update = functools.partial(jax.jit(step), args=args)
+  params, opt_state = sharding.replicate((progress.params, progress.opt_state), mesh)
   last_save = time.monotonic()
   for iteration in range(progress.iteration + 1, iterations + 1):
     params, opt_state, loss = update(params, opt_state)
@@ -60,7 +70,7 @@ def fit(model: nnx.Module, loss_fn: Callable[[nnx.Module], jax.Array], iteration
       last_save = time.monotonic()
     if evaluate:
       loss = float(loss)
-      nnx.update(model, params)
+      nnx.update(model, sharding.unreplicate(params, mesh))
       score = on_eval(iteration, loss) if on_eval else None
       improved = score is not None and (progress.best_score is None or score > progress.best_score
                                         or (snapshot == "latest" and score == progress.best_score))
@@ -73,5 +83,5 @@ def fit(model: nnx.Module, loss_fn: Callable[[nnx.Module], jax.Array], iteration
       if save:
         save(progress)
         last_save = time.monotonic()
-  nnx.update(model, progress.best_params)
+  nnx.update(model, sharding.unreplicate(progress.best_params, mesh))
   return progress

@@ -15,8 +15,9 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh
 
-from php_jax import checkpoint, fitting, stack_lattice, train
+from php_jax import checkpoint, fitting, sharding, stack_lattice, train
 from php_jax.decoding import stack_inputs
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.demos import validate as validate_demos
@@ -43,9 +44,12 @@ def joint_capacity(demos: Demonstration, spec: HierarchySpec, config: train.Trai
   return tuple(capacity)
 
 
-def _buckets(demos: Demonstration, num_buckets: int) -> list[Demonstration]:
+def _buckets(demos: Demonstration, num_buckets: int,
+             mesh: Mesh | None = None) -> list[tuple[Demonstration, jax.Array]]:
   """Demonstrations sorted by length into up to num_buckets groups, each trimmed to its longest, as device
-  arrays with the annotation kept only on strong ones."""
+  arrays with the annotation kept only on strong ones; each with real [B] bool. With a mesh, each group is
+  padded to a multiple of its device count (`sharding.pad`: real False on the copies) and split over its
+  devices along B."""
   lengths = np.asarray(demos.length)
   order = np.argsort(lengths, kind="stable")
   arrays = [np.asarray(x) for x in demos]
@@ -54,10 +58,10 @@ def _buckets(demos: Demonstration, num_buckets: int) -> list[Demonstration]:
   for group in np.array_split(order, min(num_buckets, len(order))):
     width = int(lengths[group].max())
     obs, act, procs, taus, length, is_strong = (x[group] for x in arrays)
-    buckets.append(Demonstration(
-        jnp.asarray(obs[:, :width + 1]), jnp.asarray(act[:, :width]),
-        jnp.asarray(np.where(strong[group], procs, UNKNOWN)[:, :width]),
-        jnp.asarray(np.where(strong[group], taus, UNKNOWN)[:, :width]), jnp.asarray(length), jnp.asarray(is_strong)))
+    batch, real = sharding.pad(Demonstration(
+        obs[:, :width + 1], act[:, :width], np.where(strong[group], procs, UNKNOWN)[:, :width],
+        np.where(strong[group], taus, UNKNOWN)[:, :width], length, is_strong), mesh)
+    buckets.append(sharding.put((batch, real), mesh))
   return buckets
 
 
@@ -69,14 +73,15 @@ def log_likelihoods(hierarchy: PHPHierarchy, batch: Demonstration, capacity: tup
   return jax.vmap(one)(batch.observations, batch.actions, batch.procedures, batch.counters, batch.length)
 
 
-def joint_loss(hierarchy: PHPHierarchy, buckets: list[Demonstration], capacity: tuple[int, ...],
+def joint_loss(hierarchy: PHPHierarchy, buckets: list[tuple[Demonstration, jax.Array]], capacity: tuple[int, ...],
                strong_weight: float) -> jax.Array:
-  """−(w_strong Σ_strong log P(ζ, ξ) + Σ_weak log P(ξ)) / N over every bucket."""
+  """−(w_strong Σ_strong log P(ζ, ξ) + Σ_weak log P(ξ)) / N over the real demonstrations of every bucket
+  (batch, real) (the copies that pad a bucket split over devices weigh 0 and are not counted in N)."""
   total, count = 0.0, 0
-  for batch in buckets:
-    weights = jnp.where(batch.strong, strong_weight, 1.0)
+  for batch, real in buckets:
+    weights = jnp.where(real, jnp.where(batch.strong, strong_weight, 1.0), 0.0)
     total = total - jnp.sum(weights * log_likelihoods(hierarchy, batch, capacity))
-    count += batch.length.shape[0]
+    count = count + jnp.sum(real)
   return total / count
 
 
@@ -116,10 +121,11 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
                                                              "logged": logged[0]}, progress, {})
 
   start = time.time()
-  buckets = _buckets(demos, config.length_buckets)
-  progress = fitting.fit(hierarchy, lambda h: joint_loss(h, buckets, capacity, config.strong_weight),
+  mesh = sharding.data_mesh()  # with more than one device, each bucket is split over all of them
+  buckets = _buckets(demos, config.length_buckets, mesh)
+  progress = fitting.fit(hierarchy, lambda h, buckets: joint_loss(h, buckets, capacity, config.strong_weight),
                          config.iterations, config.learning_rate, config.eval_every,
                          (lambda it, loss: validate(hierarchy)) if validate else None, counted_log, resume,
-                         save if checkpoint_path else None, config.snapshot)
+                         save if checkpoint_path else None, config.snapshot, args=(buckets,), mesh=mesh)
   return hierarchy, {"capacity": list(capacity), "losses": progress.losses, "best_iteration": progress.best_iteration,
                      "validation": progress.best_score, "seconds": time.time() - start}

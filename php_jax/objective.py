@@ -58,12 +58,13 @@ def view_log_likelihoods(model: LevelModel, batch: views.LevelView, capacity: in
 
 
 def level_loss(model: LevelModel, buckets: list[views.LevelView], capacity: int, strong_weight: float) -> jax.Array:
-  """−(w_strong Σ_strong log P(ζ, ξ) + Σ_weak log P(ξ)) / N over the views of every length bucket."""
+  """−(w_strong Σ_strong log P(ζ, ξ) + Σ_weak log P(ξ)) / N over the real views of every length bucket (the
+  copies that pad a bucket split over devices weigh 0 and are not counted in N)."""
   total, count = 0.0, 0
   for batch in buckets:
-    weights = jnp.where(batch.strong, strong_weight, 1.0)
+    weights = jnp.where(batch.real, jnp.where(batch.strong, strong_weight, 1.0), 0.0)
     total = total - jnp.sum(weights * view_log_likelihoods(model, batch, capacity))
-    count += batch.length.shape[0]
+    count = count + jnp.sum(batch.real)
   return total / count
 
 

@@ -17,7 +17,7 @@ import jax
 import numpy as np
 from flax import nnx
 
-from php_jax import agreement, checkpoint, fitting, views
+from php_jax import agreement, checkpoint, fitting, sharding, views
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.demos import validate as validate_demos
 from php_jax.hierarchy import HierarchySpec
@@ -93,15 +93,19 @@ def train_level(model: LevelModel, view: views.LevelView, capacity: int, config:
   the strong views alone and W+1..W+config.iterations all of them: the weak views' posteriors then start
   from networks that follow the annotated hierarchy instead of from random ones (paper §6: weak views can
   pull the fit towards another hierarchy). The root level's weak views have no latent choice (one procedure,
-  τ = step), so it has no warm-up."""
+  τ = step), so it has no warm-up.
+
+  With more than one device, each length bucket is split over all of them (`sharding.data_mesh`)."""
   is_root = model.root is None
   strong_weight = config.root_strong_weight if is_root and config.root_strong_weight is not None else (
       config.strong_weight)
+  mesh = sharding.data_mesh()
 
   def fit(part: views.LevelView, iterations: int, progress: fitting.Progress | None) -> fitting.Progress:
-    buckets = [views.device_view(b) for b in views.length_buckets(part, config.length_buckets)]
-    return fitting.fit(model, lambda m: level_loss(m, buckets, capacity, strong_weight), iterations,
-                       config.learning_rate, config.eval_every, on_eval, log, progress, save, config.snapshot)
+    buckets = [views.device_view(b, mesh) for b in views.length_buckets(part, config.length_buckets)]
+    return fitting.fit(model, lambda m, buckets: level_loss(m, buckets, capacity, strong_weight), iterations,
+                       config.learning_rate, config.eval_every, on_eval, log, progress, save, config.snapshot,
+                       args=(buckets,), mesh=mesh)
 
   warmup = config.strong_warmup if not is_root and 0 < view.strong.sum() < len(view.strong) else 0
   if warmup and (resume is None or resume.iteration < warmup):

@@ -12,9 +12,10 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh
 
+from php_jax import sharding
 from php_jax.demos import UNKNOWN, Demonstration
 
 
@@ -31,6 +32,8 @@ class LevelView(NamedTuple):
     strong: [B] bool whether the annotation may be trained on: the demonstration is annotated (partly or
       completely) and every level below this one is annotated on every step. Unannotated operations of a
       strong view are UNKNOWN and summed over by the lattice.
+    real: [B] bool False on the copies that pad a batch split over devices to a multiple of their count
+      (`device_view`), which the loss weighs 0.
   """
   observations: np.ndarray
   actions: np.ndarray
@@ -39,6 +42,7 @@ class LevelView(NamedTuple):
   length: np.ndarray
   times: np.ndarray
   strong: np.ndarray
+  real: np.ndarray
 
 
 def select(view: LevelView, mask: np.ndarray) -> LevelView:
@@ -55,18 +59,19 @@ def length_buckets(view: LevelView, num_buckets: int) -> list[LevelView]:
     width = int(view.length[group].max())
     buckets.append(LevelView(
         view.observations[group, :width + 1], view.actions[group, :width], view.procedures[group, :width],
-        view.counters[group, :width], view.length[group], view.times[group, :width], view.strong[group]))
+        view.counters[group, :width], view.length[group], view.times[group, :width], view.strong[group],
+        view.real[group]))
   return buckets
 
 
-def device_view(view: LevelView) -> LevelView:
-  """The view as device arrays, with annotations only on strong demonstrations."""
+def device_view(view: LevelView, mesh: Mesh | None = None) -> LevelView:
+  """The view as device arrays, with annotations only on strong demonstrations. With a mesh, padded to a
+  multiple of its device count (`sharding.pad`: real False on the copies) and split over its devices along B."""
   strong = view.strong[:, None]
-  return LevelView(
-      observations=jnp.asarray(view.observations), actions=jnp.asarray(view.actions),
-      procedures=jnp.asarray(np.where(strong, view.procedures, UNKNOWN)),
-      counters=jnp.asarray(np.where(strong, view.counters, UNKNOWN)),
-      length=jnp.asarray(view.length), times=jnp.asarray(view.times), strong=jnp.asarray(view.strong))
+  view = view._replace(procedures=np.where(strong, view.procedures, UNKNOWN),
+                       counters=np.where(strong, view.counters, UNKNOWN))
+  view, real = sharding.pad(view, mesh)
+  return sharding.put(view._replace(real=view.real & real), mesh)
 
 
 def _pack(demos: Demonstration, level: int, times: list[np.ndarray], actions: list[np.ndarray]) -> LevelView:
@@ -81,7 +86,7 @@ def _pack(demos: Demonstration, level: int, times: list[np.ndarray], actions: li
       procedures=np.full((num_demos, width), UNKNOWN, np.int32),
       counters=np.full((num_demos, width), UNKNOWN, np.int32),
       length=np.array([len(t) for t in times], np.int32),
-      times=np.full((num_demos, width), -1, np.int32), strong=strong.copy())
+      times=np.full((num_demos, width), -1, np.int32), strong=strong.copy(), real=np.ones(num_demos, bool))
   for b, (t, a) in enumerate(zip(times, actions)):
     # A level's annotation is usable when the levels below are annotated throughout: only then are its
     # operations (their calls) the annotated ones.

@@ -1,7 +1,10 @@
 """The flat LSTM baseline, the sweep runner's grid, the plot command and the segmentation report."""
+import collections
 import json
 import subprocess
 import sys
+import threading
+import time
 
 import jax
 import jax.numpy as jnp
@@ -62,6 +65,38 @@ def test_sweep_grid_is_the_product_without_impossible_combinations():
   assert sweep.run_name(lists[2]) == "tau_in_termination=1:0:1,seed=1"
   with pytest.raises(ValueError, match="name=value"):
     sweep.parse_grid(["num_demos"])
+
+
+def test_sweep_runs_each_job_on_one_gpu_parallel_at_a_time_on_each():
+  lock, running, seen = threading.Lock(), collections.Counter(), []
+
+  def run(job, device):
+    with lock:
+      running[device] += 1
+      seen.append((job, device, running[device]))
+    time.sleep(0.02)
+    with lock:
+      running[device] -= 1
+    return job * 10
+
+  assert list(sweep.run_on_devices(list(range(12)), run, ["0", "1", "3"], parallel=2)) == [j * 10 for j in range(12)]
+  assert sorted(j for j, _, _ in seen) == list(range(12))
+  assert {d for _, d, _ in seen} == {"0", "1", "3"} and max(n for _, _, n in seen) == 2
+  seen.clear()
+  list(sweep.run_on_devices(list(range(4)), run, [None], parallel=3))  # no --gpus: this process's devices
+  assert {d for _, d, _ in seen} == {None} and max(n for _, _, n in seen) <= 3
+
+
+def test_sweep_run_sees_only_its_gpu_without_preallocation(tmp_path, monkeypatch):
+  envs = []
+  monkeypatch.setattr(sweep.subprocess, "run", lambda command, env, **kwargs: envs.append(env) or
+                      subprocess.CompletedProcess(command, 0))
+  monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "0,1,2,3")
+  monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE", raising=False)
+  assert sweep._run("nanocraft", str(tmp_path / "a"), {"seed": "1"}, [], "2") == (str(tmp_path / "a"), 0)
+  sweep._run("nanocraft", str(tmp_path / "b"), {"seed": "2"}, [], None)
+  assert envs[0]["CUDA_VISIBLE_DEVICES"] == "2" and envs[0]["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"
+  assert envs[1]["CUDA_VISIBLE_DEVICES"] == "0,1,2,3" and "XLA_PYTHON_CLIENT_PREALLOCATE" not in envs[1]
 
 
 def test_plot_draws_the_figure_and_tables(tmp_path):
@@ -139,7 +174,7 @@ def test_sweep_refuses_bad_grids(entries, message):
 def test_sweep_command_refuses_bad_flags_and_writes_nothing(tmp_path):
   workdir = tmp_path / "sweep"
   for flags, message in [(["--grid=num_demos=16,x"], "num_demos values"), (["--parallel=0"], "parallel"),
-                         (["--grid=seed=1", "--grid=seed=2"], "given twice")]:
+                         (["--grid=seed=1", "--grid=seed=2"], "given twice"), (["--gpus=0,0"], "distinct")]:
     proc = subprocess.run([sys.executable, "-m", "experiments.sweep", "--task=nanocraft", f"--workdir={workdir}",
                            *flags], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, (

@@ -1,5 +1,7 @@
 """The runnable example and the benchmark commands work (functionality only; nothing here is timed)."""
 import importlib.util
+import json
+import os
 import pathlib
 import subprocess
 import sys
@@ -42,3 +44,17 @@ def test_benchmark_rejects_unknown_command():
   proc = subprocess.run([sys.executable, "-m", "experiments.benchmark", "nonsense"], capture_output=True,
                         text=True, timeout=120, cwd=ROOT)
   assert proc.returncode != 0 and "usage" in proc.stderr
+
+
+@pytest.mark.slow
+def test_scaling_benchmark_runs_on_four_devices(tmp_path):
+  out = tmp_path / "scaling.json"
+  proc = subprocess.run([sys.executable, "-m", "experiments.benchmark", "scaling", "--task=nanocraft", "--num_demos=6",
+                         "--hidden=8", "--root=mlp", "--seeds=2", "--min_time=0", f"--out={out}"],
+                        capture_output=True, text=True, timeout=900, cwd=ROOT,
+                        env={**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=4"})
+  assert proc.returncode == 0, proc.stderr[-3000:]
+  assert "x 4;" in proc.stdout and "vmapped vs in turn" in proc.stdout
+  rows = json.loads(out.read_text())
+  assert [r["what"].split(" (")[0] for r in rows[:4]] == ["level 2 loss", "level 1 loss", "level 0 loss", "joint loss"]
+  assert all(r["all_devices_s"] > 0 for r in rows[:4]) and all(r["vmapped_s"] > 0 for r in rows[4:])

@@ -22,6 +22,7 @@ def test_environment_versions_name_the_code_and_the_device():
     assert versions[name] == importlib.metadata.version(name)
   device = jax.devices()[0]
   assert (versions["platform"], versions["device_kind"]) == (device.platform, device.device_kind)
+  assert (versions["devices"], versions["processes"]) == (jax.device_count(), 1)
 
 
 @pytest.fixture

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from php_jax.envs import addition as env
@@ -12,8 +13,8 @@ SPEC = HierarchySpec(name="addition", levels=(("add",), ("add1",), ("write", "ca
                      action_sizes=env.ACTION_SIZES, obs_dim=env.OBS_DIM)
 WRITE_PROC, CARRY_PROC, LSHIFT_PROC = range(3)
 # carry's three actions by τ: MOVE carry LEFT, WRITE carry 1, MOVE carry RIGHT.
-_CARRY_ACTIONS = jnp.array([[env.MOVE, env.CARRY, env.LEFT], [env.WRITE, env.CARRY, 1],
-                            [env.MOVE, env.CARRY, env.RIGHT]], jnp.int32)
+_CARRY_ACTIONS = np.array([[env.MOVE, env.CARRY, env.LEFT], [env.WRITE, env.CARRY, 1],
+                           [env.MOVE, env.CARRY, env.RIGHT]], np.int32)
 
 
 def _column_sum(sym):
@@ -37,7 +38,7 @@ class AdditionOracle:
                          jnp.where((tau == 1) & (total >= 10), CARRY_PROC, LSHIFT_PROC))
       return callee[None].astype(jnp.int32)
     write = jnp.array([env.WRITE, env.OUT, 0], jnp.int32).at[2].set(total % 10)
-    carry = _CARRY_ACTIONS[jnp.clip(tau, 0, 2)]
+    carry = jnp.asarray(_CARRY_ACTIONS)[jnp.clip(tau, 0, 2)]
     lshift = jnp.array([env.MOVE, 0, env.LEFT], jnp.int32).at[1].set(jnp.clip(tau, 0, 3))
     return jnp.stack([write, carry, lshift])[jnp.clip(proc, 0, 2)]
 

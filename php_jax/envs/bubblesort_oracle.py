@@ -10,6 +10,7 @@ others: after dece and one lshift, j = e holds again.
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from php_jax.envs import bubblesort as env
@@ -21,12 +22,12 @@ SPEC = HierarchySpec(name="bubblesort", levels=(("bubblesort",), ("bubble", "res
 BUBBLE, RESET = range(2)
 SWAPSHIFT, SHIFT, LSHIFT, DECE = range(4)
 # [procedure, τ] → action; rows are padded with their last action.
-_ACTIONS = jnp.array([
+_ACTIONS = np.array([
     [[env.SWAP, env.I, env.LEFT], [env.MOVE, env.I, env.RIGHT], [env.MOVE, env.J, env.RIGHT]],
     [[env.MOVE, env.I, env.RIGHT], [env.MOVE, env.J, env.RIGHT], [env.MOVE, env.J, env.RIGHT]],
     [[env.MOVE, env.I, env.LEFT], [env.MOVE, env.J, env.LEFT], [env.MOVE, env.J, env.LEFT]],
-    [[env.MOVE, env.E, env.LEFT]] * 3], jnp.int32)
-_LAST_TAU = jnp.array([2, 1, 1, 0], jnp.int32)
+    [[env.MOVE, env.E, env.LEFT]] * 3], np.int32)
+_LAST_TAU = np.array([2, 1, 1, 0], np.int32)
 
 
 def _read(obs):
@@ -50,7 +51,7 @@ class BubbleSortOracle:
       reset = jnp.where((tau == 0) & j_at_end, DECE, LSHIFT)
       callee = jnp.where(proc == BUBBLE, bubble, reset)
     else:
-      return _ACTIONS[jnp.clip(proc, 0, 3), jnp.clip(tau, 0, 2)]
+      return jnp.asarray(_ACTIONS)[jnp.clip(proc, 0, 3), jnp.clip(tau, 0, 2)]
     return callee[None].astype(jnp.int32)
 
   def terminates(self, level, proc, tau, obs, key):
@@ -60,4 +61,4 @@ class BubbleSortOracle:
       return i_at_start & j_at_end
     if level == 1:
       return jnp.where(proc == BUBBLE, j_at_end, i_at_start)
-    return tau >= _LAST_TAU[jnp.clip(proc, 0, 3)]
+    return tau >= jnp.asarray(_LAST_TAU)[jnp.clip(proc, 0, 3)]
