@@ -26,7 +26,6 @@ _SIZE = flags.DEFINE_integer("size", None, "test: problem size (digits, array le
 _SEED = flags.DEFINE_integer("seed", 0, "Seed (the training command's --seed for the same data).")
 _OUT = flags.DEFINE_string("out", None, "Output demonstration file (JSON lines).")
 _HIERARCHY_OUT = flags.DEFINE_string("hierarchy_out", None, "Also write the task's hierarchy file here.")
-SEED_OFFSETS = {"training": 0, "validation": 10_000, "test": 20_000}  # as experiments.train draws its sets
 
 
 def main(argv):
@@ -41,7 +40,7 @@ def main(argv):
     cli.fail(f"--num_strong must be in 0..--num_demos={num} and --num_demos ≥ 1; got {_NUM_STRONG.value} of {num}")
   if _SIZE.value is not None and _SPLIT.value != "test":
     cli.fail("--size is for --split=test")
-  seed = _SEED.value + SEED_OFFSETS[_SPLIT.value]
+  seed = _SEED.value + datasets.SEED_OFFSETS[_SPLIT.value]
   if _SPLIT.value == "training":
     problems = task.training_problems(seed, num)
   elif _SPLIT.value == "validation":

@@ -58,9 +58,9 @@ def run(task_name: str) -> dict:
   except ValueError as e:
     raise training.UsageError(f"--{e}") from None
   demos = datasets.training_demos(task, seed, num_demos, NUM_STRONG.value)
-  validation = task.validation_problems(seed + 10_000, NUM_VALIDATION.value)
-  test_sets = ({str(n): task.test_problems(seed + 20_000, num_test, n) for n in lengths} if lengths
-               else {"accuracy": task.test_problems(seed + 20_000, num_test, None)})
+  validation = task.validation_problems(seed + datasets.SEED_OFFSETS["validation"], NUM_VALIDATION.value)
+  test_sets = ({str(n): task.test_problems(seed + datasets.SEED_OFFSETS["test"], num_test, n) for n in lengths} if lengths
+               else {"accuracy": task.test_problems(seed + datasets.SEED_OFFSETS["test"], num_test, None)})
   return training.train_and_evaluate(
       task_name, task.spec, demos, config, training.WORKDIR.value,
       validate=lambda model: evaluation.accuracy(task, model, validation),

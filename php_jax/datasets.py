@@ -8,6 +8,9 @@ from php_jax import demos, executor
 from php_jax.task import Task
 
 
+SEED_OFFSETS = {"training": 0, "validation": 10_000, "test": 20_000}  # added to a run's seed per problem set
+
+
 def oracle_demonstrations(task: Task, states, num_strong: int, max_steps: int) -> demos.Demonstration:
   """The supervisor's demonstrations of a batch of start states; the first num_strong are strongly
   supervised (weak ones keep the supervisor's stack for measuring decoding, flagged strong=False)."""

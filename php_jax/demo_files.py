@@ -33,6 +33,7 @@ from php_jax import demos as demos_lib
 from php_jax.checkpoint import write_atomically
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.hierarchy import HierarchySpec
+from php_jax.task import check_keys
 
 HIERARCHY_KEYS = ("levels", "action_sizes", "name", "capacity", "hidden")
 DEMONSTRATION_KEYS = ("observations", "actions", "stack")
@@ -76,9 +77,7 @@ def read_hierarchy(path: str) -> Hierarchy:
 def _hierarchy(obj, default_name: str) -> Hierarchy:
   if not isinstance(obj, dict):
     raise ValueError("a hierarchy must be a JSON object")
-  for key in obj:
-    if key not in HIERARCHY_KEYS:
-      raise ValueError(f"unknown key {key!r}; a hierarchy has {', '.join(map(repr, HIERARCHY_KEYS))}")
+  check_keys(obj, HIERARCHY_KEYS, "hierarchy")
   levels, sizes = obj.get("levels"), obj.get("action_sizes")
   if not (isinstance(levels, list) and len(levels) >= 2 and all(
       isinstance(level, list) and level and all(isinstance(n, str) and n for n in level) for level in levels)):
@@ -114,9 +113,7 @@ def _parse_line(obj, spec: HierarchySpec) -> tuple[np.ndarray, np.ndarray, np.nd
   """One line's (observations [T+1, D], actions [T, F], procedures, counters [T, d] or None). ValueError."""
   if not isinstance(obj, dict):
     raise ValueError("a demonstration must be a JSON object")
-  for key in obj:
-    if key not in DEMONSTRATION_KEYS:
-      raise ValueError(f"unknown key {key!r}; a demonstration has {', '.join(map(repr, DEMONSTRATION_KEYS))}")
+  check_keys(obj, DEMONSTRATION_KEYS, "demonstration")
   observations, actions = obj.get("observations"), obj.get("actions")
   if not isinstance(actions, list) or not actions:
     raise ValueError('"actions" must be a non-empty list (one elementary action per step)')

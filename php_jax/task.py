@@ -21,11 +21,12 @@ from php_jax.hierarchy import HierarchySpec, Policy
 Problem = Any
 
 
-def check_keys(obj: dict, known: tuple[str, ...]) -> None:
-  """For parse_problem: raises ValueError naming the first key of a problem line's object not in known."""
+def check_keys(obj: dict, known: tuple[str, ...], kind: str = "problem") -> None:
+  """For parse_problem (and the demonstration files): raises ValueError naming the first key of a line's
+  object not in known."""
   for key in obj:
     if key not in known:
-      raise ValueError(f"unknown key {key!r}; a problem has {', '.join(map(repr, known))}")
+      raise ValueError(f"unknown key {key!r}; a {kind} has {', '.join(map(repr, known))}")
 
 
 class Environment(Protocol):
