@@ -168,10 +168,13 @@ def run_settings(spec: HierarchySpec, demos: Demonstration, config: TrainConfig)
 
 
 def check_resumable(path: str, saved_settings: dict, settings: dict) -> None:
-  """Raises CheckpointError naming the settings that differ between a checkpoint and this run."""
+  """Raises CheckpointError naming the settings that differ between a checkpoint and this run. A setting the
+  checkpoint does not name (it predates the setting) counts as its default."""
+  defaults = json.loads(json.dumps(dataclasses.asdict(TrainConfig())))
+  saved_settings = {**saved_settings, "config": {**defaults, **saved_settings.get("config", {})}}
   if saved_settings == settings:
     return
-  old_config, new_config = saved_settings.get("config", {}), settings["config"]
+  old_config, new_config = saved_settings["config"], settings["config"]
   differ = [f"{k}: {old_config.get(k)!r} there, {v!r} here" for k, v in new_config.items() if old_config.get(k) != v]
   differ += [f"{k} differ" for k in ("levels", "demonstrations") if saved_settings.get(k) != settings[k]]
   raise checkpoint.CheckpointError(f"{path} was made with other settings ({'; '.join(differ) or 'unknown'}); "

@@ -145,6 +145,20 @@ def test_corrupt_or_mismatched_saved_files_are_refused_naming_the_file(tmp_path)
       checkpoint.read_training(str(path))
 
 
+def test_resume_check_names_what_differs_and_takes_defaults_for_settings_a_checkpoint_predates():
+  config = train.TrainConfig(hidden=(8,), seed=1)
+  settings = {"config": json.loads(json.dumps(dataclasses.asdict(config))), "levels": [1, 2], "demonstrations": "x"}
+  older = {**settings, "config": {k: v for k, v in settings["config"].items() if k != "training"}}
+  train.check_resumable("ckpt", older, settings)  # made before --training existed: level-wise, its default
+  joint = json.loads(json.dumps(dataclasses.asdict(dataclasses.replace(config, training="joint"))))
+  with pytest.raises(checkpoint.CheckpointError, match="training: 'levelwise' there, 'joint' here"):
+    train.check_resumable("ckpt", older, {**settings, "config": joint})
+  with pytest.raises(checkpoint.CheckpointError, match="seed: 1 there, 2 here"):
+    train.check_resumable("ckpt", settings, {**settings, "config": {**settings["config"], "seed": 2}})
+  with pytest.raises(checkpoint.CheckpointError, match="demonstrations differ"):
+    train.check_resumable("ckpt", settings, {**settings, "demonstrations": "y"})
+
+
 @pytest.mark.slow
 def test_nanocraft_run_solves_held_out_episodes_and_evaluate_loads_it(tmp_path):
   """A small strongly supervised run through the CLI learns a hierarchy that solves fresh episodes."""
