@@ -1,14 +1,21 @@
 r"""Trains a PHP hierarchy (or the flat LSTM baseline) on any task from its supervisor's demonstrations.
 
   python -m experiments.train --task=NAME --workdir=DIR --num_strong=N --seed=S [--num_demos=M]
+  python -m experiments.train --task=NAME --workdir=DIR --num_strong=N --seeds=1,2,3,4,5
 
 Builds the task's training set for --seed (num_strong of its demonstrations annotated with the whole call
 stack, the rest actions only), trains every level from the lowest (the one taking elementary actions) up to
 the root (level 0), saves the model (`experiments.evaluate --policy=WORKDIR` runs it) and writes
 results.json with the accuracy on fresh test problems (seeds disjoint from training and validation). Rerun
 the same command to resume an interrupted run. Flags left unset take the task's defaults.
+
+With --seeds, each seed's run (its own training set, initialisation, snapshot and test) goes to
+WORKDIR/seed=S, with the files `--seed=S --workdir=WORKDIR/seed=S` would write; the seeds' updates run as one
+vmapped program per level (`php_jax.seeds`).
 """
 from __future__ import annotations
+
+import dataclasses
 
 from absl import app, flags
 
@@ -20,6 +27,8 @@ MODEL = flags.DEFINE_enum("model", "php", ["php", "flat_lstm"],
                           "php: the hierarchy by level-wise EG; flat_lstm: the behaviour-cloning baseline.")
 LSTM_HIDDEN = flags.DEFINE_integer("lstm_hidden", 128, "Hidden units of the flat LSTM baseline.")
 NUM_VALIDATION = flags.DEFINE_integer("num_validation", 50, "Validation problems (training distribution).")
+SEEDS = flags.DEFINE_list("seeds", None, "Several seeds (e.g. 1,2,3,4,5) trained as one program, level-wise: "
+                          "each seed's run, the same as with --seed, goes to WORKDIR/seed=S.")
 _TASK = flags.DEFINE_string("task", None, f"The task: one of {', '.join(tasks.TASKS)}, or module:attribute "
                             "of a php_jax.task.Task defined elsewhere.")
 _NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "Demonstrations in the training set, where the task offers "
@@ -57,16 +66,39 @@ def run(task_name: str) -> dict:
     train.check_config(task.spec, config)
   except ValueError as e:
     raise training.UsageError(f"--{e}") from None
+  if SEEDS.value is None:
+    demos, validate, test, extra = _seed_run(task, seed, num_demos, num_test, lengths)
+    return training.train_and_evaluate(task_name, task.spec, demos, config, training.WORKDIR.value, validate, test,
+                                       extra, LSTM_HIDDEN.value if MODEL.value == "flat_lstm" else None)
+  runs = [_seed_run(task, s, num_demos, num_test, lengths) for s in _seeds(config)]
+  return training.train_and_evaluate_seeds(task_name, task.spec, [r[0] for r in runs],
+                                           [dataclasses.replace(config, seed=r[3]["seed"]) for r in runs],
+                                           training.WORKDIR.value, *([r[i] for r in runs] for i in (1, 2, 3)))
+
+
+def _seeds(config: train.TrainConfig) -> list[int]:
+  """--seeds' values, checked against the other flags."""
+  if flags.FLAGS["seed"].present:
+    raise training.UsageError("--seeds and --seed: give one of them")
+  if MODEL.value != "php" or config.training != "levelwise":
+    raise training.UsageError("--seeds trains PHP hierarchies level-wise (not with --model=flat_lstm or "
+                              "--training=joint)")
+  values = SEEDS.value
+  if not (values and all(s.isdigit() for s in values) and len(set(map(int, values))) == len(values)):
+    raise training.UsageError(f"--seeds must list distinct non-negative integers; got {','.join(values)}")
+  return [int(s) for s in values]
+
+
+def _seed_run(task, seed: int, num_demos: int, num_test: int, lengths) -> tuple:
+  """Seed's (training demonstrations, validate(model), test(model), results.json entries)."""
   demos = datasets.training_demos(task, seed, num_demos, NUM_STRONG.value)
   validation = task.validation_problems(seed + datasets.SEED_OFFSETS["validation"], NUM_VALIDATION.value)
-  test_sets = ({str(n): task.test_problems(seed + datasets.SEED_OFFSETS["test"], num_test, n) for n in lengths} if lengths
-               else {"accuracy": task.test_problems(seed + datasets.SEED_OFFSETS["test"], num_test, None)})
-  return training.train_and_evaluate(
-      task_name, task.spec, demos, config, training.WORKDIR.value,
-      validate=lambda model: evaluation.accuracy(task, model, validation),
-      test=lambda model: {key: evaluation.accuracy(task, model, problems) for key, problems in test_sets.items()},
-      extra={"seed": seed, "num_demos": num_demos, "num_strong": int(demos.strong.sum()), "num_test": num_test},
-      flat_lstm_hidden=LSTM_HIDDEN.value if MODEL.value == "flat_lstm" else None)
+  test_seed = seed + datasets.SEED_OFFSETS["test"]
+  test_sets = ({str(n): task.test_problems(test_seed, num_test, n) for n in lengths} if lengths
+               else {"accuracy": task.test_problems(test_seed, num_test, None)})
+  return (demos, lambda model: evaluation.accuracy(task, model, validation),
+          lambda model: {key: evaluation.accuracy(task, model, problems) for key, problems in test_sets.items()},
+          {"seed": seed, "num_demos": num_demos, "num_strong": int(demos.strong.sum()), "num_test": num_test})
 
 
 def main_for(task_name: str | None):

@@ -18,7 +18,7 @@ from flax import nnx
 from jax.experimental import multihost_utils
 
 from experiments import cli, provenance
-from php_jax import checkpoint, fitting, flat_lstm, joint, objective, train
+from php_jax import checkpoint, fitting, flat_lstm, joint, objective, seeds, train
 from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
 from php_jax.task import TrainingDefaults
@@ -66,6 +66,7 @@ OVERWRITE = flags.DEFINE_bool("overwrite", False, "Start afresh in a workdir tha
                               "resumed if its settings match, and refused if they do not.")
 RUN_FILES = (checkpoint.TRAINING_FILE, "metrics.jsonl", "results.json", checkpoint.ARCHITECTURE_FILE,
              checkpoint.MODEL_FILE)
+SEEDS_CHECKPOINT = "seeds_checkpoint.msgpack"  # with --seeds, the progress of every seed
 
 
 class UsageError(ValueError):
@@ -141,12 +142,54 @@ def train_and_evaluate(task_name: str, spec: HierarchySpec, demos: Demonstration
   """Trains a PHP hierarchy level by level (resuming from workdir/checkpoint.msgpack if an earlier run was
   interrupted), or with flat_lstm_hidden the flat LSTM baseline of that many units; saves it, tests it,
   writes results.json; returns the results."""
+  _open_workdir(workdir, RUN_FILES)
+  config = _resolved(config, demos)
+  commit = provenance.code_version()  # the code as it was when the run started
+  with _RunLog(workdir) as log:
+    if flat_lstm_hidden:
+      model, trained = _train_flat_lstm(spec, demos, config, flat_lstm_hidden, validate, log)
+      checkpoint.save_flat_lstm(workdir, task_name, model, spec)
+    else:
+      model, trained, capacity = _train_php(spec, demos, config, validate, log, workdir)
+      checkpoint.save_hierarchy(workdir, task_name, model, config.hidden, capacity)
+  return _write_results(workdir, {"task": task_name, "model": "flat_lstm" if flat_lstm_hidden else "php",
+                                  "config": dataclasses.asdict(config), **extra, **trained},
+                        test(model), log.start, commit)
+
+
+def train_and_evaluate_seeds(task_name: str, spec: HierarchySpec, demos: list[Demonstration],
+                             configs: list[train.TrainConfig], workdir: str, validate: list[Callable],
+                             test: list[Callable[[object], dict]], extra: list[dict]) -> list[dict]:
+  """train_and_evaluate for several seeds' PHP hierarchies, trained level-wise as one program
+  (`php_jax.seeds`): seed s's run goes to workdir/seed=S with the files its separate run would write; the
+  progress of all is checkpointed in workdir/seeds_checkpoint.msgpack and resumed from there."""
+  workdirs = [os.path.join(workdir, f"seed={c.seed}") for c in configs]
+  _open_workdir(workdir, (SEEDS_CHECKPOINT,))
+  for run_dir in workdirs:
+    _open_workdir(run_dir, RUN_FILES)
+  configs = [_resolved(c, d) for c, d in zip(configs, demos)]
+  commit = provenance.code_version()
+  with contextlib.ExitStack() as stack:
+    logs = [stack.enter_context(_RunLog(run_dir, {"seed": c.seed})) for run_dir, c in zip(workdirs, configs)]
+    trained = seeds.train_seeds(spec, demos, configs, validate, log=lambda s, row: logs[s](row),
+                                checkpoint_path=os.path.join(workdir, SEEDS_CHECKPOINT),
+                                seed_checkpoint_paths=[os.path.join(w, checkpoint.TRAINING_FILE) for w in workdirs])
+    for run_dir, (hierarchy, report) in zip(workdirs, trained):
+      checkpoint.save_hierarchy(run_dir, task_name, hierarchy, configs[0].hidden,
+                                [report[level]["capacity"] for level in range(spec.num_levels)])
+  return [_write_results(run_dir, {"task": task_name, "model": "php", "config": dataclasses.asdict(c), **e,
+                                   **_levels(report)}, t(hierarchy), log.start, commit)
+          for run_dir, c, e, (hierarchy, report), t, log in zip(workdirs, configs, extra, trained, test, logs)]
+
+
+def _open_workdir(workdir: str, files: tuple[str, ...]) -> None:
+  """Makes workdir (refusing a file of that name); with --overwrite, deletes `files` there first; removes
+  temporary files a SIGKILL left."""
   if os.path.exists(workdir) and not os.path.isdir(workdir):
     raise UsageError(f"--workdir={workdir} is a file, not a directory")
-  primary = jax.process_index() == 0  # of several processes (--distributed), the one that writes files
-  if primary:
+  if jax.process_index() == 0:  # of several processes (--distributed), the one that writes files
     if OVERWRITE.value:
-      for name in RUN_FILES:
+      for name in files:
         if os.path.exists(os.path.join(workdir, name)):
           os.remove(os.path.join(workdir, name))
     os.makedirs(workdir, exist_ok=True)
@@ -154,31 +197,47 @@ def train_and_evaluate(task_name: str, spec: HierarchySpec, demos: Demonstration
       os.remove(leftover)
   if jax.process_count() > 1:  # the others read the workdir (to resume) once process 0 has cleared it
     multihost_utils.sync_global_devices("workdir ready")
-  if config.strong_weight is None:  # resolved here so that results.json records the number
-    config = dataclasses.replace(config, strong_weight=train.balanced_strong_weight(np.asarray(demos.strong)))
-  start, commit = time.time(), provenance.code_version()  # the code as it was when the run started
-  metrics_path = os.path.join(workdir, "metrics.jsonl")
-  with open(metrics_path, "a") if primary else contextlib.nullcontext() as metrics:
-    def log(row):
-      nonlocal start
-      if row.get("resumed"):  # keep the rows the checkpoint covers; the clock goes on from the last of them
-        start -= _keep_rows(metrics, metrics_path, row["logged"])
-        print(json.dumps(row), flush=True)
-        return
-      row = {**row, "seconds": round(time.time() - start, 2)}
-      if metrics:
-        metrics.write(json.dumps(row) + "\n")
-        metrics.flush()
-      print(json.dumps(row), flush=True)
-    if flat_lstm_hidden:
-      model, trained = _train_flat_lstm(spec, demos, config, flat_lstm_hidden, validate, log)
-      checkpoint.save_flat_lstm(workdir, task_name, model, spec)
+
+
+def _resolved(config: train.TrainConfig, demos: Demonstration) -> train.TrainConfig:
+  """config with its strong weight resolved here, so that results.json records the number."""
+  if config.strong_weight is not None:
+    return config
+  return dataclasses.replace(config, strong_weight=train.balanced_strong_weight(np.asarray(demos.strong)))
+
+
+class _RunLog:
+  """A run's metrics.jsonl (process 0's) and clock: each row logged gets "seconds" since the run started, is
+  appended and printed (with `label` added to the printed copy). A {"resumed": True, "logged": n} row keeps
+  the file's first n rows, and the clock goes on from the last of them."""
+
+  def __init__(self, workdir: str, label: dict | None = None):
+    self.path, self.label, self.start = os.path.join(workdir, "metrics.jsonl"), label or {}, time.time()
+    self.file = None
+
+  def __enter__(self):
+    if jax.process_index() == 0:
+      self.file = open(self.path, "a")
+    return self
+
+  def __exit__(self, *exc):
+    if self.file:
+      self.file.close()
+
+  def __call__(self, row: dict) -> None:
+    if row.get("resumed"):
+      self.start -= _keep_rows(self.file, self.path, row["logged"])
     else:
-      model, trained, capacity = _train_php(spec, demos, config, validate, log, workdir)
-      checkpoint.save_hierarchy(workdir, task_name, model, config.hidden, capacity)
-  test_results = test(model)
-  results = {"task": task_name, "model": "flat_lstm" if flat_lstm_hidden else "php", "config": dataclasses.asdict(config), **extra, **trained,
-             "test": test_results, "wall_seconds": round(time.time() - start, 1), "commit": commit,
+      row = {**row, "seconds": round(time.time() - self.start, 2)}
+      if self.file:
+        self.file.write(json.dumps(row) + "\n")
+        self.file.flush()
+    print(json.dumps({**self.label, **row}), flush=True)
+
+
+def _write_results(workdir: str, results: dict, test_results: dict, start: float, commit) -> dict:
+  """results.json: `results` with the test results, wall time, commit and versions; returns it."""
+  results = {**results, "test": test_results, "wall_seconds": round(time.time() - start, 1), "commit": commit,
              "versions": provenance.environment_versions()}
   checkpoint.write_atomically(os.path.join(workdir, "results.json"), json.dumps(results, indent=1).encode())
   print(json.dumps({"test": test_results, "wall_seconds": results["wall_seconds"]}), flush=True)
@@ -193,8 +252,12 @@ def _train_php(spec: HierarchySpec, demos: Demonstration, config: train.TrainCon
     hierarchy, report = joint.train_joint(spec, demos, config, validate, log=log, checkpoint_path=path)
     return hierarchy, {"joint": _summary(report)}, report["capacity"]
   hierarchy, report = train.train_hierarchy(spec, demos, config, validate, log=log, checkpoint_path=path)
-  return (hierarchy, {"levels": {str(level): _summary(entry) for level, entry in report.items()}},
-          [report[level]["capacity"] for level in range(spec.num_levels)])
+  return hierarchy, _levels(report), [report[level]["capacity"] for level in range(spec.num_levels)]
+
+
+def _levels(report: dict) -> dict:
+  """results.json's entry of a level-wise report."""
+  return {"levels": {str(level): _summary(entry) for level, entry in report.items()}}
 
 
 def _summary(entry: dict) -> dict:

@@ -202,6 +202,18 @@ def write_training(path: str, hierarchy: PHPHierarchy, meta: dict, progress: fit
                    decoded: dict[int, tuple[np.ndarray, np.ndarray]]) -> None:
   """One file: the hierarchy's parameters, the in-progress level's optimizer state (progress), the decoded
   views of finished levels, and meta (JSON: the level, the settings, the report so far)."""
+  write_atomically(path, _training_bytes(hierarchy, meta, progress, decoded))
+
+
+def write_training_seeds(path: str, states: list[tuple]) -> None:
+  """One file holding several seeds' training states, each (hierarchy, meta, progress, decoded) as
+  write_training takes them (`php_jax.seeds`): written at once, so the seeds never disagree on where they
+  stand."""
+  write_atomically(path, serialization.msgpack_serialize({"seeds": [_training_bytes(*state) for state in states]}))
+
+
+def _training_bytes(hierarchy: PHPHierarchy, meta: dict, progress: fitting.Progress | None,
+                    decoded: dict[int, tuple[np.ndarray, np.ndarray]]) -> bytes:
   meta = {**meta, "progress": None if progress is None else {
       "iteration": progress.iteration, "best_iteration": progress.best_iteration,
       "best_score": progress.best_score, "losses": progress.losses}}
@@ -210,8 +222,7 @@ def write_training(path: str, hierarchy: PHPHierarchy, meta: dict, progress: fit
       "progress": {} if progress is None else named_arrays((progress.params, progress.opt_state,
                                                              progress.best_params)),
       "decoded": {str(k): {"procedures": v[0], "counters": v[1]} for k, v in decoded.items()}})
-  write_atomically(path, serialization.msgpack_serialize(
-      {"arrays": arrays, "sha256": _digest(arrays), "meta": json.dumps(meta)}))
+  return serialization.msgpack_serialize({"arrays": arrays, "sha256": _digest(arrays), "meta": json.dumps(meta)})
 
 
 def read_training(path: str | None) -> tuple[dict, dict] | None:
@@ -220,7 +231,24 @@ def read_training(path: str | None) -> tuple[dict, dict] | None:
   if not path or not os.path.isfile(path):
     return None
   with open(path, "rb") as f:
-    state = _unpack(f.read(), path)
+    return _parse_training(f.read(), path)
+
+
+def read_training_seeds(path: str | None) -> list[tuple[dict, dict]] | None:
+  """Each seed's (meta, arrays) from a file write_training_seeds wrote, or None if there is none. Raises
+  CheckpointError if the file is corrupt or not such a file."""
+  if not path or not os.path.isfile(path):
+    return None
+  with open(path, "rb") as f:
+    seeds = _unpack(f.read(), path)
+  if not (isinstance(seeds, dict) and isinstance(seeds.get("seeds"), list)
+          and all(isinstance(state, bytes) for state in seeds["seeds"])):
+    raise CheckpointError(f"{path}: not a checkpoint of several seeds")
+  return [_parse_training(state, path) for state in seeds["seeds"]]
+
+
+def _parse_training(data: bytes, path: str) -> tuple[dict, dict]:
+  state = _unpack(data, path)
   try:
     meta, arrays, digest = json.loads(state["meta"]), state["arrays"], state["sha256"]
   except (TypeError, KeyError, ValueError) as e:

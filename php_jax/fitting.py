@@ -1,12 +1,14 @@
 """Full-batch Adam with the project's snapshot rule and resumable progress: the loop that both the PHP
-levels (php_jax.train) and the flat LSTM baseline (php_jax.flat_lstm) train with."""
+levels (php_jax.train) and the flat LSTM baseline (php_jax.flat_lstm) train with (`fit`), and the same loop
+for several seeds' models at once, vmapped (`fit_seeds`, for php_jax.seeds)."""
 from __future__ import annotations
 
 import functools
 import time
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
+import jax.numpy as jnp
 import optax
 from flax import nnx
 from jax.sharding import Mesh
@@ -72,16 +74,88 @@ def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array], iterations: int, l
       loss = float(loss)
       nnx.update(model, sharding.unreplicate(params, mesh))
       score = on_eval(iteration, loss) if on_eval else None
-      improved = score is not None and (progress.best_score is None or score > progress.best_score
-                                        or (snapshot == "latest" and score == progress.best_score))
-      progress = Progress(
-          iteration, params, opt_state,
-          params if improved or progress.best_iteration is None else progress.best_params,
-          iteration if improved else progress.best_iteration,
-          score if improved else progress.best_score, progress.losses + [[iteration, loss]])
-      log({"iteration": iteration, "loss": loss, **({"validation": score} if score is not None else {})})
+      progress = _advance(progress, iteration, params, opt_state, loss, score, snapshot)
+      log(_row(iteration, loss, score))
       if save:
         save(progress)
         last_save = time.monotonic()
   nnx.update(model, sharding.unreplicate(progress.best_params, mesh))
   return progress
+
+
+def fit_seeds(models: Sequence[nnx.Module], loss_fn: Callable[..., jax.Array], iterations: int,
+              learning_rate: float, eval_every: int,
+              on_eval: Callable[[int, list[float]], list[float | None]] | None = None,
+              log: Callable[[int, dict], None] = lambda s, row: print(s, row),
+              resume: list[Progress] | None = None, save: Callable[[list[Progress]], None] | None = None,
+              snapshot: str = "latest", save_seconds: float = 30.0, args: tuple = (),
+              mesh: Mesh | None = None) -> list[Progress]:
+  """`fit` for S independent models of one architecture (one per seed), as one vmapped program: model s is
+  trained on loss_fn(models[s], *args_s) [], where args' leaves are stacked along a leading S axis, and keeps
+  its own snapshot. on_eval(iteration, losses) returns each model's score (or None), log(s, row) gets model
+  s's rows, save and resume take one Progress per model (each as `fit` makes it). With a mesh (args placed on
+  it by the caller), the parameters and optimizer states are replicated on it. Updates each model in place to
+  its kept snapshot; returns the Progress of each."""
+  if snapshot not in SNAPSHOT_RULES:
+    raise ValueError(f"snapshot must be one of {SNAPSHOT_RULES}; got {snapshot!r}")
+  splits = [nnx.split(model, nnx.Param, ...) for model in models]
+  graphdef, rest = splits[0][0], _stack([r for _, _, r in splits])
+  optimizer = optax.adam(learning_rate)
+  progress = resume if resume is not None else [Progress(0, p, optimizer.init(p), p, None, None, [])
+                                                for _, p, _ in splits]
+
+  def step(params, opt_state, rest, args):
+    loss, grads = jax.value_and_grad(lambda p: loss_fn(nnx.merge(graphdef, p, rest), *args))(params)
+    updates, opt_state = optimizer.update(grads, opt_state, params)
+    return optax.apply_updates(params, updates), opt_state, loss
+
+  update = jax.jit(jax.vmap(step))
+  params, opt_state = sharding.replicate((_stack([p.params for p in progress]),
+                                          _stack([p.opt_state for p in progress])), mesh)
+  rest = sharding.replicate(rest, mesh)
+  last_save = time.monotonic()
+  for iteration in range(progress[0].iteration + 1, iterations + 1):
+    params, opt_state, losses = update(params, opt_state, rest, args)
+    evaluate = iteration % eval_every == 0 or iteration == iterations
+    if save and not evaluate and time.monotonic() - last_save >= save_seconds:
+      save([p._replace(iteration=iteration, params=_unstack(params, s), opt_state=_unstack(opt_state, s))
+            for s, p in enumerate(progress)])
+      last_save = time.monotonic()
+    if evaluate:
+      losses = [float(x) for x in losses]
+      for s, model in enumerate(models):
+        nnx.update(model, sharding.unreplicate(_unstack(params, s), mesh))
+      scores = on_eval(iteration, losses) if on_eval else [None] * len(models)
+      progress = [_advance(p, iteration, _unstack(params, s), _unstack(opt_state, s), losses[s], scores[s],
+                           snapshot) for s, p in enumerate(progress)]
+      for s in range(len(models)):
+        log(s, _row(iteration, losses[s], scores[s]))
+      if save:
+        save(progress)
+        last_save = time.monotonic()
+  for model, p in zip(models, progress):
+    nnx.update(model, sharding.unreplicate(p.best_params, mesh))
+  return progress
+
+
+def _advance(progress: Progress, iteration: int, params, opt_state, loss: float, score: float | None,
+             snapshot: str) -> Progress:
+  """progress after an evaluation at `iteration`: the snapshot kept by the rule, the loss recorded."""
+  improved = score is not None and (progress.best_score is None or score > progress.best_score
+                                    or (snapshot == "latest" and score == progress.best_score))
+  return Progress(iteration, params, opt_state,
+                  params if improved or progress.best_iteration is None else progress.best_params,
+                  iteration if improved else progress.best_iteration,
+                  score if improved else progress.best_score, progress.losses + [[iteration, loss]])
+
+
+def _row(iteration: int, loss: float, score: float | None) -> dict:
+  return {"iteration": iteration, "loss": loss, **({"validation": score} if score is not None else {})}
+
+
+def _stack(trees: Sequence[Any]) -> Any:
+  return jax.tree.map(lambda *xs: jnp.stack(xs), *trees)
+
+
+def _unstack(tree: Any, index: int) -> Any:
+  return jax.tree.map(lambda x: x[index], tree)

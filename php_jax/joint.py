@@ -7,7 +7,6 @@ EG gradient of every level's networks at once. Demonstrations are batched by len
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from typing import Callable
@@ -20,7 +19,6 @@ from jax.sharding import Mesh
 from php_jax import checkpoint, fitting, sharding, stack_lattice, train
 from php_jax.decoding import stack_inputs
 from php_jax.demos import UNKNOWN, Demonstration
-from php_jax.demos import validate as validate_demos
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy
 
@@ -92,10 +90,7 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   validate(hierarchy) (config.snapshot's rule). Checkpoints and resumes as train.train_hierarchy does
   (the same log protocol); a checkpoint made with other settings raises CheckpointError. Returns the
   hierarchy and a report {capacity, losses, best_iteration, validation, seconds}."""
-  train.check_config(spec, config)
-  validate_demos(demos, spec)
-  if config.strong_weight is None:
-    config = dataclasses.replace(config, strong_weight=train.balanced_strong_weight(np.asarray(demos.strong)))
+  config = train.prepare(spec, demos, config)
   hierarchy = train.make_hierarchy(spec, config)
   settings = train.run_settings(spec, demos, config)
   capacity = joint_capacity(demos, spec, config)

@@ -31,16 +31,22 @@ class LevelModel(nnx.Module):
     self.call_penalty = call_penalty
 
 
-def lattice_inputs(model: LevelModel, observations, actions, procedures, counters, length, capacity: int):
+def lattice_inputs(model: LevelModel, observations, actions, procedures, counters, length, capacity: int,
+                   used_capacity=None):
   """One view → the lattice's inputs, annotated where procedures/counters are known.
 
   observations [T+1, D], actions [T, F], procedures/counters [T] (UNKNOWN = −1), length [] →
-  (log_root [T, K], log_op, log_stop, log_cont [T, K, C]).
+  (log_root [T, K], log_op, log_stop, log_cont [T, K, C]). With used_capacity [] int (≤ capacity), counters
+  ≥ used_capacity are masked out: the same lattice as with capacity = used_capacity, padded (seeds of
+  different capacities trained as one program, `php_jax.seeds`).
   """
   tau = jnp.arange(capacity, dtype=jnp.float32)
   log_op = model.php.log_op(observations[:-1], tau, actions)
   z = model.php.termination_logits(observations[1:], tau)
   log_stop, log_cont = jax.nn.log_sigmoid(z), jax.nn.log_sigmoid(-z)
+  if used_capacity is not None:
+    log_op = jnp.where(tau < used_capacity, log_op, -jnp.inf)
+    log_cont = jnp.where(tau + 1 < used_capacity, log_cont, -jnp.inf)
   if model.root is None:  # the root level: one procedure, called once
     log_root = jnp.zeros(log_op.shape[:2], log_op.dtype)
     log_stop = lattice.top_level(log_stop, length)
@@ -49,21 +55,23 @@ def lattice_inputs(model: LevelModel, observations, actions, procedures, counter
   return log_root, lattice.annotate(log_op, procedures, counters), log_stop, log_cont
 
 
-def view_log_likelihoods(model: LevelModel, batch: views.LevelView, capacity: int) -> jax.Array:
+def view_log_likelihoods(model: LevelModel, batch: views.LevelView, capacity: int,
+                         used_capacity=None) -> jax.Array:
   """[B] log P(ζ, ξ) for annotated views, log P(ξ) for the others."""
   def one(obs, act, proc, tau, n):
-    return lattice.forward_backward(*lattice_inputs(model, obs, act, proc, tau, n, capacity),
+    return lattice.forward_backward(*lattice_inputs(model, obs, act, proc, tau, n, capacity, used_capacity),
                                     length=n).log_likelihood
   return jax.vmap(one)(batch.observations, batch.actions, batch.procedures, batch.counters, batch.length)
 
 
-def level_loss(model: LevelModel, buckets: list[views.LevelView], capacity: int, strong_weight: float) -> jax.Array:
+def level_loss(model: LevelModel, buckets: list[views.LevelView], capacity: int, strong_weight: float,
+               used_capacity=None) -> jax.Array:
   """−(w_strong Σ_strong log P(ζ, ξ) + Σ_weak log P(ξ)) / N over the real views of every length bucket (the
-  copies that pad a bucket split over devices weigh 0 and are not counted in N)."""
+  copies that pad a bucket weigh 0 and are not counted in N). used_capacity: as in `lattice_inputs`."""
   total, count = 0.0, 0
   for batch in buckets:
     weights = jnp.where(batch.real, jnp.where(batch.strong, strong_weight, 1.0), 0.0)
-    total = total - jnp.sum(weights * view_log_likelihoods(model, batch, capacity))
+    total = total - jnp.sum(weights * view_log_likelihoods(model, batch, capacity, used_capacity))
     count = count + jnp.sum(batch.real)
   return total / count
 

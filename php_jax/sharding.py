@@ -36,12 +36,12 @@ def pad(batch: Batch, mesh: Mesh | None) -> tuple[Batch, np.ndarray]:
   return jax.tree.map(lambda x: np.asarray(x)[index], batch), np.arange(size + extra) < size
 
 
-def put(batch: Batch, mesh: Mesh | None) -> Batch:
-  """batch's host arrays [B, ...] as device arrays: split along B over mesh's devices (B a multiple of their
-  count), or as `jnp.asarray` gives them without a mesh."""
+def put(batch: Batch, mesh: Mesh | None, axis: int = 0) -> Batch:
+  """batch's host arrays [..., B, ...] (B at `axis`) as device arrays: split along B over mesh's devices (B a
+  multiple of their count), or as `jnp.asarray` gives them without a mesh."""
   if mesh is None:
     return jax.tree.map(jnp.asarray, batch)
-  sharding = NamedSharding(mesh, PartitionSpec(AXIS))
+  sharding = NamedSharding(mesh, PartitionSpec(*[None] * axis, AXIS))
   return jax.tree.map(lambda x: jax.make_array_from_callback(np.shape(x), sharding,
                                                              lambda index: np.asarray(x)[index]), batch)
 

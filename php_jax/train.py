@@ -96,9 +96,7 @@ def train_level(model: LevelModel, view: views.LevelView, capacity: int, config:
   τ = step), so it has no warm-up.
 
   With more than one device, each length bucket is split over all of them (`sharding.data_mesh`)."""
-  is_root = model.root is None
-  strong_weight = config.root_strong_weight if is_root and config.root_strong_weight is not None else (
-      config.strong_weight)
+  strong_weight = level_strong_weight(config, model.root is None)
   mesh = sharding.data_mesh()
 
   def fit(part: views.LevelView, iterations: int, progress: fitting.Progress | None) -> fitting.Progress:
@@ -107,10 +105,21 @@ def train_level(model: LevelModel, view: views.LevelView, capacity: int, config:
                        config.learning_rate, config.eval_every, on_eval, log, progress, save, config.snapshot,
                        args=(buckets,), mesh=mesh)
 
-  warmup = config.strong_warmup if not is_root and 0 < view.strong.sum() < len(view.strong) else 0
+  warmup = warmup_iterations(view, config, model.root is None)
   if warmup and (resume is None or resume.iteration < warmup):
     resume = fit(views.select(view, view.strong), warmup, resume)
   return fit(view, warmup + config.iterations, resume)
+
+
+def level_strong_weight(config: TrainConfig, is_root: bool) -> float:
+  """The strong views' weight in a level's loss: config.root_strong_weight at the root level when set."""
+  return config.root_strong_weight if is_root and config.root_strong_weight is not None else config.strong_weight
+
+
+def warmup_iterations(view: views.LevelView, config: TrainConfig, is_root: bool) -> int:
+  """Iterations on the strong views alone before those on all (`train_level`): config.strong_warmup below the
+  root level where both kinds of view are present, else 0."""
+  return config.strong_warmup if not is_root and 0 < view.strong.sum() < len(view.strong) else 0
 
 
 def level_capacity(view: views.LevelView, level: int, config: TrainConfig) -> int:
@@ -157,6 +166,16 @@ def check_config(spec: HierarchySpec, config: TrainConfig) -> None:
                      f"got {config.call_penalty} for {spec.num_levels} levels")
 
 
+def prepare(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> TrainConfig:
+  """config with its strong weight resolved, once the settings and the demonstrations' annotations are checked
+  against the hierarchy (ValueError naming the first setting, or the demonstration and step, that is wrong)."""
+  check_config(spec, config)
+  validate_demos(demos, spec)
+  if config.strong_weight is None:
+    config = dataclasses.replace(config, strong_weight=balanced_strong_weight(np.asarray(demos.strong)))
+  return config
+
+
 def run_settings(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> dict:
   """What a checkpoint must have been made with to be resumed: the config, the hierarchy and a digest of the
   demonstrations (so another seed, data set or annotation is noticed)."""
@@ -192,10 +211,7 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
   "logged": n}: the first n rows logged before stay valid, later ones will be logged again. Returns the
   hierarchy and a report (per level: losses, capacity, decoding agreement with the supervisor on weak
   demonstrations, wall time)."""
-  check_config(spec, config)
-  validate_demos(demos, spec)  # malformed annotations are refused, naming the demonstration and step
-  if config.strong_weight is None:
-    config = dataclasses.replace(config, strong_weight=balanced_strong_weight(np.asarray(demos.strong)))
+  config = prepare(spec, demos, config)
   hierarchy = make_hierarchy(spec, config)
   settings = run_settings(spec, demos, config)
   saved = checkpoint.read_training(checkpoint_path)
@@ -237,8 +253,7 @@ def _train_one_level(spec, demos, view, level, hierarchy, config, validate, log,
   """Fits one level (resuming `saved` if given), decodes its weak views into decoded[level]; its report."""
   start = time.time()
   capacity = level_capacity(view, level, config)
-  model = LevelModel(hierarchy.levels[level], make_root(spec, level, config),
-                     config.call_penalty[level] if config.call_penalty else 0.0)
+  model = level_model(spec, hierarchy, level, config)
   resume = checkpoint.restore_progress(checkpoint_path, saved, model) if saved is not None else None
   on_eval = (lambda it, loss: validate(hierarchy)) if (level == 0 and validate) else None
   if resume is None:
@@ -246,6 +261,19 @@ def _train_one_level(spec, demos, view, level, hierarchy, config, validate, log,
   progress = train_level(model, view, capacity, config, on_eval,
                          log=lambda row: log({"level": level, **row}), resume=resume,
                          save=save if checkpoint_path else None)
+  return finish_level(demos, view, level, model, capacity, config, progress, decoded, start)
+
+
+def level_model(spec: HierarchySpec, hierarchy: PHPHierarchy, level: int, config: TrainConfig) -> LevelModel:
+  """What level `level` trains: the hierarchy's networks of that level and a fresh stand-in root."""
+  return LevelModel(hierarchy.levels[level], make_root(spec, level, config),
+                    config.call_penalty[level] if config.call_penalty else 0.0)
+
+
+def finish_level(demos: Demonstration, view: views.LevelView, level: int, model: LevelModel, capacity: int,
+                 config: TrainConfig, progress: fitting.Progress, decoded: dict, start: float) -> dict:
+  """After a level's fit: decodes its weak views into decoded[level] (levels > 0); returns the level's report
+  entry (capacity, losses, snapshot, decoding agreement with the supervisor, seconds since `start`)."""
   entry = {"capacity": capacity, "losses": progress.losses, "best_iteration": progress.best_iteration,
            "validation": progress.best_score}
   if level > 0:

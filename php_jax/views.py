@@ -67,11 +67,46 @@ def length_buckets(view: LevelView, num_buckets: int) -> list[LevelView]:
 def device_view(view: LevelView, mesh: Mesh | None = None) -> LevelView:
   """The view as device arrays, with annotations only on strong demonstrations. With a mesh, padded to a
   multiple of its device count (`sharding.pad`: real False on the copies) and split over its devices along B."""
-  strong = view.strong[:, None]
-  view = view._replace(procedures=np.where(strong, view.procedures, UNKNOWN),
-                       counters=np.where(strong, view.counters, UNKNOWN))
-  view, real = sharding.pad(view, mesh)
+  view, real = sharding.pad(_annotated_strong_only(view), mesh)
   return sharding.put(view._replace(real=view.real & real), mesh)
+
+
+def stack_seeds(buckets: list[list[LevelView]], mesh: Mesh | None = None) -> list[LevelView]:
+  """Several seeds' length buckets (buckets[s][i]: seed s's bucket i, as `length_buckets` makes them; every
+  seed with as many) → bucket i of every seed stacked [S, B_i, ...] as device arrays, with annotations only on
+  strong demonstrations. Each seed's bucket is padded to the longest (width) and largest (B_i, with copies of
+  its first view, real False) among the seeds; with a mesh, B_i is a multiple of its device count and the
+  buckets are split over its devices along B."""
+  if len({len(seed) for seed in buckets}) != 1:
+    raise ValueError(f"every seed needs as many length buckets; got {[len(seed) for seed in buckets]}")
+  stacked = []
+  for group in zip(*buckets):
+    size = max(len(b.length) for b in group)
+    size += -size % mesh.size if mesh is not None else 0
+    width = max(b.actions.shape[1] for b in group)
+    padded = [_pad(_annotated_strong_only(b), size, width) for b in group]
+    stacked.append(sharding.put(LevelView(*(np.stack(x) for x in zip(*padded))), mesh, axis=1))
+  return stacked
+
+
+def _annotated_strong_only(view: LevelView) -> LevelView:
+  strong = view.strong[:, None]
+  return view._replace(procedures=np.where(strong, view.procedures, UNKNOWN),
+                       counters=np.where(strong, view.counters, UNKNOWN))
+
+
+def _pad(view: LevelView, size: int, width: int) -> LevelView:
+  """view with copies of its first view up to `size` views (real False) and padding steps up to `width`."""
+  count = len(view.length)
+  view = LevelView(*(np.asarray(x)[np.r_[np.arange(count), np.zeros(size - count, int)]] for x in view))
+  extra = width - view.actions.shape[1]
+
+  def steps(x, value):
+    return np.pad(x, [(0, 0), (0, extra)] + [(0, 0)] * (x.ndim - 2), constant_values=value)
+
+  return view._replace(observations=steps(view.observations, 0), actions=steps(view.actions, 0),
+                       procedures=steps(view.procedures, UNKNOWN), counters=steps(view.counters, UNKNOWN),
+                       times=steps(view.times, -1), real=view.real & (np.arange(size) < count))
 
 
 def _pack(demos: Demonstration, level: int, times: list[np.ndarray], actions: list[np.ndarray]) -> LevelView:

@@ -74,6 +74,18 @@ out["fit_losses"] = [losses_1, losses_4]
 out["fit_param_diff"] = max(float(np.max(np.abs(a - b))) for a, b in zip(params_1, params_4))
 out["fit_params_on_default"] = all(p.devices() == {jax.devices()[0]} for p in params_4)
 
+two = [demos, datasets.training_demos(task, seed=4, num_demos=6, num_strong=2)]  # seeds as one program
+two_views = [views.lowest_view(d, task.spec.num_levels) for d in two]
+two_capacity = max(train.level_capacity(v, level, config) for v in two_views)
+def fit_seeds(mesh):
+  buckets = views.stack_seeds([views.length_buckets(v, 1) for v in two_views], mesh)
+  progress = fitting.fit_seeds([level_model(), level_model()],
+                               lambda m, b: objective.level_loss(m, b, two_capacity, config.strong_weight), 10,
+                               1e-2, 5, log=lambda s, row: None, args=(buckets,), mesh=mesh)
+  return [p.losses for p in progress], buckets
+(out["seeds_losses_1"], _), (out["seeds_losses_4"], buckets) = fit_seeds(None), fit_seeds(mesh)
+out["seeds_shards"] = [[int(s.data.shape[1]) for s in x.addressable_shards] for x in jax.tree.leaves(buckets[0])]
+
 hierarchy = train.make_hierarchy(task.spec, config)
 graphdef, params, rest = nnx.split(hierarchy, nnx.Param, ...)
 capacities = joint.joint_capacity(demos, task.spec, config)
@@ -117,6 +129,10 @@ def test_sharded_losses_gradients_and_fit_equal_one_device():
   np.testing.assert_allclose([l for _, l in losses_4], [l for _, l in losses_1], rtol=1e-4)
   assert out["fit_param_diff"] < 1e-4
   assert out["fit_params_on_default"]  # the model gets its parameters back on the default device
+  # Two seeds (7 and 6 views, both padded to 8): each seed's losses as on one device, B split 2 + 2 + 2 + 2.
+  for seed_1, seed_4 in zip(out["seeds_losses_1"], out["seeds_losses_4"]):
+    np.testing.assert_allclose([l for _, l in seed_4], [l for _, l in seed_1], rtol=1e-4)
+  assert all(sizes == [2, 2, 2, 2] for sizes in out["seeds_shards"])
 
 
 def _free_port() -> int:
