@@ -2,14 +2,20 @@ r"""Runs a training experiment over a grid of flag values, one workdir per combi
 
   python -m experiments.sweep --task=NAME --workdir=runs/sweep \
       --grid=num_demos=16,32,64 --grid=num_strong=1,2,4,8,16,32,64 --grid=seed=1,2,3,4,5 -- --iterations=2000
+  python -m experiments.sweep --task=NAME --workdir=runs/sweep \
+      --grid=num_demos=16,32,64 --grid=num_strong=1,2,4,8,16,32,64 --seeds=1,2,3,4,5
   python -m experiments.sweep --task=NAME --workdir=runs/hparams \
       --grid=num_demos=64 --grid=num_strong=8 --grid='tau_in_termination=1,1,1|1,0,1|1,1,0' --grid=seed=1
 
 Each combination runs `python -m experiments.train --task=NAME --workdir=WORKDIR/<name=value,...> --name=value ...`
-followed by the flags after `--` (the same for every run). A combination whose results.json exists is
-skipped, so an interrupted sweep resumes where it stopped (and a run interrupted mid-way resumes from its
+followed by the flags after `--` (the same for every run). A combination whose results.json exists (with
+--seeds, every seed's) is skipped, so an interrupted sweep resumes where it stopped (and a run interrupted mid-way resumes from its
 own checkpoint); combinations with num_strong > num_demos are left out. `python -m experiments.plot` reads
 the results.
+
+With --seeds=1,2,3,4,5 each combination trains those seeds as one program (`experiments.train --seeds`), its
+workdir holding one seed=S workdir per seed: the paper's grid is then 18 runs instead of 90, each level
+compiled once for its 5 trials.
 
 With --gpus=0,1,...: --parallel runs at a time on each of those GPUs, each run seeing only its own
 (CUDA_VISIBLE_DEVICES) and allocating GPU memory as it goes (XLA_PYTHON_CLIENT_PREALLOCATE=false), so that
@@ -36,6 +42,8 @@ _PARALLEL = flags.DEFINE_integer("parallel", 1, "Runs at a time (with --gpus, on
 _GPUS = flags.DEFINE_list("gpus", None, "GPUs to run on (CUDA's ids, as CUDA_VISIBLE_DEVICES takes them): each run "
                           "gets one of them alone, --parallel runs per GPU. Default: every run sees this process's "
                           "devices.")
+_SEEDS = flags.DEFINE_list("seeds", None, "Seeds trained together in every run (experiments.train --seeds: one "
+                           "program per level): each combination's workdir gets a seed=S workdir per seed.")
 Job = TypeVar("Job")
 Result = TypeVar("Result")
 
@@ -67,6 +75,14 @@ def parse_grid(entries: list[str]) -> list[dict[str, str]]:
 def run_name(combo: dict[str, str]) -> str:
   """{'num_demos': '64', 'tau_in_termination': '1,0,1'} → 'num_demos=64,tau_in_termination=1:0:1'."""
   return ",".join(f"{k}={v.replace(',', ':')}" for k, v in combo.items()) or "default"
+
+
+def pending(combos: list[dict[str, str]], workdir: str, seeds: list[str] | None) -> list[tuple[str, dict]]:
+  """(workdir, combination) of the combinations not done: without results.json in their workdir (with seeds,
+  in each seed=S workdir there)."""
+  done = [os.path.join(f"seed={s}", "results.json") for s in seeds] if seeds else ["results.json"]
+  runs = [(os.path.join(workdir, run_name(c)), c) for c in combos]
+  return [(w, c) for w, c in runs if not all(os.path.isfile(os.path.join(w, d)) for d in done)]
 
 
 def device_environment(gpu: str | None) -> dict[str, str]:
@@ -111,11 +127,14 @@ def main(argv):
     cli.fail(str(e))
   if os.path.exists(_WORKDIR.value) and not os.path.isdir(_WORKDIR.value):
     cli.fail(f"--workdir={_WORKDIR.value} is a file, not a directory")
+  if _SEEDS.value is not None and any("seed" in c for c in combos):
+    cli.fail("--seeds and a --grid of seed: give one of them")
+  if _SEEDS.value is not None:
+    extra = [f"--seeds={','.join(_SEEDS.value)}", *extra]
   gpus = _GPUS.value or [None]
   if _GPUS.value is not None and not (all(_GPUS.value) and len(set(_GPUS.value)) == len(_GPUS.value)):
     cli.fail(f"--gpus={','.join(_GPUS.value)}: GPU ids must be distinct and non-empty")
-  todo = [(os.path.join(_WORKDIR.value, run_name(c)), c) for c in combos]
-  todo = [(w, c) for w, c in todo if not os.path.isfile(os.path.join(w, "results.json"))]
+  todo = pending(combos, _WORKDIR.value, _SEEDS.value)
   print(f"{len(combos)} runs, {len(combos) - len(todo)} already done, {len(todo)} to run", flush=True)
   failed = []
   for workdir, code in run_on_devices(todo, lambda wc, gpu: _run(_TASK.value, wc[0], wc[1], extra, gpu), gpus,

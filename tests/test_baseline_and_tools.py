@@ -67,6 +67,18 @@ def test_sweep_grid_is_the_product_without_impossible_combinations():
     sweep.parse_grid(["num_demos"])
 
 
+def test_sweep_skips_combinations_whose_runs_are_done(tmp_path):
+  combos = sweep.parse_grid(["num_strong=1,2"])
+  for done in ("num_strong=1/results.json", "num_strong=2/seed=1/results.json"):
+    (tmp_path / done).parent.mkdir(parents=True)
+    (tmp_path / done).write_text("{}")
+  assert [c for _, c in sweep.pending(combos, str(tmp_path), None)] == [{"num_strong": "2"}]
+  assert [c for _, c in sweep.pending(combos, str(tmp_path), ["1", "2"])] == combos  # seed=2 missing in both
+  (tmp_path / "num_strong=2/seed=2").mkdir()
+  (tmp_path / "num_strong=2/seed=2/results.json").write_text("{}")
+  assert sweep.pending(combos, str(tmp_path), ["1", "2"]) == [(str(tmp_path / "num_strong=1"), {"num_strong": "1"})]
+
+
 def test_sweep_runs_each_job_on_one_gpu_parallel_at_a_time_on_each():
   lock, running, seen = threading.Lock(), collections.Counter(), []
 
