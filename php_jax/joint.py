@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
 
-from php_jax import checkpoint, fitting, sharding, stack_lattice, train
+from php_jax import checkpoint, fitting, sharding, stack_lattice, train, views
 from php_jax.decoding import stack_inputs
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.hierarchy import HierarchySpec
@@ -48,13 +48,10 @@ def _buckets(demos: Demonstration, num_buckets: int,
   arrays with the annotation kept only on strong ones; each with real [B] bool. With a mesh, each group is
   padded to a multiple of its device count (`sharding.pad`: real False on the copies) and split over its
   devices along B."""
-  lengths = np.asarray(demos.length)
-  order = np.argsort(lengths, kind="stable")
   arrays = [np.asarray(x) for x in demos]
   strong = arrays[5][:, None, None]
   buckets = []
-  for group in np.array_split(order, min(num_buckets, len(order))):
-    width = int(lengths[group].max())
+  for group, width in views.length_groups(arrays[4], num_buckets):
     obs, act, procs, taus, length, is_strong = (x[group] for x in arrays)
     batch, real = sharding.pad(Demonstration(
         obs[:, :width + 1], act[:, :width], np.where(strong[group], procs, UNKNOWN)[:, :width],

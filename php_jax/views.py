@@ -50,13 +50,17 @@ def select(view: LevelView, mask: np.ndarray) -> LevelView:
   return LevelView(*(np.asarray(x)[mask] for x in view))
 
 
+def length_groups(lengths: np.ndarray, num_buckets: int) -> list[tuple[np.ndarray, int]]:
+  """lengths [B] sorted into up to num_buckets groups of similar size: (indices, longest length) per group.
+  Trimmed to their longest, the groups' batches hold far fewer padding steps than one padded to the longest."""
+  order = np.argsort(lengths, kind="stable")
+  return [(group, int(lengths[group].max())) for group in np.array_split(order, min(num_buckets, len(order)))]
+
+
 def length_buckets(view: LevelView, num_buckets: int) -> list[LevelView]:
-  """The views sorted by length into up to num_buckets groups of similar size, each trimmed to its longest
-  view: the networks run on far fewer padding cells than in one batch padded to the longest view."""
-  order = np.argsort(view.length, kind="stable")
+  """The views in `length_groups`, each trimmed to its longest view."""
   buckets = []
-  for group in np.array_split(order, min(num_buckets, len(order))):
-    width = int(view.length[group].max())
+  for group, width in length_groups(view.length, num_buckets):
     buckets.append(LevelView(
         view.observations[group, :width + 1], view.actions[group, :width], view.procedures[group, :width],
         view.counters[group, :width], view.length[group], view.times[group, :width], view.strong[group],
