@@ -70,10 +70,12 @@ def run(task_name: str) -> dict:
     demos, validate, test, extra = _seed_run(task, seed, num_demos, num_test, lengths)
     return training.train_and_evaluate(task_name, task.spec, demos, config, training.WORKDIR.value, validate, test,
                                        extra, LSTM_HIDDEN.value if MODEL.value == "flat_lstm" else None)
-  runs = [_seed_run(task, s, num_demos, num_test, lengths) for s in _seeds(config)]
-  return training.train_and_evaluate_seeds(task_name, task.spec, [r[0] for r in runs],
-                                           [dataclasses.replace(config, seed=r[3]["seed"]) for r in runs],
-                                           training.WORKDIR.value, *([r[i] for r in runs] for i in (1, 2, 3)))
+  seeds = _seeds(config)
+  demos, validate, test, extra = (list(x) for x in zip(*(_seed_run(task, s, num_demos, num_test, lengths)
+                                                          for s in seeds)))
+  return training.train_and_evaluate_seeds(task_name, task.spec, demos,
+                                           [dataclasses.replace(config, seed=s) for s in seeds],
+                                           training.WORKDIR.value, validate, test, extra)
 
 
 def _seeds(config: train.TrainConfig) -> list[int]:
