@@ -178,7 +178,7 @@ def train_and_evaluate_seeds(task_name: str, spec: HierarchySpec, demos: list[De
       checkpoint.save_hierarchy(run_dir, task_name, hierarchy, configs[0].hidden,
                                 [report[level]["capacity"] for level in range(spec.num_levels)])
   return [_write_results(run_dir, {"task": task_name, "model": "php", "config": dataclasses.asdict(c), **e,
-                                   **_levels(report)}, t(hierarchy), log.start, commit)
+                                   **_levels(report)}, t(hierarchy), log.start, commit, {"seed": c.seed})
           for run_dir, c, e, (hierarchy, report), t, log in zip(workdirs, configs, extra, trained, test, logs)]
 
 
@@ -235,12 +235,14 @@ class _RunLog:
     print(json.dumps({**self.label, **row}), flush=True)
 
 
-def _write_results(workdir: str, results: dict, test_results: dict, start: float, commit) -> dict:
-  """results.json: `results` with the test results, wall time, commit and versions; returns it."""
+def _write_results(workdir: str, results: dict, test_results: dict, start: float, commit,
+                   label: dict | None = None) -> dict:
+  """results.json: `results` with the test results, wall time, commit and versions; returns it. Prints the
+  test results and wall time (with `label`)."""
   results = {**results, "test": test_results, "wall_seconds": round(time.time() - start, 1), "commit": commit,
              "versions": provenance.environment_versions()}
   checkpoint.write_atomically(os.path.join(workdir, "results.json"), json.dumps(results, indent=1).encode())
-  print(json.dumps({"test": test_results, "wall_seconds": results["wall_seconds"]}), flush=True)
+  print(json.dumps({**(label or {}), "test": test_results, "wall_seconds": results["wall_seconds"]}), flush=True)
   return results
 
 
