@@ -7,11 +7,11 @@ r"""Runs a training experiment over a grid of flag values, one workdir per combi
   python -m experiments.sweep --task=NAME --workdir=runs/hparams \
       --grid=num_demos=64 --grid=num_strong=8 --grid='tau_in_termination=1,1,1|1,0,1|1,1,0' --grid=seed=1
 
-Each combination runs `python -m experiments.train --task=NAME --workdir=WORKDIR/<name=value,...> --name=value ...`
-followed by the flags after `--` (the same for every run). A combination whose results.json exists (with
---seeds, every seed's) is skipped, so an interrupted sweep resumes where it stopped (and a run interrupted mid-way resumes from its
-own checkpoint); combinations with num_strong > num_demos are left out. `python -m experiments.plot` reads
-the results.
+Each combination runs `python -m experiments.train --task=NAME --workdir=WORKDIR/<name=value,...> --name=value
+...` followed by the flags after `--` (the same for every run). A combination whose results.json exists (with
+--seeds, every seed's) is skipped, so an interrupted sweep resumes where it stopped (and a run interrupted
+mid-way resumes from its own checkpoint); combinations with num_strong > num_demos are left out. `python -m
+experiments.plot` reads the results.
 
 With --seeds=1,2,3,4,5 each combination trains those seeds as one program (`experiments.train --seeds`), its
 workdir holding one seed=S workdir per seed: the paper's grid is then 18 runs instead of 90, each level
@@ -127,14 +127,18 @@ def main(argv):
     cli.fail(str(e))
   if os.path.exists(_WORKDIR.value) and not os.path.isdir(_WORKDIR.value):
     cli.fail(f"--workdir={_WORKDIR.value} is a file, not a directory")
-  if _SEEDS.value is not None and any("seed" in c for c in combos):
-    cli.fail("--seeds and a --grid of seed: give one of them")
-  if _SEEDS.value is not None:
-    extra = [f"--seeds={','.join(_SEEDS.value)}", *extra]
+  seeds = _SEEDS.value
+  if seeds is not None:
+    if any("seed" in c for c in combos):
+      cli.fail("--seeds and a --grid of seed: give one of them")
+    if not (seeds and all(s.isdigit() for s in seeds) and len(set(map(int, seeds))) == len(seeds)):
+      cli.fail(f"--seeds must list distinct non-negative integers; got {','.join(seeds)}")
+    seeds = [str(int(s)) for s in seeds]  # as the runs name their seed=S workdirs
+    extra = [f"--seeds={','.join(seeds)}", *extra]
   gpus = _GPUS.value or [None]
   if _GPUS.value is not None and not (all(_GPUS.value) and len(set(_GPUS.value)) == len(_GPUS.value)):
     cli.fail(f"--gpus={','.join(_GPUS.value)}: GPU ids must be distinct and non-empty")
-  todo = pending(combos, _WORKDIR.value, _SEEDS.value)
+  todo = pending(combos, _WORKDIR.value, seeds)
   print(f"{len(combos)} runs, {len(combos) - len(todo)} already done, {len(todo)} to run", flush=True)
   failed = []
   for workdir, code in run_on_devices(todo, lambda wc, gpu: _run(_TASK.value, wc[0], wc[1], extra, gpu), gpus,

@@ -161,8 +161,10 @@ def train_and_evaluate_seeds(task_name: str, spec: HierarchySpec, demos: list[De
                              configs: list[train.TrainConfig], workdir: str, validate: list[Callable],
                              test: list[Callable[[object], dict]], extra: list[dict]) -> list[dict]:
   """train_and_evaluate for several seeds' PHP hierarchies, trained level-wise as one program
-  (`php_jax.seeds`): seed s's run goes to workdir/seed=S with the files its separate run would write; the
-  progress of all is checkpointed in workdir/seeds_checkpoint.msgpack and resumed from there."""
+  (`php_jax.seeds`): seed s's run goes to workdir/seed=S with the files its separate run would write, its
+  results.json also naming the seeds trained with it ("trained_with_seeds": its wall time and per-level
+  seconds are those of the shared program); the progress of all is checkpointed in
+  workdir/seeds_checkpoint.msgpack and resumed from there."""
   workdirs = [os.path.join(workdir, f"seed={c.seed}") for c in configs]
   _open_workdir(workdir, (SEEDS_CHECKPOINT,))
   for run_dir in workdirs:
@@ -177,8 +179,9 @@ def train_and_evaluate_seeds(task_name: str, spec: HierarchySpec, demos: list[De
     for run_dir, (hierarchy, report) in zip(workdirs, trained):
       checkpoint.save_hierarchy(run_dir, task_name, hierarchy, configs[0].hidden,
                                 [report[level]["capacity"] for level in range(spec.num_levels)])
+  together = {"trained_with_seeds": [c.seed for c in configs]}  # its times are the shared program's
   return [_write_results(run_dir, {"task": task_name, "model": "php", "config": dataclasses.asdict(c), **e,
-                                   **_levels(report)}, t(hierarchy), log.start, commit, {"seed": c.seed})
+                                   **together, **_levels(report)}, t(hierarchy), log.start, commit, {"seed": c.seed})
           for run_dir, c, e, (hierarchy, report), t, log in zip(workdirs, configs, extra, trained, test, logs)]
 
 

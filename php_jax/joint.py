@@ -49,9 +49,9 @@ def _buckets(demos: Demonstration, num_buckets: int,
   padded to a multiple of its device count (`sharding.pad`: real False on the copies) and split over its
   devices along B."""
   arrays = [np.asarray(x) for x in demos]
-  strong = arrays[5][:, None, None]
+  strong = np.asarray(demos.strong)[:, None, None]
   buckets = []
-  for group, width in views.length_groups(arrays[4], num_buckets):
+  for group, width in views.length_groups(np.asarray(demos.length), num_buckets):
     obs, act, procs, taus, length, is_strong = (x[group] for x in arrays)
     batch, real = sharding.pad(Demonstration(
         obs[:, :width + 1], act[:, :width], np.where(strong[group], procs, UNKNOWN)[:, :width],

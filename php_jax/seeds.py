@@ -13,7 +13,7 @@ import dataclasses
 import time
 from typing import Callable, Sequence
 
-import jax.numpy as jnp
+import numpy as np
 
 from php_jax import checkpoint, fitting, sharding, train, views
 from php_jax.demos import Demonstration
@@ -27,12 +27,15 @@ def train_seeds(spec: HierarchySpec, demos: Sequence[Demonstration], configs: Se
                 log: Callable[[int, dict], None] = lambda s, row: print(s, row),
                 checkpoint_path: str | None = None,
                 seed_checkpoint_paths: Sequence[str] | None = None) -> list[tuple[PHPHierarchy, dict]]:
-  """train.train_hierarchy for each seed s (demos[s], configs[s], validate[s]), all at once; configs may
-  differ only in their seed. log(s, row) gets seed s's rows, as train_hierarchy's log would (a resumed run
-  first gets {"resumed": True, ..., "logged": n} for each seed). With checkpoint_path, progress is saved there
-  (every seed in one file) and a rerun resumes it. When training ends, seed_checkpoint_paths[s] gets seed s's
-  finished training checkpoint, the file its separate run would leave (its decoded views, for
-  `experiments.segmentation`). Returns each seed's (hierarchy, report)."""
+  """train.train_hierarchy for each seed s (demos[s], configs[s], validate[s]), all at once. The configs may
+  differ only in their seed and strong weight (the balanced default follows each seed's demonstrations), and
+  the seeds need as many length buckets and the same strong warm-up at every level (else ValueError), as the
+  training sets of `experiments.train` have (the same numbers of demonstrations and of annotated ones).
+  log(s, row) gets seed s's rows, as train_hierarchy's log would (a resumed run first gets {"resumed": True,
+  ..., "logged": n} for each seed). With checkpoint_path, progress is saved there (every seed in one file) and
+  a rerun resumes it. When training ends, seed_checkpoint_paths[s] gets seed s's finished training
+  checkpoint, the file its separate run would leave (its decoded views, for `experiments.segmentation`).
+  Returns each seed's (hierarchy, report)."""
   configs = [train.prepare(spec, d, c) for d, c in zip(demos, configs)]
   others = {dataclasses.replace(c, seed=0, strong_weight=None) for c in configs}
   if len(others) != 1:
@@ -105,8 +108,8 @@ def _train_level(spec, demos, level_views, level, hierarchies, configs, validate
                      "or no weak views there")
   warmup = warmups.pop()
   config, mesh = configs[0], sharding.data_mesh()
-  weights = jnp.asarray([train.level_strong_weight(c, is_root) for c in configs], jnp.float32)
-  used = jnp.asarray(capacities, jnp.int32)
+  weights, used = sharding.replicate((np.asarray([train.level_strong_weight(c, is_root) for c in configs],
+                                                 np.float32), np.asarray(capacities, np.int32)), mesh)
 
   def loss(model, buckets, weight, used_capacity):
     return level_loss(model, buckets, max(capacities), weight, used_capacity)

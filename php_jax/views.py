@@ -32,8 +32,8 @@ class LevelView(NamedTuple):
     strong: [B] bool whether the annotation may be trained on: the demonstration is annotated (partly or
       completely) and every level below this one is annotated on every step. Unannotated operations of a
       strong view are UNKNOWN and summed over by the lattice.
-    real: [B] bool False on the copies that pad a batch split over devices to a multiple of their count
-      (`device_view`), which the loss weighs 0.
+    real: [B] bool False on the copies that pad a batch, which the loss weighs 0: to a multiple of the
+      device count (`device_view`), or to the largest of several seeds' batches (`stack_seeds`).
   """
   observations: np.ndarray
   actions: np.ndarray
@@ -51,8 +51,9 @@ def select(view: LevelView, mask: np.ndarray) -> LevelView:
 
 
 def length_groups(lengths: np.ndarray, num_buckets: int) -> list[tuple[np.ndarray, int]]:
-  """lengths [B] sorted into up to num_buckets groups of similar size: (indices, longest length) per group.
-  Trimmed to their longest, the groups' batches hold far fewer padding steps than one padded to the longest."""
+  """The indices of lengths [B] in ascending order of length, split into up to num_buckets groups of (nearly)
+  equal counts: (indices, longest length) per group. Trimmed to their longest, the groups' batches hold far
+  fewer padding steps than one batch padded to the longest."""
   order = np.argsort(lengths, kind="stable")
   return [(group, int(lengths[group].max())) for group in np.array_split(order, min(num_buckets, len(order)))]
 

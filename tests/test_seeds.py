@@ -60,6 +60,9 @@ def test_seeds_trained_together_match_their_separate_runs():
       for key in ("capacity", "best_iteration", "validation", "decoding_agreement"):
         assert report[level].get(key) == alone_report[level].get(key), (seed, level, key)
     assert [sorted(r) for r in rows[s]] == [sorted(r) for r in separate_rows]
+    for ours, theirs in zip(rows[s], separate_rows):
+      assert {k: v for k, v in ours.items() if k != "loss"} == {k: v for k, v in theirs.items() if k != "loss"}
+      assert ours.get("loss", 0.0) == pytest.approx(theirs.get("loss", 0.0), rel=1e-4)
 
 
 @pytest.mark.slow
@@ -111,6 +114,7 @@ def test_the_training_command_with_seeds_writes_each_seeds_separate_run(tmp_path
   assert sorted(p.name for p in run.iterdir()) == sorted(p.name for p in (tmp_path / "alone").iterdir())
   ours, theirs = (json.loads((d / "results.json").read_text()) for d in (run, tmp_path / "alone"))
   assert ours["test"] == theirs["test"] and ours["config"] == theirs["config"] and ours["seed"] == 1
+  assert ours["trained_with_seeds"] == [0, 1] and "trained_with_seeds" not in theirs
   for level in ("0", "1", "2"):
     for key in ("capacity", "best_iteration", "validation", "decoding_agreement"):
       assert ours["levels"][level].get(key) == theirs["levels"][level].get(key)

@@ -150,6 +150,9 @@ def test_resume_check_names_what_differs_and_takes_defaults_for_settings_a_check
   settings = {"config": json.loads(json.dumps(dataclasses.asdict(config))), "levels": [1, 2], "demonstrations": "x"}
   older = {**settings, "config": {k: v for k, v in settings["config"].items() if k != "training"}}
   train.check_resumable("ckpt", older, settings)  # made before --training existed: level-wise, its default
+  no_snapshot = {**settings, "config": {k: v for k, v in settings["config"].items() if k != "snapshot"}}
+  with pytest.raises(checkpoint.CheckpointError, match="snapshot: 'earliest' there, 'latest' here"):
+    train.check_resumable("ckpt", no_snapshot, settings)  # runs before --snapshot kept the earliest
   joint = json.loads(json.dumps(dataclasses.asdict(dataclasses.replace(config, training="joint"))))
   with pytest.raises(checkpoint.CheckpointError, match="training: 'levelwise' there, 'joint' here"):
     train.check_resumable("ckpt", older, {**settings, "config": joint})
