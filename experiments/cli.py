@@ -4,7 +4,7 @@ from __future__ import annotations
 import sys
 from typing import NoReturn
 
-from absl import flags
+from absl import flags, logging
 
 
 def fail(message: str) -> NoReturn:
@@ -14,8 +14,12 @@ def fail(message: str) -> NoReturn:
 
 
 def parse_flags(argv: list[str]) -> list[str]:
-  """absl's flag parsing, with a bad flag reported in one line and exit status 2 (for app.run's flags_parser)."""
+  """absl's flag parsing, with a bad flag reported in one line and exit status 2 (for app.run's flags_parser).
+  Log messages below warnings (JAX's start-up notes) are not shown unless --verbosity asks for them."""
   try:
-    return flags.FLAGS(argv)
+    argv = flags.FLAGS(argv)
   except flags.Error as e:
     fail(str(e))
+  if not flags.FLAGS["verbosity"].present:
+    logging.set_verbosity(logging.WARNING)
+  return argv
