@@ -153,6 +153,7 @@ def _run(*args):
   return subprocess.run([sys.executable, "-m", *args], capture_output=True, text=True, timeout=600)
 
 
+@pytest.mark.slow
 def test_fit_and_decode_commands_on_the_warehouse_example(tmp_path):
   workdir, out = tmp_path / "fit", tmp_path / "decoded.jsonl"
   proc = _run("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={WAREHOUSE / 'warehouse.json'}",
