@@ -13,6 +13,13 @@ def fail(message: str) -> NoReturn:
   sys.exit(2)
 
 
+def seed_list(values: list[str]) -> list[int]:
+  """A --seeds flag's values as distinct non-negative integers; ValueError naming them otherwise."""
+  if not (values and all(v.isdigit() for v in values) and len(set(map(int, values))) == len(values)):
+    raise ValueError(f"--seeds must list distinct non-negative integers; got {','.join(values)}")
+  return [int(v) for v in values]
+
+
 def parse_flags(argv: list[str]) -> list[str]:
   """absl's flag parsing, with a bad flag reported in one line and exit status 2 (for app.run's flags_parser).
   Log messages below warnings (JAX's start-up notes) are not shown unless --verbosity asks for them."""

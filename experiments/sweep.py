@@ -131,9 +131,10 @@ def main(argv):
   if seeds is not None:
     if any("seed" in c for c in combos):
       cli.fail("--seeds and a --grid of seed: give one of them")
-    if not (seeds and all(s.isdigit() for s in seeds) and len(set(map(int, seeds))) == len(seeds)):
-      cli.fail(f"--seeds must list distinct non-negative integers; got {','.join(seeds)}")
-    seeds = [str(int(s)) for s in seeds]  # as the runs name their seed=S workdirs
+    try:
+      seeds = [str(s) for s in cli.seed_list(seeds)]  # as the runs name their seed=S workdirs
+    except ValueError as e:
+      cli.fail(str(e))
     extra = [f"--seeds={','.join(seeds)}", *extra]
   gpus = _GPUS.value or [None]
   if _GPUS.value is not None and not (all(_GPUS.value) and len(set(_GPUS.value)) == len(_GPUS.value)):

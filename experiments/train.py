@@ -85,10 +85,10 @@ def _seeds(config: train.TrainConfig) -> list[int]:
   if MODEL.value != "php" or config.training != "levelwise":
     raise training.UsageError("--seeds trains PHP hierarchies level-wise (not with --model=flat_lstm or "
                               "--training=joint)")
-  values = SEEDS.value
-  if not (values and all(s.isdigit() for s in values) and len(set(map(int, values))) == len(values)):
-    raise training.UsageError(f"--seeds must list distinct non-negative integers; got {','.join(values)}")
-  return [int(s) for s in values]
+  try:
+    return cli.seed_list(SEEDS.value)
+  except ValueError as e:
+    raise training.UsageError(str(e)) from None
 
 
 def _seed_run(task, seed: int, num_demos: int, num_test: int, lengths) -> tuple:

@@ -12,7 +12,6 @@ import time
 from typing import Callable
 
 import jax
-import numpy as np
 from absl import flags
 from flax import nnx
 from jax.experimental import multihost_utils
@@ -143,7 +142,7 @@ def train_and_evaluate(task_name: str, spec: HierarchySpec, demos: Demonstration
   interrupted), or with flat_lstm_hidden the flat LSTM baseline of that many units; saves it, tests it,
   writes results.json; returns the results."""
   _open_workdir(workdir, RUN_FILES)
-  config = _resolved(config, demos)
+  config = train.with_strong_weight(config, demos)  # resolved here so that results.json records it
   commit = provenance.code_version()  # the code as it was when the run started
   with _RunLog(workdir) as log:
     if flat_lstm_hidden:
@@ -169,7 +168,7 @@ def train_and_evaluate_seeds(task_name: str, spec: HierarchySpec, demos: list[De
   _open_workdir(workdir, (SEEDS_CHECKPOINT,))
   for run_dir in workdirs:
     _open_workdir(run_dir, RUN_FILES)
-  configs = [_resolved(c, d) for c, d in zip(configs, demos)]
+  configs = [train.with_strong_weight(c, d) for c, d in zip(configs, demos)]
   commit = provenance.code_version()
   with contextlib.ExitStack() as stack:
     logs = [stack.enter_context(_RunLog(run_dir, {"seed": c.seed})) for run_dir, c in zip(workdirs, configs)]
@@ -200,13 +199,6 @@ def _open_workdir(workdir: str, files: tuple[str, ...]) -> None:
       os.remove(leftover)
   if jax.process_count() > 1:  # the others read the workdir (to resume) once process 0 has cleared it
     multihost_utils.sync_global_devices("workdir ready")
-
-
-def _resolved(config: train.TrainConfig, demos: Demonstration) -> train.TrainConfig:
-  """config with its strong weight resolved here, so that results.json records the number."""
-  if config.strong_weight is not None:
-    return config
-  return dataclasses.replace(config, strong_weight=train.balanced_strong_weight(np.asarray(demos.strong)))
 
 
 class _RunLog:

@@ -171,9 +171,14 @@ def prepare(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> T
   against the hierarchy (ValueError naming the first setting, or the demonstration and step, that is wrong)."""
   check_config(spec, config)
   validate_demos(demos, spec)
-  if config.strong_weight is None:
-    config = dataclasses.replace(config, strong_weight=balanced_strong_weight(np.asarray(demos.strong)))
-  return config
+  return with_strong_weight(config, demos)
+
+
+def with_strong_weight(config: TrainConfig, demos: Demonstration) -> TrainConfig:
+  """config with its strong weight resolved: the balanced one (`balanced_strong_weight`) where unset."""
+  if config.strong_weight is not None:
+    return config
+  return dataclasses.replace(config, strong_weight=balanced_strong_weight(np.asarray(demos.strong)))
 
 
 def run_settings(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> dict:

@@ -186,7 +186,9 @@ def test_sweep_refuses_bad_grids(entries, message):
 def test_sweep_command_refuses_bad_flags_and_writes_nothing(tmp_path):
   workdir = tmp_path / "sweep"
   for flags, message in [(["--grid=num_demos=16,x"], "num_demos values"), (["--parallel=0"], "parallel"),
-                         (["--grid=seed=1", "--grid=seed=2"], "given twice"), (["--gpus=0,0"], "distinct")]:
+                         (["--grid=seed=1", "--grid=seed=2"], "given twice"), (["--gpus=0,0"], "distinct"),
+                         (["--seeds=1,x"], "distinct non-negative integers"),
+                         (["--seeds=1,2", "--grid=seed=3"], "give one of them")]:
     proc = subprocess.run([sys.executable, "-m", "experiments.sweep", "--task=nanocraft", f"--workdir={workdir}",
                            *flags], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, (
