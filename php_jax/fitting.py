@@ -9,6 +9,7 @@ from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import nnx
 from jax.sharding import Mesh
@@ -63,23 +64,10 @@ def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array], iterations: int, l
   else:  # as arguments: a constant would sit whole on one device
     update = functools.partial(jax.jit(step), args=args)
   params, opt_state = sharding.replicate((progress.params, progress.opt_state), mesh)
-  last_save = time.monotonic()
-  for iteration in range(progress.iteration + 1, iterations + 1):
-    params, opt_state, loss = update(params, opt_state)
-    evaluate = iteration % eval_every == 0 or iteration == iterations
-    if save and not evaluate and time.monotonic() - last_save >= save_seconds:
-      save(progress._replace(iteration=iteration, params=params, opt_state=opt_state))
-      last_save = time.monotonic()
-    if evaluate:
-      loss = float(loss)
-      nnx.update(model, sharding.unreplicate(params, mesh))
-      score = on_eval(iteration, loss) if on_eval else None
-      progress = _advance(progress, iteration, params, opt_state, loss, score, snapshot)
-      log(_row(iteration, loss, score))
-      if save:
-        save(progress)
-        last_save = time.monotonic()
-  nnx.update(model, sharding.unreplicate(progress.best_params, mesh))
+  [progress] = _iterate(update, params, opt_state, [progress], [model], iterations, eval_every,
+                        (lambda iteration, losses: [on_eval(iteration, losses[0])]) if on_eval else None,
+                        lambda s, row: log(row), (lambda progresses: save(progresses[0])) if save else None,
+                        snapshot, save_seconds, mesh, part=lambda tree, s: tree)
   return progress
 
 
@@ -113,21 +101,31 @@ def fit_seeds(models: Sequence[nnx.Module], loss_fn: Callable[..., jax.Array], i
   params, opt_state = sharding.replicate((_stack([p.params for p in progress]),
                                           _stack([p.opt_state for p in progress])), mesh)
   rest = sharding.replicate(rest, mesh)
+  return _iterate(lambda params, opt_state: update(params, opt_state, rest, args), params, opt_state, progress,
+                  models, iterations, eval_every, on_eval, log, save, snapshot, save_seconds, mesh, part=_unstack)
+
+
+def _iterate(update, params, opt_state, progress: list[Progress], models: Sequence[nnx.Module], iterations: int,
+             eval_every: int, on_eval, log, save, snapshot: str, save_seconds: float, mesh: Mesh | None,
+             part: Callable[[Any, int], Any]) -> list[Progress]:
+  """The loop of `fit` and `fit_seeds`: update(params, opt_state) → (params, opt_state, loss(es)) from
+  progress' iteration on, with the evaluations, logs, saves and snapshots they describe for each model;
+  part(tree, s) is model s's share of params or opt_state. Updates each model to its kept snapshot."""
   last_save = time.monotonic()
   for iteration in range(progress[0].iteration + 1, iterations + 1):
-    params, opt_state, losses = update(params, opt_state, rest, args)
+    params, opt_state, losses = update(params, opt_state)
     evaluate = iteration % eval_every == 0 or iteration == iterations
     if save and not evaluate and time.monotonic() - last_save >= save_seconds:
-      save([p._replace(iteration=iteration, params=_unstack(params, s), opt_state=_unstack(opt_state, s))
+      save([p._replace(iteration=iteration, params=part(params, s), opt_state=part(opt_state, s))
             for s, p in enumerate(progress)])
       last_save = time.monotonic()
     if evaluate:
-      losses = [float(x) for x in losses]
+      losses = [float(x) for x in np.atleast_1d(losses)]
       for s, model in enumerate(models):
-        nnx.update(model, sharding.unreplicate(_unstack(params, s), mesh))
+        nnx.update(model, sharding.unreplicate(part(params, s), mesh))
       scores = on_eval(iteration, losses) if on_eval else [None] * len(models)
-      progress = [_advance(p, iteration, _unstack(params, s), _unstack(opt_state, s), losses[s], scores[s],
-                           snapshot) for s, p in enumerate(progress)]
+      progress = [_advance(p, iteration, part(params, s), part(opt_state, s), losses[s], scores[s], snapshot)
+                  for s, p in enumerate(progress)]
       for s in range(len(models)):
         log(s, _row(iteration, losses[s], scores[s]))
       if save:
