@@ -2,8 +2,9 @@ r"""Where a trained run's decoded hierarchy differs from the supervisor's, on it
 
   python -m experiments.segmentation --run=runs/nc_sweep/num_demos=64,num_strong=8,seed=1 --level=1
 
-Rebuilds the run's training demonstrations from its results.json, reads the views decoded during training
-from its checkpoint, and prints per level: how many weak demonstrations the decoding got wrong, each wrong
+Rebuilds the run's training demonstrations from its results.json and takes each level's segmentation of
+them: for a level-wise run the views decoded during training (in its checkpoint), for a joint run
+(--training=joint) the trained hierarchy's most likely call stack (whole-stack Viterbi). Prints per level: how many weak demonstrations the decoding got wrong, each wrong
 one classified as a split (a call of the supervisor's decoded as several, the same procedure pushed again),
 a merge (several calls decoded as one) or other (a procedure mistaken, or both), the procedures where
 splits and merges start, and the first --show of them side by side.
@@ -18,7 +19,7 @@ import numpy as np
 from absl import app, flags
 
 from experiments import cli
-from php_jax import agreement, checkpoint, datasets, tasks, views
+from php_jax import agreement, checkpoint, datasets, decoding, tasks, views
 
 _RUN = flags.DEFINE_string("run", None, "A training run's workdir (results.json, checkpoint.msgpack).")
 _LEVEL = flags.DEFINE_integer("level", None, "Level to report (default: every level below the root).")
@@ -92,20 +93,40 @@ def report(run: str, level: int | None, show: int) -> None:
   spec = task.spec
   if level is not None and not 1 <= level < spec.num_levels:
     raise ValueError(f"--level must be in 1..{spec.num_levels - 1} for {task.name}; got {level}")
-  decoded = checkpoint.read_decoded(paths[1])
-  missing = [k for k in range(1, spec.num_levels) if k not in decoded]
-  if missing:
-    raise ValueError(f"{paths[1]}: no decoded views of level {missing[0]} (training did not finish?)")
   demos = datasets.training_demos(task, results["seed"], results["num_demos"], results["num_strong"])
+  frames = _segmentation(run, results, paths[1], demos, spec.num_levels)
   view = views.lowest_view(demos, spec.num_levels)
   for k in range(spec.num_levels - 1, 0, -1):
+    decoded = frames(view, k)
     if level in (None, k):
-      found = level_report(demos, view, k, *decoded[k], spec.levels[k])
+      found = level_report(demos, view, k, *decoded, spec.levels[k])
       print(json.dumps({"level": k, "kinds": found["kinds"], "where": found["where"]}))
       for row in found["wrong"][:show]:
         print(f"  demo {row['demo']} ({row['kind']})\n    supervisor {' '.join(row['truth'])}\n"
               f"    decoded    {' '.join(row['decoded'])}")
-    view = views.view_above(demos, view, k, *decoded[k])
+    view = views.view_above(demos, view, k, *decoded)
+
+
+def _segmentation(run: str, results: dict, checkpoint_path: str, demos, num_levels: int):
+  """(level's view, level) → the run's (procedures, τ) [B, T] at each of the view's operations. Raises
+  ValueError naming the file when the run holds no segmentation of every level below the root."""
+  config = results.get("config")
+  if isinstance(config, dict) and config.get("training") == "joint":
+    _, hierarchy = checkpoint.load_policy(run)
+    capacity = checkpoint.saved_capacity(run)
+    if capacity is None:
+      raise ValueError(f"{run}: the saved model records no counter capacities (saved by an older version)")
+    stack = decoding.decode(hierarchy, capacity, demos)
+
+    def at_view(view: views.LevelView, level: int):
+      steps = np.arange(len(view.times))[:, None], np.maximum(view.times, 0), level
+      return stack.procedures[steps], stack.counters[steps]
+    return at_view
+  decoded = checkpoint.read_decoded(checkpoint_path)
+  missing = [k for k in range(1, num_levels) if k not in decoded]
+  if missing:
+    raise ValueError(f"{checkpoint_path}: no decoded views of level {missing[0]} (training did not finish?)")
+  return lambda view, level: decoded[level]
 
 
 def main(argv):

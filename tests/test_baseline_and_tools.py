@@ -13,7 +13,7 @@ import pytest
 from flax import nnx, serialization
 
 from experiments import plot, segmentation, sweep
-from php_jax import checkpoint, datasets, evaluation, flat_lstm, tasks, views
+from php_jax import checkpoint, datasets, decoding, evaluation, flat_lstm, tasks, train, views
 from php_jax.envs import nanocraft, nanocraft_task
 
 NANOCRAFT = tasks.get("nanocraft")
@@ -171,6 +171,28 @@ def test_segmentation_report_finds_a_split_in_the_supervisors_level_1_view():
   assert report["kinds"] == {"correct": 3, "split": 1}
   assert report["where"] == {f"split in {spec.levels[1][procs[weak, second]]}": 1}
   assert report["wrong"][0]["demo"] == weak
+
+
+def test_segmentation_of_a_joint_run_reads_the_whole_stack_decoding_at_every_level(tmp_path, monkeypatch, capsys):
+  """A joint run's segmentation is the trained hierarchy's whole-stack decoding, read at each level's own
+  operations: a decoding equal to the supervisor's stacks is reported correct on every weak demonstration."""
+  demos = datasets.training_demos(NANOCRAFT, seed=2, num_demos=6, num_strong=2)
+  hierarchy = train.make_hierarchy(NANOCRAFT.spec, train.TrainConfig(hidden=(4,)))
+  checkpoint.save_hierarchy(str(tmp_path), "nanocraft", hierarchy, (4,), capacity=[8, 6, 4])
+  (tmp_path / "checkpoint.msgpack").write_bytes(b"")
+  (tmp_path / "results.json").write_text(json.dumps({"task": "nanocraft", "seed": 2, "num_demos": 6, "num_strong": 2,
+                                                     "config": {"training": "joint"}}))
+  supervisor = decoding.Decoded(np.zeros(6), np.asarray(demos.procedures), np.asarray(demos.counters))
+  monkeypatch.setattr(decoding, "decode", lambda h, capacity, batch: supervisor)
+  segmentation.report(str(tmp_path), None, 3)
+  rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+  assert rows == [{"level": 2, "kinds": {"correct": 4}, "where": {}}, {"level": 1, "kinds": {"correct": 4}, "where": {}}]
+  procedures = np.asarray(demos.procedures).copy()
+  weak = int(np.flatnonzero(~demos.strong)[0])
+  procedures[weak, 0, 1] = 1 - procedures[weak, 0, 1]  # the first level-1 procedure of one weak demonstration
+  monkeypatch.setattr(decoding, "decode", lambda h, capacity, batch: supervisor._replace(procedures=procedures))
+  segmentation.report(str(tmp_path), 1, 3)
+  assert json.loads(capsys.readouterr().out.splitlines()[0])["kinds"] == {"correct": 3, "other": 1}
 
 
 @pytest.mark.parametrize("entries, message", [
