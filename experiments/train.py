@@ -82,9 +82,11 @@ def _seeds(config: train.TrainConfig) -> list[int]:
   """--seeds' values, checked against the other flags."""
   if flags.FLAGS["seed"].present:
     raise training.UsageError("--seeds and --seed: give one of them")
-  if MODEL.value != "php" or config.training != "levelwise":
-    raise training.UsageError("--seeds trains PHP hierarchies level-wise (not with --model=flat_lstm or "
-                              "--training=joint)")
+  if MODEL.value != "php":
+    raise training.UsageError("--seeds trains PHP hierarchies (not --model=flat_lstm)")
+  if config.training != "levelwise":
+    raise training.UsageError("--seeds trains level-wise only; this run trains jointly (--training=joint"
+                              f"{'' if training.TRAINING.value else ', the task default'}): add --training=levelwise")
   try:
     return cli.seed_list(SEEDS.value)
   except ValueError as e:

@@ -47,9 +47,11 @@ STRONG_WARMUP = flags.DEFINE_integer("strong_warmup", 0, "Per level below the ro
 CALL_PENALTY = flags.DEFINE_list("call_penalty", None, "Per level (root first; the root's must be 0), a log-prior "
                                  "cost of each call the stand-in root pushes: weak views' posteriors favour fewer, "
                                  "longer calls. Default: 0 everywhere.")
-TRAINING = flags.DEFINE_enum("training", "levelwise", list(train.TRAININGS),
+TRAINING = flags.DEFINE_enum("training", None, list(train.TRAININGS),
                              "levelwise: one level at a time from the lowest, a stand-in root for the levels above "
-                             "(the paper); joint: every level at once by exact inference over the whole call stack.")
+                             "(the paper); joint: every level at once by exact inference over the whole call stack. "
+                             "Default: the task's.")
+LEVELWISE_ONLY = ("root", "root_strong_weight", "strong_warmup", "call_penalty", "decode")  # flags joint has no use for
 DECODE = flags.DEFINE_enum("decode", "sample", list(objective.DECODERS), "Decoding of weak views for the level above.")
 EVAL_EVERY = flags.DEFINE_integer("eval_every", 100, "Iterations between logged losses / root snapshots.")
 SNAPSHOT = flags.DEFINE_enum("snapshot", "latest", list(fitting.SNAPSHOT_RULES),
@@ -89,6 +91,11 @@ def _config(defaults: TrainingDefaults) -> train.TrainConfig:
   if iterations < 1:
     raise ValueError(f"iterations must be a positive integer; got {iterations}")
   learning_rate = defaults.learning_rate if LEARNING_RATE.value is None else LEARNING_RATE.value
+  mode = defaults.training if TRAINING.value is None else TRAINING.value
+  given = [name for name in LEVELWISE_ONLY if flags.FLAGS[name].present]
+  if mode == "joint" and given:
+    raise ValueError(f"{given[0]} applies to level-wise training only; this run trains jointly (--training=joint"
+                     f"{'' if TRAINING.value else ', the task default'}): add --training=levelwise or drop --{given[0]}")
   return train.TrainConfig(iterations=iterations, learning_rate=learning_rate,
                            hidden=tuple(_flag_int("hidden", h) for h in HIDDEN.value) if HIDDEN.value
                            else defaults.hidden,
@@ -101,7 +108,7 @@ def _config(defaults: TrainingDefaults) -> train.TrainConfig:
                            root_strong_weight=ROOT_STRONG_WEIGHT.value, strong_warmup=STRONG_WARMUP.value,
                            call_penalty=(tuple(_flag_float("call_penalty", v) for v in CALL_PENALTY.value)
                                          if CALL_PENALTY.value else None),
-                           decode=DECODE.value, training=TRAINING.value,
+                           decode=DECODE.value, training=mode,
                            eval_every=EVAL_EVERY.value, snapshot=SNAPSHOT.value, seed=SEED.value)
 
 

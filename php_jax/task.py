@@ -56,6 +56,7 @@ class TrainingDefaults:
     num_test: test problems per test set.
     iterations: Adam iterations per level.
     learning_rate: Adam's learning rate.
+    training: "levelwise" (one level at a time, the paper's) or "joint" (every level at once).
   """
   num_demos: int
   num_demos_fixed: bool
@@ -67,6 +68,7 @@ class TrainingDefaults:
   num_test: int = 100
   iterations: int = 2000
   learning_rate: float = 3e-3
+  training: str = "levelwise"
 
 
 @dataclasses.dataclass(frozen=True)

@@ -164,9 +164,14 @@ def test_the_training_command_with_seeds_writes_each_seeds_separate_run(tmp_path
 
 
 def test_the_training_command_refuses_seeds_with_flags_they_do_not_go_with(tmp_path):
-  for flag, message in [("--seed=2", "--seeds and --seed: give one"), ("--training=joint", "level-wise"),
-                        ("--seeds=1,1", "distinct")]:
-    bad = subprocess.run(BASE + ["--seeds=0,1", flag, f"--workdir={tmp_path / 'bad'}"], capture_output=True,
+  without_root = [a for a in BASE if a != "--root=mlp"]  # --root is level-wise training's
+  nanocraft = [sys.executable, "-m", "experiments.nanocraft", "--num_demos=4"]  # it trains jointly by default
+  for command, flag, message in [
+      (BASE, "--seed=2", "--seeds and --seed: give one"), (BASE, "--seeds=1,1", "distinct"),
+      (without_root, "--training=joint", "--seeds trains level-wise only; this run trains jointly (--training=joint)"),
+      (nanocraft, "--num_strong=1", "jointly (--training=joint, the task default): add --training=levelwise"),
+      (nanocraft, "--call_penalty=0,1,0", "--call_penalty: applies to level-wise training only")]:
+    bad = subprocess.run(command + ["--seeds=0,1", flag, f"--workdir={tmp_path / 'bad'}"], capture_output=True,
                          text=True, timeout=600, cwd=ROOT)
     assert bad.returncode == 2 and message in bad.stderr and bad.stderr.count("\n") == 1, bad.stderr[-2000:]
     assert not (tmp_path / "bad").exists()

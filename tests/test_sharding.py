@@ -144,7 +144,7 @@ def _free_port() -> int:
 @pytest.mark.slow
 def test_training_on_four_devices_or_two_processes_gives_the_one_device_results(tmp_path):
   command = [sys.executable, "-m", "experiments.train", "--task=nanocraft", "--num_demos=7", "--num_strong=3",
-             "--iterations=20", "--eval_every=10", "--hidden=16", "--root=mlp", "--num_test=50"]
+             "--training=levelwise", "--iterations=20", "--eval_every=10", "--hidden=16", "--root=mlp", "--num_test=50"]
   two_processes = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
                    "JAX_COORDINATOR_ADDRESS": f"localhost:{_free_port()}", "JAX_NUM_PROCESSES": "2"}
   runs = {"one": (os.environ, []), "four": (FOUR_DEVICES, []),
