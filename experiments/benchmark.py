@@ -246,10 +246,7 @@ def bench_scaling():
                              strong_weight=train.balanced_strong_weight(demos.strong))
   mesh, num_devices = sharding.data_mesh(), len(jax.devices())
   annotated = demos._replace(strong=np.ones_like(demos.strong))  # every demonstration's true views, above too
-  level_views = {spec.num_levels - 1: views.lowest_view(annotated, spec.num_levels)}
-  for level in range(spec.num_levels - 1, 0, -1):
-    view = level_views[level]
-    level_views[level - 1] = views.view_above(annotated, view, level, view.procedures, view.counters)
+  level_views = views.annotated_views(annotated, spec.num_levels)
   print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}) x {num_devices}; {task.name}: "
         f"{num_demos} demonstrations ({int(np.sum(demos.strong))} annotated), hidden {config.hidden}, "
         f"root {config.root}, {config.length_buckets} length buckets")

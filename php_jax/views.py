@@ -150,6 +150,16 @@ def lowest_view(demos: Demonstration, num_levels: int) -> LevelView:
   return _pack(demos, num_levels - 1, times, actions)
 
 
+def annotated_views(demos: Demonstration, num_levels: int) -> list[LevelView]:
+  """Every level's view, root first, from the demonstrations' own annotation (which must cover every step):
+  the views that a right decoding of every level gives."""
+  level_views = [lowest_view(demos, num_levels)]
+  for level in range(num_levels - 1, 0, -1):
+    view = level_views[0]
+    level_views.insert(0, view_above(demos, view, level, view.procedures, view.counters))
+  return level_views
+
+
 def view_above(demos: Demonstration, view: LevelView, level: int, procedures: np.ndarray,
                counters: np.ndarray) -> LevelView:
   """The view of level−1 from level's view and level's (annotated or decoded) frames per operation.

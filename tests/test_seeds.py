@@ -47,12 +47,7 @@ def test_each_seeds_loss_and_fit_inside_the_stacked_program_are_its_own():
   level = 1
   demos = [_demos(s)._replace(strong=np.ones(NUM_DEMOS[s], bool)) for s in SEEDS]
   configs = [train.prepare(NANOCRAFT.spec, d, dataclasses.replace(CONFIG, seed=s)) for d, s in zip(demos, SEEDS)]
-  level_views = []
-  for d in demos:
-    view = views.lowest_view(d, NANOCRAFT.spec.num_levels)
-    for above in range(NANOCRAFT.spec.num_levels - 1, level, -1):
-      view = views.view_above(d, view, above, view.procedures, view.counters)
-    level_views.append(view)
+  level_views = [views.annotated_views(d, NANOCRAFT.spec.num_levels)[level] for d in demos]
   capacities = [train.level_capacity(v, level, c) for v, c in zip(level_views, configs)]
   assert capacities[0] != capacities[1]
 
