@@ -92,25 +92,17 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   settings = train.run_settings(spec, demos, config)
   capacity = joint_capacity(demos, spec, config)
   saved = checkpoint.read_training(checkpoint_path)
-  logged, resume = [0], None
+  counted_log, resume = train.CountedLog(log), None
   if saved is not None:
-    train.check_resumable(checkpoint_path, saved[0].get("settings", {}), settings)
-    checkpoint.restore_hierarchy(checkpoint_path, saved, hierarchy)
+    counted_log.resumed(train.resume_from(checkpoint_path, saved, settings, hierarchy))
     resume = checkpoint.restore_progress(checkpoint_path, saved, hierarchy) if saved[0]["progress"] else None
-    logged[0] = saved[0]["logged"]
-    log({"resumed": True, "iteration": resume and resume.iteration, "logged": logged[0]})
   if resume is None:
-    log({"training": "joint", "capacity": list(capacity)})
-    logged[0] += 1
-
-  def counted_log(row: dict) -> None:
-    logged[0] += 1
-    log(row)
+    counted_log({"training": "joint", "capacity": list(capacity)})
 
   def save(progress: fitting.Progress) -> None:
     if checkpoint_path:
       checkpoint.write_training(checkpoint_path, hierarchy, {"level": "joint", "report": {}, "settings": settings,
-                                                             "logged": logged[0]}, progress, {})
+                                                             "logged": counted_log.logged}, progress, {})
 
   start = time.time()
   mesh = sharding.data_mesh()  # with more than one device, each bucket is split over all of them

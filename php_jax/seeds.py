@@ -45,27 +45,24 @@ def train_seeds(spec: HierarchySpec, demos: Sequence[Demonstration], configs: Se
   num_seeds = len(configs)
   hierarchies = [train.make_hierarchy(spec, c) for c in configs]
   settings = [train.run_settings(spec, d, c) for d, c in zip(demos, configs)]
-  reports, decoded, logged = [{} for _ in configs], [{} for _ in configs], [0] * num_seeds
+  reports, decoded = [{} for _ in configs], [{} for _ in configs]
+  seed_logs = [train.CountedLog(lambda row, s=s: log(s, row)) for s in range(num_seeds)]
   saved = checkpoint.read_training_seeds(checkpoint_path)
   if saved is not None:
     if len(saved) != num_seeds:
       raise checkpoint.CheckpointError(f"{checkpoint_path} holds {len(saved)} seeds; this run has {num_seeds}")
     for s, (meta, _) in enumerate(saved):
-      train.check_resumable(checkpoint_path, meta.get("settings", {}), settings[s])
-      checkpoint.restore_hierarchy(checkpoint_path, saved[s], hierarchies[s])
+      seed_logs[s].resumed(train.resume_from(checkpoint_path, saved[s], settings[s], hierarchies[s]))
       reports[s] = {int(k): v for k, v in meta["report"].items()}
       decoded[s] = checkpoint.decoded_views(saved[s])
-      logged[s] = meta["logged"]
-      log(s, {"resumed": True, "level": meta["level"],
-              "iteration": meta["progress"] and meta["progress"]["iteration"], "logged": logged[s]})
 
-  def counted_log(s: int, row: dict) -> None:  # a checkpoint records how many rows each seed logged before it
-    logged[s] += 1
-    log(s, row)
+  def counted_log(s: int, row: dict) -> None:
+    seed_logs[s](row)
 
   def save(level: int, progress: list[fitting.Progress] | None) -> None:
     states = [(hierarchies[s], {"level": level, "report": reports[s], "settings": settings[s],
-                                "logged": logged[s]}, progress and progress[s], decoded[s]) for s in range(num_seeds)]
+                                "logged": seed_logs[s].logged}, progress and progress[s], decoded[s])
+              for s in range(num_seeds)]
     if checkpoint_path:
       checkpoint.write_training_seeds(checkpoint_path, states)
     if level == -1 and seed_checkpoint_paths:

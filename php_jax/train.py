@@ -209,6 +209,33 @@ def check_resumable(path: str, saved_settings: dict, settings: dict) -> None:
                                    "use a fresh workdir, or --overwrite to start again")
 
 
+def resume_from(path: str, saved: tuple[dict, dict], settings: dict, hierarchy: PHPHierarchy) -> dict:
+  """Restores a read training checkpoint's parameters into hierarchy once its settings are this run's
+  (else CheckpointError naming those that differ); returns the row a resumed run logs first."""
+  meta = saved[0]
+  check_resumable(path, meta.get("settings", {}), settings)
+  checkpoint.restore_hierarchy(path, saved, hierarchy)
+  return {"resumed": True, "level": meta["level"], "iteration": meta["progress"] and meta["progress"]["iteration"],
+          "logged": meta["logged"]}
+
+
+class CountedLog:
+  """log(row), counting the rows: a checkpoint records how many were logged before it, so that a resumed
+  run knows which rows of its metrics stay valid."""
+
+  def __init__(self, log: Callable[[dict], None]):
+    self.log, self.logged = log, 0
+
+  def __call__(self, row: dict) -> None:
+    self.logged += 1
+    self.log(row)
+
+  def resumed(self, row: dict) -> None:
+    """Logs a resume_from row (not counted: the rows logged before it are)."""
+    self.logged = row["logged"]
+    self.log(row)
+
+
 def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConfig,
                     validate: Callable[[PHPHierarchy], float] | None = None,
                     log: Callable[[dict], None] = print,
@@ -224,24 +251,16 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
   hierarchy = make_hierarchy(spec, config)
   settings = run_settings(spec, demos, config)
   saved = checkpoint.read_training(checkpoint_path)
-  report, decoded, logged = {}, {}, [0]
+  report, decoded, counted_log = {}, {}, CountedLog(log)
   if saved is not None:
-    check_resumable(checkpoint_path, saved[0].get("settings", {}), settings)
-    checkpoint.restore_hierarchy(checkpoint_path, saved, hierarchy)
+    counted_log.resumed(resume_from(checkpoint_path, saved, settings, hierarchy))
     report = {int(k): v for k, v in saved[0]["report"].items()}
     decoded = checkpoint.decoded_views(saved)
-    logged[0] = saved[0]["logged"]
-    log({"resumed": True, "level": saved[0]["level"], "iteration": saved[0]["progress"] and
-         saved[0]["progress"]["iteration"], "logged": logged[0]})
-
-  def counted_log(row: dict) -> None:  # a checkpoint records how many rows were logged before it
-    logged[0] += 1
-    log(row)
 
   def save(level: int, progress: fitting.Progress | None) -> None:
     if checkpoint_path:
       checkpoint.write_training(checkpoint_path, hierarchy, {"level": level, "report": report,
-                                                             "settings": settings, "logged": logged[0]},
+                                                             "settings": settings, "logged": counted_log.logged},
                                 progress, decoded)
 
   view = views.lowest_view(demos, spec.num_levels)
