@@ -4,10 +4,11 @@ r"""Where a trained run's decoded hierarchy differs from the supervisor's, on it
 
 Rebuilds the run's training demonstrations from its results.json and takes each level's segmentation of
 them: for a level-wise run the views decoded during training (in its checkpoint), for a joint run
-(--training=joint) the trained hierarchy's most likely call stack (whole-stack Viterbi). Prints per level: how many weak demonstrations the decoding got wrong, each wrong
-one classified as a split (a call of the supervisor's decoded as several, the same procedure pushed again),
-a merge (several calls decoded as one) or other (a procedure mistaken, or both), the procedures where
-splits and merges start, and the first --show of them side by side.
+(--training=joint) the trained hierarchy's most likely call stack (whole-stack Viterbi). Prints per level:
+how many weak demonstrations the segmentation got wrong, each wrong one classified as a split (a call of the
+supervisor's decoded as several, the same procedure pushed again), a merge (several calls decoded as one) or
+other (a procedure mistaken, or both), the procedures where splits and merges start, and the first --show of
+them side by side.
 """
 from __future__ import annotations
 

@@ -51,7 +51,7 @@ TRAINING = flags.DEFINE_enum("training", None, list(train.TRAININGS),
                              "levelwise: one level at a time from the lowest, a stand-in root for the levels above "
                              "(the paper); joint: every level at once by exact inference over the whole call stack. "
                              "Default: the task's.")
-LEVELWISE_ONLY = ("root", "root_strong_weight", "strong_warmup", "call_penalty", "decode")  # flags joint has no use for
+LEVELWISE_ONLY = ("root", "root_strong_weight", "strong_warmup", "call_penalty", "decode")  # unused by joint training
 DECODE = flags.DEFINE_enum("decode", "sample", list(objective.DECODERS), "Decoding of weak views for the level above.")
 EVAL_EVERY = flags.DEFINE_integer("eval_every", 100, "Iterations between logged losses / root snapshots.")
 SNAPSHOT = flags.DEFINE_enum("snapshot", "latest", list(fitting.SNAPSHOT_RULES),
