@@ -85,8 +85,7 @@ def _seeds(config: train.TrainConfig) -> list[int]:
   if MODEL.value != "php":
     raise training.UsageError("--seeds trains PHP hierarchies (not --model=flat_lstm)")
   if config.training != "levelwise":
-    raise training.UsageError("--seeds trains level-wise only; this run trains jointly (--training=joint"
-                              f"{'' if training.TRAINING.value else ', the task default'}): add --training=levelwise")
+    raise training.UsageError(training.joint_refusal("--seeds trains level-wise only"))
   try:
     return cli.seed_list(SEEDS.value)
   except ValueError as e:

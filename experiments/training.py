@@ -94,8 +94,7 @@ def _config(defaults: TrainingDefaults) -> train.TrainConfig:
   mode = defaults.training if TRAINING.value is None else TRAINING.value
   given = [name for name in LEVELWISE_ONLY if flags.FLAGS[name].present]
   if mode == "joint" and given:
-    raise ValueError(f"{given[0]} applies to level-wise training only; this run trains jointly (--training=joint"
-                     f"{'' if TRAINING.value else ', the task default'}): add --training=levelwise or drop --{given[0]}")
+    raise ValueError(joint_refusal(f"{given[0]} applies to level-wise training only") + f" or drop --{given[0]}")
   return train.TrainConfig(iterations=iterations, learning_rate=learning_rate,
                            hidden=tuple(_flag_int("hidden", h) for h in HIDDEN.value) if HIDDEN.value
                            else defaults.hidden,
@@ -110,6 +109,12 @@ def _config(defaults: TrainingDefaults) -> train.TrainConfig:
                                          if CALL_PENALTY.value else None),
                            decode=DECODE.value, training=mode,
                            eval_every=EVAL_EVERY.value, snapshot=SNAPSHOT.value, seed=SEED.value)
+
+
+def joint_refusal(what: str) -> str:
+  """The message refusing `what` in a run that trains jointly, naming where its mode came from."""
+  return (f"{what}; this run trains jointly (--training=joint{'' if TRAINING.value else ', the task default'}): "
+          "add --training=levelwise")
 
 
 def _keep_rows(metrics, path: str, count: int) -> float:

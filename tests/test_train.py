@@ -170,8 +170,8 @@ def test_nanocraft_run_solves_held_out_episodes_and_evaluate_loads_it(tmp_path):
   import sys
   workdir = tmp_path / "nc"
   proc = subprocess.run([sys.executable, "-m", "experiments.nanocraft", f"--workdir={workdir}", "--num_demos=16",
-                         "--num_strong=16", "--training=levelwise", "--iterations=1000", "--hidden=32", "--root=mlp", "--learning_rate=1e-2",
-                         "--eval_every=200", "--num_test=200", "--seed=0"], capture_output=True, text=True, timeout=900)
+                         "--num_strong=16", "--training=levelwise", "--iterations=1000", "--hidden=32", "--root=mlp",
+                         "--learning_rate=1e-2", "--eval_every=200", "--num_test=200", "--seed=0"], capture_output=True, text=True, timeout=900)
   assert proc.returncode == 0, proc.stderr[-3000:]
   results = json.loads((workdir / "results.json").read_text())
   assert results["test"]["accuracy"] >= 0.8, results["test"]
