@@ -193,6 +193,9 @@ def test_segmentation_of_a_joint_run_reads_the_whole_stack_decoding_at_every_lev
   monkeypatch.setattr(decoding, "decode", lambda h, capacity, batch: supervisor._replace(procedures=procedures))
   segmentation.report(str(tmp_path), 1, 3)
   assert json.loads(capsys.readouterr().out.splitlines()[0])["kinds"] == {"correct": 3, "other": 1}
+  checkpoint.save_hierarchy(str(tmp_path), "nanocraft", hierarchy, (4,))  # without its counter capacities
+  with pytest.raises(ValueError, match="records no counter capacities"):
+    segmentation.report(str(tmp_path), None, 3)
 
 
 @pytest.mark.parametrize("entries, message", [
