@@ -17,7 +17,7 @@ from flax import nnx
 from jax.experimental import multihost_utils
 
 from experiments import cli, provenance
-from php_jax import checkpoint, fitting, flat_lstm, joint, objective, seeds, train
+from php_jax import call_graph, checkpoint, fitting, flat_lstm, joint, objective, seeds, train
 from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
 from php_jax.task import TrainingDefaults
@@ -51,6 +51,11 @@ TRAINING = flags.DEFINE_enum("training", None, list(train.TRAININGS),
                              "levelwise: one level at a time from the lowest, a stand-in root for the levels above "
                              "(the paper); joint: every level at once by exact inference over the whole call stack. "
                              "Default: the task's.")
+CALL_GRAPH = flags.DEFINE_enum("call_graph", None, list(call_graph.CALL_GRAPHS),
+                               "all: any procedure may call any of the level below; annotated: a procedure the "
+                               "annotated demonstrations show calling may call only what they show it calling "
+                               "(one never shown calling, or never shown being called, is unrestricted). "
+                               "Default: the task's.")
 LEVELWISE_ONLY = ("root", "root_strong_weight", "strong_warmup", "call_penalty", "decode")  # unused by joint training
 DECODE = flags.DEFINE_enum("decode", "sample", list(objective.DECODERS), "Decoding of weak views for the level above.")
 EVAL_EVERY = flags.DEFINE_integer("eval_every", 100, "Iterations between logged losses / root snapshots.")
@@ -108,6 +113,7 @@ def _config(defaults: TrainingDefaults) -> train.TrainConfig:
                            call_penalty=(tuple(_flag_float("call_penalty", v) for v in CALL_PENALTY.value)
                                          if CALL_PENALTY.value else None),
                            decode=DECODE.value, training=mode,
+                           call_graph=defaults.call_graph if CALL_GRAPH.value is None else CALL_GRAPH.value,
                            eval_every=EVAL_EVERY.value, snapshot=SNAPSHOT.value, seed=SEED.value)
 
 

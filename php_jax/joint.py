@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
 
-from php_jax import checkpoint, fitting, sharding, stack_lattice, train, views
+from php_jax import call_graph, checkpoint, fitting, sharding, stack_lattice, train, views
 from php_jax.decoding import stack_inputs
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.hierarchy import HierarchySpec
@@ -88,7 +88,7 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   (the same log protocol); a checkpoint made with other settings raises CheckpointError. Returns the
   hierarchy and a report {capacity, losses, best_iteration, validation, seconds}."""
   config = train.prepare(spec, demos, config)
-  hierarchy = train.make_hierarchy(spec, config)
+  hierarchy = train.make_hierarchy(spec, config, call_graph.resolve(config.call_graph, demos, spec))
   settings = train.run_settings(spec, demos, config)
   capacity = joint_capacity(demos, spec, config)
   saved = checkpoint.read_training(checkpoint_path)

@@ -59,30 +59,38 @@ class PHPLevel(nnx.Module):
     tau_limit: both networks see min(τ, tau_limit) (None: τ itself). A procedure whose decisions need only
       the first few counter values then behaves the same for any number of operations: a limit of 1 tells
       the first operation from the others, 0 hides τ.
+    callees: for a level that calls procedures, [K][K_next] bools: which callees each procedure may call
+      (the others get probability 0); None: any.
   """
 
   def __init__(self, num_procs: int, obs_dim: int, op_sizes: tuple[int, ...], hidden=(64, 64),
-               tau_in_termination: bool = True, tau_limit: int | None = None, *, rngs: nnx.Rngs):
+               tau_in_termination: bool = True, tau_limit: int | None = None,
+               callees: tuple[tuple[bool, ...], ...] | None = None, *, rngs: nnx.Rngs):
     self.op_sizes = tuple(op_sizes)
     self.tau_in_termination = tau_in_termination
     self.tau_limit = tau_limit
+    if callees is not None and np.shape(callees) != (num_procs, self.op_sizes[0]):
+      raise ValueError(f"callees must be [{num_procs}][{self.op_sizes[0]}] (procedure, callee); got shape "
+                       f"{np.shape(callees)}")
+    self.callees = None if callees is None else tuple(tuple(bool(c) for c in row) for row in callees)
     self.operation = ProcedureMLPs(num_procs, obs_dim, tuple(hidden), sum(op_sizes), rngs=rngs)
     self.termination = ProcedureMLPs(num_procs, obs_dim, tuple(hidden), 1, rngs=rngs)
 
   def op_log_probs(self, obs: jax.Array, tau: jax.Array) -> list[jax.Array]:
     """Per factor f: [N, K, M, op_sizes[f]] log-probabilities (the factorized action head)."""
-    logits = jnp.transpose(self.operation(obs, self._limited(tau)), (2, 0, 3, 1))
+    logits = jnp.transpose(self._operation_logits(obs, tau), (2, 0, 3, 1))
     splits = np.cumsum(self.op_sizes)[:-1]
     return [jax.nn.log_softmax(part, axis=-1) for part in jnp.split(logits, splits, axis=-1)]
 
   def log_op(self, obs: jax.Array, tau: jax.Array, ops: jax.Array) -> jax.Array:
     """log η_h^τ(ops_n | obs_n) for every procedure and counter. obs [N, D], tau [M], ops [N, F] → [N, K, M]."""
-    logits = self.operation(obs, self._limited(tau))                      # [K, Σ op_sizes, N, M]
+    logits = self._operation_logits(obs, tau)                             # [K, Σ op_sizes, N, M]
     total, start = 0.0, 0
     for f, size in enumerate(self.op_sizes):
       part = logits[:, start:start + size]
-      # The chosen logit by a one-hot product: unlike a gather, its gradient is not a scatter.
-      chosen = jnp.sum(part * jax.nn.one_hot(ops[:, f], size, dtype=part.dtype).T[None, :, :, None], axis=1)
+      # The chosen logit by a one-hot select: unlike a gather, its gradient is not a scatter.
+      chosen = jnp.sum(jnp.where(jax.nn.one_hot(ops[:, f], size, dtype=bool).T[None, :, :, None], part, 0.0),
+                       axis=1)
       total, start = total + chosen - jax.nn.logsumexp(part, axis=1), start + size
     return jnp.transpose(total, (1, 0, 2))
 
@@ -90,6 +98,16 @@ class PHPLevel(nnx.Module):
     """logit of ψ_h^τ(1 | obs). obs [N, D], tau [M] → [N, K, M]; log ψ(1) = log σ(z), log ψ(0) = log σ(−z)."""
     tau = self._limited(tau) if self.tau_in_termination else jnp.zeros_like(tau)
     return jnp.transpose(self.termination(obs, tau)[:, 0], (1, 0, 2))
+
+  def _operation_logits(self, obs: jax.Array, tau: jax.Array) -> jax.Array:
+    """[K, Σ op_sizes, N, M] operation logits, −inf for the callees a procedure may not call."""
+    logits = self.operation(obs, self._limited(tau))
+    if self.callees is None:
+      return logits
+    allowed = np.zeros((len(self.callees), sum(self.op_sizes)), bool)
+    allowed[:, :self.op_sizes[0]] = self.callees
+    allowed[:, self.op_sizes[0]:] = True
+    return jnp.where(allowed[:, :, None, None], logits, -jnp.inf)
 
   def _limited(self, tau: jax.Array) -> jax.Array:
     return tau if self.tau_limit is None else jnp.minimum(tau, self.tau_limit)
@@ -128,18 +146,23 @@ class PHPHierarchy(nnx.Module):
   """A whole hierarchy of PHP levels; a Policy for the executor (argmax, or sampling when `sample`)."""
 
   def __init__(self, spec: HierarchySpec, hidden=(64, 64), tau_in_termination=None, sample: bool = False,
-               tau_limit=None, *, rngs: nnx.Rngs):
-    """tau_in_termination, tau_limit: per level, root first (PHPLevel); None: τ everywhere, unlimited."""
+               tau_limit=None, callees=None, *, rngs: nnx.Rngs):
+    """tau_in_termination, tau_limit, callees: per level, root first (PHPLevel; the lowest level's callees
+    None); None: τ everywhere, unlimited, any call allowed."""
     tau_in_termination = tau_in_termination or (True,) * spec.num_levels
     tau_limit = tau_limit or (None,) * spec.num_levels
-    for name, values in (("tau_in_termination", tau_in_termination), ("tau_limit", tau_limit)):
+    callees = callees or (None,) * spec.num_levels
+    if callees[-1] is not None:
+      raise ValueError("callees: the lowest level emits elementary actions; its entry must be None")
+    for name, values in (("tau_in_termination", tau_in_termination), ("tau_limit", tau_limit),
+                         ("callees", callees)):
       if len(values) != spec.num_levels:
         raise ValueError(f"{name} needs one value per level ({spec.num_levels}); got {values}")
     self.spec = spec
     self.sample = sample
     self.levels = nnx.List([
         PHPLevel(spec.num_procs(i), spec.obs_dim, spec.op_sizes(i), hidden, tau_in_termination[i], tau_limit[i],
-                 rngs=rngs)
+                 callees[i], rngs=rngs)
         for i in range(spec.num_levels)])
 
   def operation(self, level, proc, tau, obs, key):

@@ -15,7 +15,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from php_jax import checkpoint, fitting, sharding, train, views
+from php_jax import call_graph, checkpoint, fitting, sharding, train, views
 from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy
@@ -42,8 +42,12 @@ def train_seeds(spec: HierarchySpec, demos: Sequence[Demonstration], configs: Se
     raise ValueError("seeds trained together must have the same settings but for their seed")
   if configs[0].training != "levelwise":
     raise ValueError("seeds are trained together level-wise only (training: levelwise)")
+  graphs = {call_graph.resolve(c.call_graph, d, spec) for d, c in zip(demos, configs)}
+  if len(graphs) != 1:
+    raise ValueError("seeds trained together must have the same call graph; their annotations show different "
+                     "ones (call_graph: all allows every call)")
   num_seeds = len(configs)
-  hierarchies = [train.make_hierarchy(spec, c) for c in configs]
+  hierarchies = [train.make_hierarchy(spec, c, *graphs) for c in configs]
   settings = [train.run_settings(spec, d, c) for d, c in zip(demos, configs)]
   reports, decoded = [{} for _ in configs], [{} for _ in configs]
   seed_logs = [train.CountedLog(lambda row, s=s: log(s, row)) for s in range(num_seeds)]

@@ -57,6 +57,8 @@ class TrainingDefaults:
     iterations: Adam iterations per level.
     learning_rate: Adam's learning rate.
     training: "levelwise" (one level at a time, the paper's) or "joint" (every level at once).
+    call_graph: "all" (any procedure may call any of the level below) or "annotated" (a procedure the
+      annotated demonstrations show calling may call only what they show it calling; `php_jax.call_graph`).
   """
   num_demos: int
   num_demos_fixed: bool
@@ -69,6 +71,7 @@ class TrainingDefaults:
   iterations: int = 2000
   learning_rate: float = 3e-3
   training: str = "levelwise"
+  call_graph: str = "all"
 
 
 @dataclasses.dataclass(frozen=True)

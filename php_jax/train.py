@@ -17,7 +17,7 @@ import jax
 import numpy as np
 from flax import nnx
 
-from php_jax import agreement, checkpoint, fitting, sharding, views
+from php_jax import agreement, call_graph, checkpoint, fitting, sharding, views
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.demos import validate as validate_demos
 from php_jax.hierarchy import HierarchySpec
@@ -52,6 +52,7 @@ class TrainConfig:
   length_buckets: int = 4           # views are batched by length into this many buckets
   seed: int = 0
   training: str = "levelwise"       # TRAININGS
+  call_graph: str = "all"           # call_graph.CALL_GRAPHS: every call allowed, or only the annotated ones
 
   def __post_init__(self):
     """Raises ValueError naming the first setting that is not allowed."""
@@ -76,7 +77,7 @@ class TrainConfig:
     if self.call_penalty is not None and not all(math.isfinite(v) and v >= 0 for v in self.call_penalty):
       raise ValueError(f"call_penalty values must be finite and non-negative; got {self.call_penalty!r}")
     for name, allowed in (("root", ROOTS), ("decode", DECODERS), ("snapshot", fitting.SNAPSHOT_RULES),
-                          ("training", TRAININGS)):
+                          ("training", TRAININGS), ("call_graph", call_graph.CALL_GRAPHS)):
       if getattr(self, name) not in allowed:
         raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
 
@@ -140,9 +141,10 @@ def balanced_strong_weight(strong) -> float:
   return max(1.0, (len(strong) - num_strong) / num_strong) if num_strong else 1.0
 
 
-def make_hierarchy(spec: HierarchySpec, config: TrainConfig) -> PHPHierarchy:
+def make_hierarchy(spec: HierarchySpec, config: TrainConfig, graph: tuple | None = None) -> PHPHierarchy:
+  """A freshly initialised hierarchy; graph: its call graph (`call_graph`), None: every call allowed."""
   return PHPHierarchy(spec, hidden=config.hidden, tau_in_termination=config.tau_in_termination,
-                      tau_limit=config.tau_limit, rngs=nnx.Rngs(config.seed))
+                      tau_limit=config.tau_limit, callees=graph, rngs=nnx.Rngs(config.seed))
 
 
 def make_root(spec: HierarchySpec, level: int, config: TrainConfig) -> nnx.Module | None:
@@ -248,7 +250,7 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
   hierarchy and a report (per level: losses, capacity, decoding agreement with the supervisor on weak
   demonstrations, wall time)."""
   config = prepare(spec, demos, config)
-  hierarchy = make_hierarchy(spec, config)
+  hierarchy = make_hierarchy(spec, config, call_graph.resolve(config.call_graph, demos, spec))
   settings = run_settings(spec, demos, config)
   saved = checkpoint.read_training(checkpoint_path)
   report, decoded, counted_log = {}, {}, CountedLog(log)

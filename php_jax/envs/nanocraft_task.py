@@ -80,5 +80,6 @@ TASK = Task(
     # few annotated demonstrations, the root's own program decides the weak ones' segmentation better than
     # level-wise training's stand-in root does (RESULTS.md, "Joint training").
     defaults=TrainingDefaults(num_demos=64, num_demos_fixed=False, hidden=(32,),
-                              tau_in_termination=(True, True, True), num_test=1000, training="joint"),
+                              tau_in_termination=(True, True, True), num_test=1000, training="joint",
+                              call_graph="annotated"),
     action_name=action_name)
