@@ -52,9 +52,10 @@ TRAINING = flags.DEFINE_enum("training", None, list(train.TRAININGS),
                              "(the paper); joint: every level at once by exact inference over the whole call stack. "
                              "Default: the task's.")
 CALL_GRAPH = flags.DEFINE_enum("call_graph", None, list(call_graph.CALL_GRAPHS),
-                               "all: any procedure may call any of the level below; annotated: a procedure the "
-                               "annotated demonstrations show calling may call only what they show it calling "
-                               "(one never shown calling, or never shown being called, is unrestricted). "
+                               "Which operations each procedure may take. all: any; calls: a procedure the "
+                               "annotated demonstrations show calling may call only what they show it calling; "
+                               "operations: also, a lowest-level procedure only the elementary action values "
+                               "they show it taking (a procedure or value they never show is unrestricted). "
                                "Default: the task's.")
 LEVELWISE_ONLY = ("root", "root_strong_weight", "strong_warmup", "call_penalty", "decode")  # unused by joint training
 DECODE = flags.DEFINE_enum("decode", "sample", list(objective.DECODERS), "Decoding of weak views for the level above.")

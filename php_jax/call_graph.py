@@ -1,8 +1,9 @@
-"""Which procedures may call which: every call allowed, or the calls the annotated demonstrations show.
+"""Which operations each procedure may take: any, or those the annotated demonstrations show it taking.
 
-A call graph is a tuple with one entry per level, root first: for a level that calls procedures, [K_i][K_{i+1}]
-bools (whether procedure h may call h'); for the lowest level, and for a level with every call allowed, None.
-The networks (`model.PHPLevel`) give a call outside it probability 0, in training, decoding and execution.
+A call graph is a tuple with one entry per level, root first: [K_i][Σ op_sizes(i)] bools, per procedure the
+values of each operation factor it may take (for a level that calls procedures, its callees; for the lowest
+level, the values of each elementary action factor), or None where every operation is allowed. The networks
+(`model.PHPLevel`) give an operation outside it probability 0, in training, decoding and execution.
 """
 from __future__ import annotations
 
@@ -11,48 +12,70 @@ import numpy as np
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.hierarchy import HierarchySpec
 
-CALL_GRAPHS = ("all", "annotated")
+# all: every operation allowed; calls: the calls the annotation shows; operations: those and the lowest
+# level's elementary actions it shows.
+CALL_GRAPHS = ("all", "calls", "operations")
 
 
-def from_annotation(demos: Demonstration, spec: HierarchySpec) -> tuple:
-  """The call graph the strongly supervised demonstrations of demos [B, ...] show: a procedure that they show
-  calling anything may call only what they show it calling; a procedure never shown calling, or never shown
-  being called, is unrestricted. (With no annotation at all: every call allowed.)"""
-  procs = np.asarray(demos.procedures)[np.asarray(demos.strong)]  # [B_strong, T, d]
+def from_annotation(demos: Demonstration, spec: HierarchySpec, actions: bool = True) -> tuple:
+  """The call graph the strongly supervised demonstrations of demos [B, ...] show (with actions=False, the
+  lowest level's entry is None: its elementary actions unrestricted). Per operation factor, a procedure shown
+  taking an operation may take only the values it is shown taking; a procedure never shown, and a value no
+  procedure is shown taking, are unrestricted. (With no annotation: every operation allowed.)"""
+  strong = np.asarray(demos.strong)
+  procs, taken = np.asarray(demos.procedures)[strong], np.asarray(demos.actions)[strong]
   graph = []
-  for level in range(spec.num_levels - 1):
-    caller, callee = procs[..., level].ravel(), procs[..., level + 1].ravel()
-    known = (caller != UNKNOWN) & (callee != UNKNOWN)
-    seen = np.zeros((spec.num_procs(level), spec.num_procs(level + 1)), bool)
-    seen[caller[known], callee[known]] = True
-    allowed = seen | ~seen.any(axis=1, keepdims=True) | ~seen.any(axis=0, keepdims=True)
+  for level in range(spec.num_levels - (not actions)):
+    if level < spec.num_levels - 1:
+      ops = procs[..., level + 1, None]
+    else:
+      ops = np.where(procs[..., level, None] == UNKNOWN, UNKNOWN, taken)  # padding has UNKNOWN procedures
+    factors = []
+    for f, size in enumerate(spec.op_sizes(level)):
+      caller, value = procs[..., level].ravel(), ops[..., f].ravel()
+      known = (caller != UNKNOWN) & (value != UNKNOWN)
+      seen = np.zeros((spec.num_procs(level), size), bool)
+      seen[caller[known], value[known]] = True
+      factors.append(seen | ~seen.any(axis=1, keepdims=True) | ~seen.any(axis=0, keepdims=True))
+    allowed = np.concatenate(factors, axis=1)
     graph.append(None if allowed.all() else tuple(map(tuple, allowed.tolist())))
-  return (*graph, None)
+  return (*graph, *[None] * (not actions))
 
 
 def check(demos: Demonstration, spec: HierarchySpec, graph: tuple) -> None:
-  """Raises ValueError naming the first strongly supervised demonstration and step whose (partial) annotation
-  no chain of calls within graph fits."""
-  strong = np.flatnonzero(np.asarray(demos.strong))
-  procs = np.asarray(demos.procedures)[strong]  # [B_strong, T, d]; padding is UNKNOWN, so it always fits
-  reachable = np.ones(procs.shape[:2] + (1,), bool)  # [B_strong, T, K_level]: the root
-  for level in range(1, spec.num_levels):
-    allowed = graph[level - 1]
-    allowed = np.ones((reachable.shape[-1], spec.num_procs(level)), bool) if allowed is None else np.asarray(allowed)
-    reachable = (reachable[..., :, None] & allowed).any(axis=-2)
+  """Raises ValueError naming the first demonstration and step that no chain of calls within graph fits: one
+  from the root down to a lowest procedure that may take the step's elementary action, through the
+  procedures the step's (complete, partial or absent) annotation names."""
+  strong = np.asarray(demos.strong)[:, None, None]
+  procs = np.where(strong, np.asarray(demos.procedures), UNKNOWN)  # [B, T, d]
+  actions = np.asarray(demos.actions)                              # [B, T, F]
+  padding = np.arange(actions.shape[1])[None, :] >= np.asarray(demos.length)[:, None]
+  reachable = np.ones(procs.shape[:2] + (1,), bool)  # [B, T, K_level]: the root
+  for level in range(spec.num_levels):
+    if level:
+      calls = graph[level - 1]
+      calls = (np.ones((reachable.shape[-1], spec.num_procs(level)), bool) if calls is None
+               else np.asarray(calls))
+      reachable = (reachable[..., :, None] & calls).any(axis=-2)
     known = procs[..., level, None]
     reachable &= (known == UNKNOWN) | (np.arange(spec.num_procs(level)) == known)
-    stuck = np.argwhere(~reachable.any(axis=-1))
+    if level == spec.num_levels - 1 and graph[level] is not None:
+      allowed, start = np.asarray(graph[level]), 0
+      for f, size in enumerate(spec.action_sizes):
+        reachable &= allowed[:, start:start + size].T[actions[..., f]]
+        start += size
+    stuck = np.argwhere(~reachable.any(axis=-1) & ~padding)
     if stuck.size:
       n, t = stuck[0]
-      raise ValueError(f"demonstration {strong[n]}, step {t}: no chain of calls that the annotated call graph "
-                       f"allows fits its annotation at level {level}; allow every call (call_graph 'all')")
+      raise ValueError(f"demonstration {n}, step {t}: no chain of calls that the annotated call graph allows fits "
+                       f"its annotation and elementary action (at level {level}); allow every operation "
+                       "(call_graph 'all')")
 
 
 def resolve(name: str, demos: Demonstration, spec: HierarchySpec) -> tuple:
   """The call graph `name` (one of CALL_GRAPHS) asks for, for training on demos; ValueError as `check`."""
   if name == "all":
     return (None,) * spec.num_levels
-  graph = from_annotation(demos, spec)
+  graph = from_annotation(demos, spec, actions=name == "operations")
   check(demos, spec, graph)
   return graph

@@ -128,7 +128,7 @@ def save_hierarchy(workdir: str, task_name: str, hierarchy: PHPHierarchy, hidden
                              "hidden": list(hidden),
                              "tau_in_termination": [level.tau_in_termination for level in hierarchy.levels],
                              "tau_limit": [level.tau_limit for level in hierarchy.levels],
-                             "callees": [level.callees for level in hierarchy.levels],
+                             "allowed_ops": [level.allowed_ops for level in hierarchy.levels],
                              **({"capacity": list(capacity)} if capacity else {})})
 
 
@@ -173,21 +173,22 @@ def _architecture(path: str, architecture) -> tuple:
   raise CheckpointError(f"{path}: malformed model description {architecture}")
 
 
-def _saved_callees(path: str, architecture: dict, spec: HierarchySpec) -> tuple | None:
-  """The call graph model.json records (None, every call allowed, for a model saved without one)."""
-  graph = architecture.get("callees")
+def _saved_allowed_ops(path: str, architecture: dict, spec: HierarchySpec) -> tuple | None:
+  """The call graph model.json records (None, every operation allowed, for a model saved without one)."""
+  graph = architecture.get("allowed_ops")
   if graph is None:
     return None
+
   def fits(g, level: int) -> bool:
     return (isinstance(g, list) and len(g) == spec.num_procs(level)
-            and all(isinstance(row, list) and len(row) == spec.num_procs(level + 1)
+            and all(isinstance(row, list) and len(row) == sum(spec.op_sizes(level))
                     and all(isinstance(c, bool) for c in row) for row in g))
 
-  if (isinstance(graph, list) and len(graph) == spec.num_levels and graph[-1] is None
-      and all(g is None or fits(g, i) for i, g in enumerate(graph[:-1]))):
+  if isinstance(graph, list) and len(graph) == spec.num_levels and all(g is None or fits(g, i)
+                                                                       for i, g in enumerate(graph)):
     return tuple(None if g is None else tuple(map(tuple, g)) for g in graph)
-  raise CheckpointError(f"{path}: malformed callees {graph} (per level, root first: [procedure][callee] "
-                        f"booleans or null, the lowest level's null)")
+  raise CheckpointError(f"{path}: malformed allowed_ops {graph} (per level, root first: null or "
+                        f"[procedure][operation factor value] booleans)")
 
 
 def load_policy(workdir: str) -> tuple[str, PHPHierarchy | FlatLSTMPolicy]:
@@ -211,7 +212,7 @@ def load_policy(workdir: str) -> tuple[str, PHPHierarchy | FlatLSTMPolicy]:
       raise CheckpointError(f"{arch_path}: tau_in_termination has {len(tau_in_termination)} entries; {task_name} "
                             f"has {spec.num_levels} levels")
     model = PHPHierarchy(spec, hidden=hidden, tau_in_termination=tau_in_termination, tau_limit=tau_limit,
-                         callees=_saved_callees(arch_path, architecture, spec), rngs=nnx.Rngs(0))
+                         allowed_ops=_saved_allowed_ops(arch_path, architecture, spec), rngs=nnx.Rngs(0))
   nnx.update(model, restore_named(nnx.state(model, nnx.Param), _unpack(params, model_path), model_path))
   return task_name, model
 

@@ -59,20 +59,21 @@ class PHPLevel(nnx.Module):
     tau_limit: both networks see min(τ, tau_limit) (None: τ itself). A procedure whose decisions need only
       the first few counter values then behaves the same for any number of operations: a limit of 1 tells
       the first operation from the others, 0 hides τ.
-    callees: for a level that calls procedures, [K][K_next] bools: which callees each procedure may call
-      (the others get probability 0); None: any.
+    allowed_ops: [K][Σ op_sizes] bools: per procedure, which value of each operation factor it may take
+      (which callee, or which value of each elementary action factor; the others get probability 0); None:
+      any.
   """
 
   def __init__(self, num_procs: int, obs_dim: int, op_sizes: tuple[int, ...], hidden=(64, 64),
                tau_in_termination: bool = True, tau_limit: int | None = None,
-               callees: tuple[tuple[bool, ...], ...] | None = None, *, rngs: nnx.Rngs):
+               allowed_ops: tuple[tuple[bool, ...], ...] | None = None, *, rngs: nnx.Rngs):
     self.op_sizes = tuple(op_sizes)
     self.tau_in_termination = tau_in_termination
     self.tau_limit = tau_limit
-    if callees is not None and np.shape(callees) != (num_procs, self.op_sizes[0]):
-      raise ValueError(f"callees must be [{num_procs}][{self.op_sizes[0]}] (procedure, callee); got shape "
-                       f"{np.shape(callees)}")
-    self.callees = None if callees is None else tuple(tuple(bool(c) for c in row) for row in callees)
+    if allowed_ops is not None and np.shape(allowed_ops) != (num_procs, sum(self.op_sizes)):
+      raise ValueError(f"allowed_ops must be [{num_procs}][{sum(self.op_sizes)}] (procedure, operation factor "
+                       f"value); got shape {np.shape(allowed_ops)}")
+    self.allowed_ops = None if allowed_ops is None else tuple(tuple(bool(c) for c in row) for row in allowed_ops)
     self.operation = ProcedureMLPs(num_procs, obs_dim, tuple(hidden), sum(op_sizes), rngs=rngs)
     self.termination = ProcedureMLPs(num_procs, obs_dim, tuple(hidden), 1, rngs=rngs)
 
@@ -100,14 +101,11 @@ class PHPLevel(nnx.Module):
     return jnp.transpose(self.termination(obs, tau)[:, 0], (1, 0, 2))
 
   def _operation_logits(self, obs: jax.Array, tau: jax.Array) -> jax.Array:
-    """[K, Σ op_sizes, N, M] operation logits, −inf for the callees a procedure may not call."""
+    """[K, Σ op_sizes, N, M] operation logits, −inf for the operations a procedure may not take."""
     logits = self.operation(obs, self._limited(tau))
-    if self.callees is None:
+    if self.allowed_ops is None:
       return logits
-    allowed = np.zeros((len(self.callees), sum(self.op_sizes)), bool)
-    allowed[:, :self.op_sizes[0]] = self.callees
-    allowed[:, self.op_sizes[0]:] = True
-    return jnp.where(allowed[:, :, None, None], logits, -jnp.inf)
+    return jnp.where(np.asarray(self.allowed_ops)[:, :, None, None], logits, -jnp.inf)
 
   def _limited(self, tau: jax.Array) -> jax.Array:
     return tau if self.tau_limit is None else jnp.minimum(tau, self.tau_limit)
@@ -146,23 +144,21 @@ class PHPHierarchy(nnx.Module):
   """A whole hierarchy of PHP levels; a Policy for the executor (argmax, or sampling when `sample`)."""
 
   def __init__(self, spec: HierarchySpec, hidden=(64, 64), tau_in_termination=None, sample: bool = False,
-               tau_limit=None, callees=None, *, rngs: nnx.Rngs):
-    """tau_in_termination, tau_limit, callees: per level, root first (PHPLevel; the lowest level's callees
-    None); None: τ everywhere, unlimited, any call allowed."""
+               tau_limit=None, allowed_ops=None, *, rngs: nnx.Rngs):
+    """tau_in_termination, tau_limit, allowed_ops: per level, root first (PHPLevel); None: τ everywhere,
+    unlimited, every operation allowed."""
     tau_in_termination = tau_in_termination or (True,) * spec.num_levels
     tau_limit = tau_limit or (None,) * spec.num_levels
-    callees = callees or (None,) * spec.num_levels
-    if callees[-1] is not None:
-      raise ValueError("callees: the lowest level emits elementary actions; its entry must be None")
+    allowed_ops = allowed_ops or (None,) * spec.num_levels
     for name, values in (("tau_in_termination", tau_in_termination), ("tau_limit", tau_limit),
-                         ("callees", callees)):
+                         ("allowed_ops", allowed_ops)):
       if len(values) != spec.num_levels:
         raise ValueError(f"{name} needs one value per level ({spec.num_levels}); got {values}")
     self.spec = spec
     self.sample = sample
     self.levels = nnx.List([
         PHPLevel(spec.num_procs(i), spec.obs_dim, spec.op_sizes(i), hidden, tau_in_termination[i], tau_limit[i],
-                 callees[i], rngs=rngs)
+                 allowed_ops[i], rngs=rngs)
         for i in range(spec.num_levels)])
 
   def operation(self, level, proc, tau, obs, key):

@@ -57,8 +57,9 @@ class TrainingDefaults:
     iterations: Adam iterations per level.
     learning_rate: Adam's learning rate.
     training: "levelwise" (one level at a time, the paper's) or "joint" (every level at once).
-    call_graph: "all" (any procedure may call any of the level below) or "annotated" (a procedure the
-      annotated demonstrations show calling may call only what they show it calling; `php_jax.call_graph`).
+    call_graph: which operations each procedure may take (`php_jax.call_graph`): "all" (any), "calls" (a
+      procedure the annotated demonstrations show calling may call only what they show it calling) or
+      "operations" (also, a lowest-level procedure only the elementary action values they show it taking).
   """
   num_demos: int
   num_demos_fixed: bool

@@ -144,7 +144,7 @@ def balanced_strong_weight(strong) -> float:
 def make_hierarchy(spec: HierarchySpec, config: TrainConfig, graph: tuple | None = None) -> PHPHierarchy:
   """A freshly initialised hierarchy; graph: its call graph (`call_graph`), None: every call allowed."""
   return PHPHierarchy(spec, hidden=config.hidden, tau_in_termination=config.tau_in_termination,
-                      tau_limit=config.tau_limit, callees=graph, rngs=nnx.Rngs(config.seed))
+                      tau_limit=config.tau_limit, allowed_ops=graph, rngs=nnx.Rngs(config.seed))
 
 
 def make_root(spec: HierarchySpec, level: int, config: TrainConfig) -> nnx.Module | None:

@@ -81,5 +81,5 @@ TASK = Task(
     # level-wise training's stand-in root does (RESULTS.md, "Joint training").
     defaults=TrainingDefaults(num_demos=64, num_demos_fixed=False, hidden=(32,),
                               tau_in_termination=(True, True, True), num_test=1000, training="joint",
-                              call_graph="annotated"),
+                              call_graph="calls"),
     action_name=action_name)

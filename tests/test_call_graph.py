@@ -1,0 +1,135 @@
+"""Call graphs: read from the annotation, checked against every demonstration, enforced by the networks (an
+operation outside the graph has probability 0 and the others renormalise), and saved with the model."""
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from php_jax import call_graph, checkpoint, datasets, decoding, joint, stack_lattice, tasks, train
+from php_jax.demos import UNKNOWN, Demonstration
+from php_jax.hierarchy import HierarchySpec
+from php_jax.model import PHPHierarchy, PHPLevel
+
+SPEC = HierarchySpec("tiny", (("root",), ("a", "b"), ("x", "y", "z")), (2, 3), 3)
+NANOCRAFT = tasks.get("nanocraft")
+
+
+def _demos(procedures, actions, strong) -> Demonstration:
+  """Demonstrations [B] of procedures [B, T, 3] and actions [B, T, 2] (counters, observations do not matter)."""
+  procedures = np.asarray(procedures, np.int32)
+  num, steps = procedures.shape[:2]
+  return Demonstration(np.zeros((num, steps + 1, 3), np.float32), np.asarray(actions, np.int32), procedures,
+                       np.where(procedures == UNKNOWN, UNKNOWN, 0), np.full(num, steps, np.int32),
+                       np.asarray(strong, bool))
+
+
+def test_the_annotated_call_graph_keeps_the_operations_shown_and_leaves_the_unseen_free():
+  demos = _demos([[[0, 0, 0], [0, 1, 1], [0, 1, UNKNOWN]],   # a calls x, b calls y
+                  [[0, 0, 2], [0, 1, 2], [0, 0, 2]]],        # weak: not evidence
+                 [[[0, 0], [1, 1], [1, 2]], [[1, 2], [1, 2], [1, 2]]], strong=[True, False])
+  root, level1, lowest = call_graph.from_annotation(demos, SPEC)
+  # The root calls both a and b: unrestricted. z is never shown being called: anyone may call it.
+  assert root is None and level1 == ((True, False, True), (False, True, True))
+  # x takes (0, 0) and y (1, 1): per factor only those values, but value 2 of the second factor, which no
+  # procedure is shown taking, is free; z is never shown: unrestricted.
+  assert lowest == ((True, False, True, False, True), (False, True, False, True, True), (True,) * 5)
+  assert call_graph.from_annotation(demos._replace(strong=np.zeros(2, bool)), SPEC) == (None, None, None)
+  assert call_graph.from_annotation(demos, SPEC, actions=False) == (root, level1, None)
+  assert call_graph.resolve("all", demos, SPEC) == (None, None, None)
+
+
+def test_a_demonstration_outside_the_graph_is_refused_naming_demonstration_and_step():
+  graph = (None, ((True, False, False), (False, True, False)), ((True, False, True, True, True),) * 3)
+  fits = _demos([[[0, UNKNOWN, 0], [0, 1, UNKNOWN], [0, UNKNOWN, UNKNOWN]]], [[[0, 0]] * 3], [True])
+  call_graph.check(fits, SPEC, graph)
+  call_graph.check(fits._replace(strong=np.zeros(1, bool)), SPEC, graph)
+  bad = _demos([[[0, 0, 0], [0, 1, UNKNOWN]], [[0, UNKNOWN, 0], [0, 1, 0]]], [[[0, 0]] * 2] * 2, [True, True])
+  with pytest.raises(ValueError, match="demonstration 1, step 1: .*level 2"):
+    call_graph.check(bad, SPEC, graph)
+  with pytest.raises(ValueError, match="demonstration 0, step 0"):
+    call_graph.check(_demos([[[0, UNKNOWN, 2]]], [[[0, 0]]], [True]), SPEC, graph)  # nobody may call z
+  with pytest.raises(ValueError, match="demonstration 0, step 1"):  # no procedure takes action value 1 first
+    call_graph.check(_demos([[[UNKNOWN] * 3] * 2], [[[0, 0], [1, 0]]], [False]), SPEC, graph)
+
+
+def test_operations_outside_the_graph_get_probability_zero_and_the_others_renormalise():
+  allowed_ops = ((True, False, True, False, True), (False, True, True, True, True))
+  free = PHPLevel(2, 3, (2, 3), (8,), rngs=nnx.Rngs(0))
+  masked = PHPLevel(2, 3, (2, 3), (8,), allowed_ops=allowed_ops, rngs=nnx.Rngs(0))
+  obs, tau = jax.random.normal(jax.random.key(1), (4, 3)), jnp.arange(3.0)
+  ops = jnp.array([[0, 0], [1, 1], [0, 2], [1, 0]])
+  total = 0.0
+  for f, (start, size) in enumerate(((0, 2), (2, 3))):
+    allowed = np.asarray(allowed_ops)[None, :, None, start:start + size]            # [1, K, 1, size]
+    free_lp, masked_lp = free.op_log_probs(obs, tau)[f], masked.op_log_probs(obs, tau)[f]  # [N, K, M, size]
+    expected = free_lp - jax.nn.logsumexp(jnp.where(allowed, free_lp, -jnp.inf), axis=-1, keepdims=True)
+    np.testing.assert_allclose(masked_lp, np.where(allowed, expected, -np.inf), rtol=1e-5, atol=1e-5)
+    total = total + jnp.take_along_axis(masked_lp, ops[:, None, None, f:f + 1], axis=-1)[..., 0]
+  np.testing.assert_allclose(masked.log_op(obs, tau, ops), total, rtol=1e-5)
+  # −inf where an operation is not allowed, yet the gradient through every log-probability is finite.
+  grads = nnx.grad(lambda level: jnp.sum(jnp.where(jnp.isfinite(lp := level.log_op(obs, tau, ops)), lp, 0.0)))(masked)
+  assert all(np.isfinite(g).all() for g in jax.tree.leaves(grads))
+  with pytest.raises(ValueError, match=r"allowed_ops must be \[2\]\[5\]"):
+    PHPLevel(2, 3, (2, 3), (8,), allowed_ops=((True,) * 5,), rngs=nnx.Rngs(0))
+
+
+def test_nanocrafts_annotation_shows_the_supervisors_call_graph():
+  graph = call_graph.resolve("operations", datasets.training_demos(NANOCRAFT, 1, 4, 4), NANOCRAFT.spec)
+  assert graph[:2] == (None, tuple(tuple(i == j for j in range(6)) for i in range(6)))  # builds_r: build_r, ...
+  # MOVE_RIGHT, MOVE_DOWN, MOVE_LEFT, MOVE_UP, PLACE_BLOCK: move_r and move_d only move; build_X moves or places.
+  assert np.asarray(graph[2]).astype(int).tolist() == [[1, 0, 0, 0, 0], [0, 1, 0, 0, 0], [1, 0, 0, 0, 1],
+                                                        [0, 1, 0, 0, 1], [0, 0, 1, 0, 1], [0, 0, 0, 1, 1]]
+
+
+def test_the_stack_lattice_of_a_graph_is_the_free_one_renormalised_over_allowed_calls():
+  graph = (None, ((True, False, True), (False, True, False)), None)
+  config, capacity = train.TrainConfig(hidden=(8,), seed=1), (4, 3, 2)
+  free, masked = train.make_hierarchy(SPEC, config), train.make_hierarchy(SPEC, config, graph)
+  key_obs, key_act = jax.random.split(jax.random.key(2))
+  actions = jax.random.randint(key_act, (3, 4, 2), 0, jnp.array([2, 3]))
+  weak = Demonstration(jax.random.normal(key_obs, (3, 5, 3)), actions,
+                       np.full((3, 4, 3), UNKNOWN), np.full((3, 4, 3), UNKNOWN), np.array([4, 3, 2]), np.zeros(3, bool))
+
+  def renormalised(obs, act, n):
+    inputs = decoding.stack_inputs(free, capacity, obs, act, n)
+    allowed = np.asarray(graph[1])[None, :, None, :]
+    log_call = inputs.log_call[1] - jax.nn.logsumexp(jnp.where(allowed, inputs.log_call[1], -jnp.inf), -1, keepdims=True)
+    return stack_lattice.log_likelihood(inputs._replace(log_call=(inputs.log_call[0], jnp.where(allowed, log_call,
+                                                                                                 -jnp.inf))))
+  np.testing.assert_allclose(joint.log_likelihoods(masked, weak, capacity),
+                             jax.vmap(renormalised)(weak.observations, weak.actions, weak.length), rtol=1e-5)
+  decoded = decoding.decode(masked, capacity, weak)
+  chains = decoded.procedures[decoded.procedures[..., 1] >= 0]  # [steps, 3]
+  assert np.asarray(graph[1])[chains[:, 1], chains[:, 2]].all()
+  # An annotation outside the graph is impossible: an infinite loss, never a NaN gradient.
+  outside = Demonstration(weak.observations[:1, :2], weak.actions[:1, :1], np.array([[[0, 1, 0]]]),
+                          np.array([[[0, 0, 0]]]), np.array([1]), np.array([True]))
+  assert joint.log_likelihoods(masked, outside, capacity)[0] == -np.inf
+  grads = nnx.grad(lambda h: joint.joint_loss(h, joint._buckets(outside, 1), capacity, 1.0))(masked)
+  assert all(np.isfinite(g).all() for g in jax.tree.leaves(grads))
+
+
+def test_sampled_operations_stay_in_the_graph():
+  graph = (None, tuple(tuple(i == j for j in range(6)) for i in range(6)), None)
+  model = PHPHierarchy(NANOCRAFT.spec, sample=True, allowed_ops=graph, rngs=nnx.Rngs(0))
+  keys = jax.random.split(jax.random.key(0), 50)
+  draws = jax.jit(jax.vmap(lambda k: model.operation(1, jnp.int32(2), jnp.int32(0), jnp.array([0.0, 2, 3, 1, 1]),
+                                                     k)[0]))(keys)
+  assert set(np.asarray(draws).tolist()) == {2}
+
+
+def test_the_call_graph_is_saved_with_the_model(tmp_path):
+  graph = (None, tuple(tuple(i == j for j in range(6)) for i in range(6)), ((True, False, False, False, True),) * 6)
+  hierarchy = PHPHierarchy(NANOCRAFT.spec, hidden=(4,), allowed_ops=graph, rngs=nnx.Rngs(0))
+  checkpoint.save_hierarchy(str(tmp_path), "nanocraft", hierarchy, (4,))
+  _, loaded = checkpoint.load_policy(str(tmp_path))
+  assert [level.allowed_ops for level in loaded.levels] == list(graph)
+  path = tmp_path / checkpoint.ARCHITECTURE_FILE
+  architecture = json.loads(path.read_text())
+  architecture["allowed_ops"][1] = [[True] * 5] * 6
+  path.write_text(json.dumps(architecture))
+  with pytest.raises(checkpoint.CheckpointError, match="malformed allowed_ops"):
+    checkpoint.load_policy(str(tmp_path))
