@@ -16,7 +16,7 @@ import numpy as np
 from absl import app, flags
 
 from experiments import cli, training
-from php_jax import demo_files, replay, train
+from php_jax import call_graph, demo_files, replay, train
 from php_jax.demos import Demonstration
 from php_jax.task import TrainingDefaults
 
@@ -57,6 +57,7 @@ def run() -> dict:
   try:
     hierarchy = demo_files.read_hierarchy(_HIERARCHY.value)
     demos, spec = demo_files.read_demonstrations(_DEMOS.value, hierarchy.spec)
+    in_file = demos
     if _VALIDATION.value:
       held_out, spec = demo_files.read_demonstrations(_VALIDATION.value, spec)
     else:
@@ -72,6 +73,10 @@ def run() -> dict:
     train.check_config(spec, config)
   except ValueError as e:
     raise training.UsageError(f"--{e}") from None
+  try:
+    call_graph.resolve(config.call_graph, in_file, spec)
+  except ValueError as e:  # demonstrations are numbered from 0 in the file's order
+    raise training.UsageError(f"--demos={_DEMOS.value}: {e}") from None
 
   def rate(model) -> float:
     return replay.replayed_fraction(model, spec, held_out)

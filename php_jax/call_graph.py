@@ -69,7 +69,7 @@ def check(demos: Demonstration, spec: HierarchySpec, graph: tuple) -> None:
       n, t = stuck[0]
       raise ValueError(f"demonstration {n}, step {t}: no chain of calls that the annotated call graph allows fits "
                        f"its annotation and elementary action (at level {level}); allow every operation "
-                       "(call_graph 'all')")
+                       "(call_graph=all)")
 
 
 def resolve(name: str, demos: Demonstration, spec: HierarchySpec) -> tuple:

@@ -179,7 +179,15 @@ def test_fit_and_decode_commands_on_the_warehouse_example(tmp_path):
 def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
   bad = _demo_file(tmp_path, [GOOD, '{"observations": [[0.0]], "actions": [[1]]}'])
   hierarchy = str(WAREHOUSE / "warehouse.json")
+  # fetch is shown calling go_right and pick, which take actions 1 and 2 only: fetch cannot take action 3.
+  outside = tmp_path / "outside.jsonl"
+  outside.write_text("".join(json.dumps(line) + "\n" for line in [
+      GOOD, {"observations": [[0.0], [1.0]], "actions": [[3]], "stack": [[[0, 0], [0, 0], None]]},
+      {"observations": [[0.0], [1.0], [2.0]], "actions": [[0], [3]],
+       "stack": [[[0, 0], [1, 0], [0, 0]], [[0, 0], [1, 1], [3, 0]]]}]))
   cases = [
+      (("experiments.fit", f"--demos={outside}", f"--hierarchy={hierarchy}", f"--workdir={tmp_path / 'w'}",
+        "--call_graph=operations"), f"--demos={outside}: demonstration 1, step 0: no chain of calls"),
       (("experiments.fit", f"--demos={bad}", f"--hierarchy={hierarchy}", f"--workdir={tmp_path / 'w'}"),
        f"{bad}:2:"),
       (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={bad}", f"--workdir={tmp_path / 'w'}"),
