@@ -8,7 +8,7 @@ then the mean decoding agreement with the supervisor at level 1 (the level whose
 root's training data), by exact procedure ids and up to a renaming of them; and OUT/TASK.png, per test set
 the accuracy against the number of strongly supervised demonstrations (paper Figure 2), one line per total
 number of demonstrations, mean with min–max bars (runs trained with --training=joint as a dash-dotted line
-of their own), the flat LSTM (which ignores annotations) as a dashed level and weak-only PHP runs as a
+of their own, runs with a --call_graph other than "all" as a solid one with triangles), the flat LSTM (which ignores annotations) as a dashed level and weak-only PHP runs as a
 dotted one in the same colour.
 """
 from __future__ import annotations
@@ -62,13 +62,17 @@ def _check_result(result) -> None:
 
 
 def group_runs(results: list[dict]) -> dict[str, dict[Key, list[dict]]]:
-  """task → (model, num_demos, num_strong) → its trials' results; model is "php" (level-wise), "php-joint" or
-  "flat_lstm" (num_strong 0: it uses actions only)."""
+  """task → (model, num_demos, num_strong) → its trials' results; model is "php" (level-wise), "php-joint", either
+  followed by "-" and the call graph where it is not "all" (e.g. "php-joint-operations"), or "flat_lstm"
+  (num_strong 0: it uses actions only)."""
   groups = defaultdict(lambda: defaultdict(list))
   for r in results:
     model = r.get("model", "php")
-    if model == "php" and r.get("config", {}).get("training") == "joint":
+    config = r.get("config", {})
+    if model == "php" and config.get("training") == "joint":
       model = "php-joint"
+    if model != "flat_lstm" and config.get("call_graph", "all") != "all":
+      model += "-" + config["call_graph"]
     groups[r["task"]][(model, r.get("num_demos", 0), r["num_strong"] if model != "flat_lstm" else 0)].append(r)
   return {task: dict(sorted(by_key.items())) for task, by_key in sorted(groups.items())}
 
@@ -107,6 +111,9 @@ def markdown(runs: dict[Key, list[dict]]) -> str:
   return "\n".join(lines) + "\n"
 
 
+_STYLES = {"php": ("o", "-"), "php-joint": ("s", "-.")}  # (marker, line); with a call graph: triangles, solid
+
+
 def figure(runs: dict[Key, list[dict]], path: str) -> None:
   names = test_sets(runs)
   fig, axes = plt.subplots(1, len(names), figsize=(6 * len(names), 4), squeeze=False)
@@ -121,12 +128,12 @@ def figure(runs: dict[Key, list[dict]], path: str) -> None:
     for (model, total), points in sorted(lines.items()):
       x, mean, low, high = map(np.array, zip(*sorted(points)))
       php = model != "flat_lstm"
-      label = f"PHP-{total}" + (", joint" if model == "php-joint" else "")
+      label = ", ".join([f"PHP-{total}", *model.split("-")[1:]])
       if php and np.any(x > 0):
         annotated = x > 0
+        marker, linestyle = _STYLES.get(model, ("^", "-"))
         ax.errorbar(x[annotated], mean[annotated], yerr=[(mean - low)[annotated], (high - mean)[annotated]],
-                    marker="s" if model == "php-joint" else "o", linestyle="-." if model == "php-joint" else "-",
-                    capsize=3, color=color[total], label=label)
+                    marker=marker, linestyle=linestyle, capsize=3, color=color[total], label=label)
       if php and x[0] == 0:  # weak only: no place on the log axis, one level across it
         ax.axhline(mean[0], linestyle=":", color=color[total], label=f"{label}, weak only ({mean[0]:.3f})")
       elif not php:  # actions only: one level across the axis

@@ -45,7 +45,7 @@ def train_seeds(spec: HierarchySpec, demos: Sequence[Demonstration], configs: Se
   graphs = {call_graph.resolve(c.call_graph, d, spec) for d, c in zip(demos, configs)}
   if len(graphs) != 1:
     raise ValueError("seeds trained together must have the same call graph; their annotations show different "
-                     "ones (call_graph: all allows every call)")
+                     "ones (call_graph=all allows every operation)")
   num_seeds = len(configs)
   hierarchies = [train.make_hierarchy(spec, c, *graphs) for c in configs]
   settings = [train.run_settings(spec, d, c) for d, c in zip(demos, configs)]

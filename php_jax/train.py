@@ -52,7 +52,7 @@ class TrainConfig:
   length_buckets: int = 4           # views are batched by length into this many buckets
   seed: int = 0
   training: str = "levelwise"       # TRAININGS
-  call_graph: str = "all"           # call_graph.CALL_GRAPHS: every call allowed, or only the annotated ones
+  call_graph: str = "all"           # call_graph.CALL_GRAPHS: any operation, or the annotated calls (and actions)
 
   def __post_init__(self):
     """Raises ValueError naming the first setting that is not allowed."""
