@@ -120,6 +120,10 @@ def test_plot_draws_the_figure_and_tables(tmp_path):
     (runs / str(i) / "results.json").write_text(json.dumps(
         {"task": "nanocraft", "model": model, "num_demos": total, "num_strong": strong, "test": {"accuracy": acc},
          "levels": levels}))
+  (runs / "graph").mkdir()
+  (runs / "graph" / "results.json").write_text(json.dumps(
+      {"task": "nanocraft", "model": "php", "num_demos": 16, "num_strong": 4, "test": {"accuracy": 0.9},
+       "config": {"training": "joint", "call_graph": "operations"}}))
   for seed, accs in enumerate([(1.0, 1.0), (1.0, 0.99)]):
     (runs / f"add{seed}").mkdir()
     (runs / f"add{seed}" / "results.json").write_text(json.dumps(
@@ -132,6 +136,7 @@ def test_plot_draws_the_figure_and_tables(tmp_path):
   assert "| php | 16 | 1 | 2 | 0.600 (0.500–0.700, 0/2) | 0.300, 0.600 |" in table
   assert "| php | 16 | 0 | 1 | 0.300 (0.300–0.300, 0/1) |" in table  # weak only
   assert "| flat_lstm | 16 | 0 | 1 | 0.200 (0.200–0.200, 0/1) | – |" in table
+  assert "| php-joint-operations | 16 | 4 | 1 | 0.900 (0.900–0.900, 0/1) | – |" in table  # a line of its own
   assert "| php | 160 | 3 | 2 | 1.000 (1.000–1.000, 2/2) | 0.995 (0.990–1.000, 1/2) | – |" in (
       out / "addition.md").read_text()  # test sets by increasing length
   for png in ("nanocraft.png", "addition.png"):
