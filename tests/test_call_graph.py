@@ -61,16 +61,22 @@ def test_operations_outside_the_graph_get_probability_zero_and_the_others_renorm
   masked = PHPLevel(2, 3, (2, 3), (8,), allowed_ops=allowed_ops, rngs=nnx.Rngs(0))
   obs, tau = jax.random.normal(jax.random.key(1), (4, 3)), jnp.arange(3.0)
   ops = jnp.array([[0, 0], [1, 1], [0, 2], [1, 0]])
+
+  @nnx.jit
+  def evaluate(free, masked):
+    def finite_sum(level):  # −inf where an operation is not allowed: its gradient must still be finite
+      return jnp.sum(jnp.where(jnp.isfinite(lp := level.log_op(obs, tau, ops)), lp, 0.0))
+    return (free.op_log_probs(obs, tau), masked.op_log_probs(obs, tau), masked.log_op(obs, tau, ops),
+            nnx.grad(finite_sum)(masked))
+  free_lps, masked_lps, log_op, grads = evaluate(free, masked)
   total = 0.0
   for f, (start, size) in enumerate(((0, 2), (2, 3))):
     allowed = np.asarray(allowed_ops)[None, :, None, start:start + size]            # [1, K, 1, size]
-    free_lp, masked_lp = free.op_log_probs(obs, tau)[f], masked.op_log_probs(obs, tau)[f]  # [N, K, M, size]
+    free_lp, masked_lp = free_lps[f], masked_lps[f]                                  # [N, K, M, size]
     expected = free_lp - jax.nn.logsumexp(jnp.where(allowed, free_lp, -jnp.inf), axis=-1, keepdims=True)
     np.testing.assert_allclose(masked_lp, np.where(allowed, expected, -np.inf), rtol=1e-5, atol=1e-5)
-    total = total + jnp.take_along_axis(masked_lp, ops[:, None, None, f:f + 1], axis=-1)[..., 0]
-  np.testing.assert_allclose(masked.log_op(obs, tau, ops), total, rtol=1e-5)
-  # −inf where an operation is not allowed, yet the gradient through every log-probability is finite.
-  grads = nnx.grad(lambda level: jnp.sum(jnp.where(jnp.isfinite(lp := level.log_op(obs, tau, ops)), lp, 0.0)))(masked)
+    total = total + np.take_along_axis(np.asarray(masked_lp), np.asarray(ops)[:, None, None, f:f + 1], axis=-1)[..., 0]
+  np.testing.assert_allclose(log_op, total, rtol=1e-5)
   assert all(np.isfinite(g).all() for g in jax.tree.leaves(grads))
   with pytest.raises(ValueError, match=r"allowed_ops must be \[2\]\[5\]"):
     PHPLevel(2, 3, (2, 3), (8,), allowed_ops=((True,) * 5,), rngs=nnx.Rngs(0))
@@ -89,9 +95,11 @@ def test_the_stack_lattice_of_a_graph_is_the_free_one_renormalised_over_allowed_
   config, capacity = train.TrainConfig(hidden=(8,), seed=1), (4, 3, 2)
   free, masked = train.make_hierarchy(SPEC, config), train.make_hierarchy(SPEC, config, graph)
   key_obs, key_act = jax.random.split(jax.random.key(2))
-  actions = jax.random.randint(key_act, (3, 4, 2), 0, jnp.array([2, 3]))
-  weak = Demonstration(jax.random.normal(key_obs, (3, 5, 3)), actions,
-                       np.full((3, 4, 3), UNKNOWN), np.full((3, 4, 3), UNKNOWN), np.array([4, 3, 2]), np.zeros(3, bool))
+  # Three weak demonstrations, and one annotated with a call outside the graph (b calls x): impossible.
+  procs, taus = np.full((4, 4, 3), UNKNOWN), np.full((4, 4, 3), UNKNOWN)
+  procs[3, 0], taus[3, 0] = (0, 1, 0), (0, 0, 0)
+  batch = Demonstration(jax.random.normal(key_obs, (4, 5, 3)), jax.random.randint(key_act, (4, 4, 2), 0, jnp.array([2, 3])),
+                        procs, taus, np.array([4, 3, 2, 1]), np.array([False, False, False, True]))
 
   def renormalised(obs, act, n):
     inputs = decoding.stack_inputs(free, capacity, obs, act, n)
@@ -99,23 +107,11 @@ def test_the_stack_lattice_of_a_graph_is_the_free_one_renormalised_over_allowed_
     log_call = inputs.log_call[1] - jax.nn.logsumexp(jnp.where(allowed, inputs.log_call[1], -jnp.inf), -1, keepdims=True)
     return stack_lattice.log_likelihood(inputs._replace(log_call=(inputs.log_call[0], jnp.where(allowed, log_call,
                                                                                                  -jnp.inf))))
-  ours, expected = jax.jit(lambda: (joint.log_likelihoods(masked, weak, capacity),
-                                    jax.vmap(renormalised)(weak.observations, weak.actions, weak.length)))()
-  np.testing.assert_allclose(ours, expected, rtol=1e-5)
-  # An annotation outside the graph is impossible: an infinite loss, never a NaN gradient.
-  outside = Demonstration(weak.observations[:1, :2], weak.actions[:1, :1], np.array([[[0, 1, 0]]]),
-                          np.array([[[0, 0, 0]]]), np.array([1]), np.array([True]))
-  loss, grads = nnx.value_and_grad(lambda h: joint.joint_loss(h, joint._buckets(outside, 1), capacity, 1.0))(masked)
-  assert loss == np.inf and all(np.isfinite(g).all() for g in jax.tree.leaves(grads))
-
-
-def test_sampled_operations_stay_in_the_graph():
-  graph = (None, tuple(tuple(i == j for j in range(6)) for i in range(6)), None)
-  model = PHPHierarchy(NANOCRAFT.spec, sample=True, allowed_ops=graph, rngs=nnx.Rngs(0))
-  keys = jax.random.split(jax.random.key(0), 50)
-  draws = jax.jit(jax.vmap(lambda k: model.operation(1, jnp.int32(2), jnp.int32(0), jnp.array([0.0, 2, 3, 1, 1]),
-                                                     k)[0]))(keys)
-  assert set(np.asarray(draws).tolist()) == {2}
+  ours, expected = jax.jit(lambda: (joint.log_likelihoods(masked, batch, capacity),
+                                    jax.vmap(renormalised)(batch.observations[:3], batch.actions[:3],
+                                                           batch.length[:3])))()
+  np.testing.assert_allclose(ours[:3], expected, rtol=1e-5)
+  assert ours[3] == -np.inf
 
 
 def test_the_call_graph_is_saved_with_the_model(tmp_path):
