@@ -21,6 +21,7 @@ from absl import app, flags
 
 from experiments import cli, training
 from php_jax import datasets, evaluation, tasks, train
+from php_jax import seeds as php_seeds
 
 NUM_STRONG = flags.DEFINE_integer("num_strong", 1, "Strongly supervised (call-stack annotated) demonstrations.")
 MODEL = flags.DEFINE_enum("model", "php", ["php", "flat_lstm"],
@@ -73,6 +74,10 @@ def run(task_name: str) -> dict:
   seeds = _seeds(config)
   demos, validate, test, extra = (list(x) for x in zip(*(_seed_run(task, s, num_demos, num_test, lengths)
                                                           for s in seeds)))
+  try:
+    php_seeds.common_call_graph(task.spec, demos, [config] * len(seeds))
+  except ValueError as e:
+    raise training.UsageError(f"--seeds: {e}") from None
   return training.train_and_evaluate_seeds(task_name, task.spec, demos,
                                            [dataclasses.replace(config, seed=s) for s in seeds],
                                            training.WORKDIR.value, validate, test, extra)

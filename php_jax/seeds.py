@@ -42,12 +42,9 @@ def train_seeds(spec: HierarchySpec, demos: Sequence[Demonstration], configs: Se
     raise ValueError("seeds trained together must have the same settings but for their seed")
   if configs[0].training != "levelwise":
     raise ValueError("seeds are trained together level-wise only (training: levelwise)")
-  graphs = {call_graph.resolve(c.call_graph, d, spec) for d, c in zip(demos, configs)}
-  if len(graphs) != 1:
-    raise ValueError("seeds trained together must have the same call graph; their annotations show different "
-                     "ones (call_graph=all allows every operation)")
+  graph = common_call_graph(spec, demos, configs)
   num_seeds = len(configs)
-  hierarchies = [train.make_hierarchy(spec, c, *graphs) for c in configs]
+  hierarchies = [train.make_hierarchy(spec, c, graph) for c in configs]
   settings = [train.run_settings(spec, d, c) for d, c in zip(demos, configs)]
   reports, decoded = [{} for _ in configs], [{} for _ in configs]
   seed_logs = [train.CountedLog(lambda row, s=s: log(s, row)) for s in range(num_seeds)]
@@ -89,6 +86,17 @@ def train_seeds(spec: HierarchySpec, demos: Sequence[Demonstration], configs: Se
       level_views = [views.view_above(d, v, level, *decoded[s][level])
                      for s, (d, v) in enumerate(zip(demos, level_views))]
   return list(zip(hierarchies, reports))
+
+
+def common_call_graph(spec: HierarchySpec, demos: Sequence[Demonstration],
+                      configs: Sequence[train.TrainConfig]) -> tuple:
+  """The call graph every seed's config and demonstrations give (`call_graph.resolve`); ValueError if they
+  differ (seeds trained together share one program, so one graph)."""
+  graphs = {call_graph.resolve(c.call_graph, d, spec) for d, c in zip(demos, configs)}
+  if len(graphs) != 1:
+    raise ValueError(f"the seeds' annotated demonstrations show different call graphs ({configs[0].call_graph}); "
+                     "train them separately, or allow every operation (call_graph=all)")
+  return graphs.pop()
 
 
 def _train_level(spec, demos, level_views, level, hierarchies, configs, validate, log, decoded, save, saved,

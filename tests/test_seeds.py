@@ -165,7 +165,10 @@ def test_the_training_command_refuses_seeds_with_flags_they_do_not_go_with(tmp_p
       (BASE, "--seed=2", "--seeds and --seed: give one"), (BASE, "--seeds=1,1", "distinct"),
       (without_root, "--training=joint", "--seeds trains level-wise only; this run trains jointly (--training=joint)"),
       (nanocraft, "--num_strong=1", "jointly (--training=joint, the task default): add --training=levelwise"),
-      (nanocraft, "--call_penalty=0,1,0", "--call_penalty: applies to level-wise training only")]:
+      (nanocraft, "--call_penalty=0,1,0", "--call_penalty: applies to level-wise training only"),
+      # Seed 0's annotated demonstration shows build_u placing a block, seed 1's does not.
+      (nanocraft + ["--training=levelwise"], "--num_strong=1",
+       "--seeds: the seeds' annotated demonstrations show different call graphs (operations)")]:
     bad = subprocess.run(command + ["--seeds=0,1", flag, f"--workdir={tmp_path / 'bad'}"], capture_output=True,
                          text=True, timeout=600, cwd=ROOT)
     assert bad.returncode == 2 and message in bad.stderr and bad.stderr.count("\n") == 1, bad.stderr[-2000:]
