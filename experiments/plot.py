@@ -8,8 +8,8 @@ then the mean decoding agreement with the supervisor at level 1 (the level whose
 root's training data), by exact procedure ids and up to a renaming of them; and OUT/TASK.png, per test set
 the accuracy against the number of strongly supervised demonstrations (paper Figure 2), one line per total
 number of demonstrations, mean with min–max bars (runs trained with --training=joint as a dash-dotted line
-of their own, runs with a --call_graph other than "all" as a solid one with triangles), the flat LSTM (which ignores annotations) as a dashed level and weak-only PHP runs as a
-dotted one in the same colour.
+of their own, runs with a --call_graph other than "all" as a solid one with triangles), the flat LSTM (which
+ignores annotations) as a dashed level and weak-only PHP runs as a dotted one in the same colour.
 """
 from __future__ import annotations
 

@@ -26,10 +26,7 @@ def from_annotation(demos: Demonstration, spec: HierarchySpec, actions: bool = T
   procs, taken = np.asarray(demos.procedures)[strong], np.asarray(demos.actions)[strong]
   graph = []
   for level in range(spec.num_levels - (not actions)):
-    if level < spec.num_levels - 1:
-      ops = procs[..., level + 1, None]
-    else:
-      ops = np.where(procs[..., level, None] == UNKNOWN, UNKNOWN, taken)  # padding has UNKNOWN procedures
+    ops = procs[..., level + 1, None] if level < spec.num_levels - 1 else taken  # padding's callers are UNKNOWN
     factors = []
     for f, size in enumerate(spec.op_sizes(level)):
       caller, value = procs[..., level].ravel(), ops[..., f].ravel()
