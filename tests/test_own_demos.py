@@ -188,6 +188,8 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
   cases = [
       (("experiments.fit", f"--demos={outside}", f"--hierarchy={hierarchy}", f"--workdir={tmp_path / 'w'}",
         "--call_graph=operations"), f"--demos={outside}: demonstration 1, step 0: no chain of calls"),
+      (("experiments.fit", f"--demos={outside}", f"--hierarchy={hierarchy}", f"--workdir={tmp_path / 'w'}",
+        "--call_graph=some"), "flag --call_graph=some: value should be one of <all|calls|operations>"),
       (("experiments.fit", f"--demos={bad}", f"--hierarchy={hierarchy}", f"--workdir={tmp_path / 'w'}"),
        f"{bad}:2:"),
       (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={bad}", f"--workdir={tmp_path / 'w'}"),
