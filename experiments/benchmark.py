@@ -285,7 +285,7 @@ def bench_scaling():
 
   capacity = joint.joint_capacity(demos, spec, config)
   graphdef, params, rest = nnx.split(train.make_hierarchy(spec, config), nnx.Param, ...)
-  loss = lambda p, b: joint.joint_loss(nnx.merge(graphdef, p, rest), b, capacity, config.strong_weight)
+  loss = lambda p, b: objective.stack_loss(nnx.merge(graphdef, p, rest), b, capacity, config.strong_weight)
   one = joint._buckets(demos, config.length_buckets)
   devices_row(f"joint loss (C = {','.join(map(str, capacity))})", jax.jit(jax.value_and_grad(loss)), params, one,
               joint._buckets(demos, config.length_buckets, mesh))

@@ -16,9 +16,9 @@ import numpy as np
 from absl import app, flags
 
 from experiments import cli, training
-from php_jax import call_graph, demo_files, replay, train
+from php_jax import call_graph, demo_files, replay
+from php_jax.run import Experiment, train_and_evaluate
 from php_jax.demos import Demonstration
-from php_jax.task import TrainingDefaults
 
 _DEMOS = flags.DEFINE_string("demos", None, "Training demonstrations, JSON lines.")
 _HIERARCHY = flags.DEFINE_string("hierarchy", None, "Hierarchy file (JSON): procedure names per level, root "
@@ -27,35 +27,46 @@ _VALIDATION = flags.DEFINE_string("validation", None, "Held-out demonstrations f
                                   "Default: --validation_fraction of --demos.")
 _VALIDATION_FRACTION = flags.DEFINE_float("validation_fraction", 0.1, "Share of --demos held out when "
                                           "--validation is not given (at least one demonstration).")
-flags.adopt_module_key_flags(training)
 DEFAULT_CAPACITY = 8
+_FIT_DEFAULTS = {"hidden": '64, or the hierarchy file\'s "hidden"', "tau_in_termination": "1 at every level",
+                 "min_capacity": f'{DEFAULT_CAPACITY} below the root, or the hierarchy file\'s "capacity"'}
+training.define_config_flags(lambda name, default: _FIT_DEFAULTS.get(name) or training.default_text(default))
+flags.adopt_module_key_flags(training)
 
 
-def fit_defaults(hierarchy: demo_files.Hierarchy, num_demos: int) -> TrainingDefaults:
-  """Training defaults for a hierarchy file: the paper's iterations and learning rate, one hidden layer of
-  64 (or the file's "hidden"), ψ sees τ at every level, and below the root a counter capacity of at least
-  the file's "capacity" (default 8), more where an annotated call is longer: weak demonstrations may hold
-  longer calls than the few annotated ones."""
+def fit_overrides(hierarchy: demo_files.Hierarchy) -> dict:
+  """A hierarchy file's overrides of the training settings: one hidden layer of 64 (or the file's "hidden"),
+  ψ sees τ at every level, and below the root a counter capacity of at least the file's "capacity" (default
+  8), more where an annotated call is longer: weak demonstrations may hold longer calls than the few
+  annotated ones."""
   depth = hierarchy.spec.num_levels
   least = hierarchy.capacity or (None,) * depth
-  return TrainingDefaults(
-      num_demos=num_demos, num_demos_fixed=True, hidden=hierarchy.hidden or (64,),
-      tau_in_termination=(True,) * depth,
-      min_capacity=(0,) + tuple(DEFAULT_CAPACITY if c is None else c for c in least[1:]))
+  return {"hidden": hierarchy.hidden or (64,), "tau_in_termination": (True,) * depth,
+          "min_capacity": (0,) + tuple(DEFAULT_CAPACITY if c is None else c for c in least[1:])}
 
 
 def split(batch: Demonstration, fraction: float, seed: int) -> tuple[Demonstration, Demonstration]:
   """(training, held out): round(fraction × B) demonstrations (at least 1) held out at random by seed."""
   num = len(batch.length)
   held = np.zeros(num, bool)
-  held[np.random.default_rng(seed).permutation(num)[:max(1, round(fraction * num))]] = True
+  held[np.random.default_rng(seed).permutation(num)[:held_out_count(num, fraction)]] = True
   return tuple(Demonstration(*(np.asarray(x)[mask] for x in batch)) for mask in (~held, held))
+
+
+def held_out_count(num: int, fraction: float) -> int:
+  """How many of num demonstrations `split` holds out: round(fraction × num), at least 1."""
+  return max(1, round(fraction * num))
 
 
 def run() -> dict:
   """Fits the flags' demonstrations; returns the results written to results.json."""
   try:
     hierarchy = demo_files.read_hierarchy(_HIERARCHY.value)
+  except demo_files.DemoFileError as e:
+    raise training.UsageError(str(e)) from None
+  config = training.config_from_flags(fit_overrides(hierarchy))
+  training.check_levels(hierarchy.spec, config)
+  try:
     demos, spec = demo_files.read_demonstrations(_DEMOS.value, hierarchy.spec)
     in_file = demos
     if _VALIDATION.value:
@@ -65,14 +76,12 @@ def run() -> dict:
         raise training.UsageError(f"--validation_fraction must be between 0 and 1; got {_VALIDATION_FRACTION.value}")
       if len(demos.length) < 2:
         raise training.UsageError(f"--demos={_DEMOS.value} has one demonstration: give --validation, or more")
-      demos, held_out = split(demos, _VALIDATION_FRACTION.value, training.SEED.value)
+      if held_out_count(len(demos.length), _VALIDATION_FRACTION.value) >= len(demos.length):
+        raise training.UsageError(f"--validation_fraction={_VALIDATION_FRACTION.value} holds out all "
+                                  f"{len(demos.length)} demonstrations of --demos: lower it, or give --validation")
+      demos, held_out = split(demos, _VALIDATION_FRACTION.value, config.seed)
   except demo_files.DemoFileError as e:
     raise training.UsageError(str(e)) from None
-  config = training.config_from_flags(fit_defaults(hierarchy, len(demos.length)))
-  try:
-    train.check_config(spec, config)
-  except ValueError as e:
-    raise training.UsageError(f"--{e}") from None
   try:
     call_graph.resolve(config.call_graph, in_file, spec)
   except ValueError as e:  # demonstrations are numbered from 0 in the file's order
@@ -81,12 +90,13 @@ def run() -> dict:
   def rate(model) -> float:
     return replay.replayed_fraction(model, spec, held_out)
 
-  return training.train_and_evaluate(
-      spec.name, spec, demos, config, training.WORKDIR.value, validate=rate,
-      test=lambda model: {"held_out_replayed": rate(model)},
+  experiment = Experiment(
+      spec.name, spec, demos, validate=rate, test=lambda model: {"held_out_replayed": rate(model)},
       extra={"demos": _DEMOS.value, "hierarchy": _HIERARCHY.value, "validation": _VALIDATION.value,
              "num_demos": len(demos.length), "num_annotated": int(np.sum(demos.strong)),
              "num_held_out": len(held_out.length)})
+  return train_and_evaluate(experiment, config, training.WORKDIR.value, training.OVERWRITE.value,
+                            wait=training.WAIT.value)
 
 
 def main(argv):

@@ -21,7 +21,7 @@ from absl import app, flags
 
 from experiments import cli, training
 from php_jax import datasets, evaluation, tasks, train
-from php_jax import seeds as php_seeds
+from php_jax.run import Experiment, train_and_evaluate, train_and_evaluate_seeds
 
 NUM_STRONG = flags.DEFINE_integer("num_strong", 1, "Strongly supervised (call-stack annotated) demonstrations.")
 MODEL = flags.DEFINE_enum("model", "php", ["php", "flat_lstm"],
@@ -37,6 +37,15 @@ _NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "Demonstrations in the trai
 _TEST_LENGTHS = flags.DEFINE_list("test_lengths", None, "Problem sizes of the test sets (e.g. digits, array "
                                   "lengths). Default: the task's.")
 _NUM_TEST = flags.DEFINE_integer("num_test", None, "Test problems per test set. Default: the task's.")
+
+
+def _task_defaults(name: str, default) -> str:
+  """A setting's default as --help shows it: TrainConfig's, and the registered tasks that override it."""
+  return training.default_text(default, {task.name: task.defaults.overrides()[name] for task in tasks.TASKS.values()
+                                         if name in task.defaults.overrides()})
+
+
+training.define_config_flags(_task_defaults)
 flags.adopt_module_key_flags(training)
 
 
@@ -46,7 +55,9 @@ def run(task_name: str) -> dict:
     task = tasks.get(task_name)
   except ValueError as e:
     raise training.UsageError(f"--task: {e}") from None
-  defaults, seed = task.defaults, training.SEED.value
+  defaults = task.defaults
+  config = training.config_from_flags(defaults.overrides())
+  training.check_levels(task.spec, config)
   num_demos = defaults.num_demos if _NUM_DEMOS.value is None else _NUM_DEMOS.value
   if defaults.num_demos_fixed and num_demos != defaults.num_demos:
     raise training.UsageError(f"--num_demos: {task.name}'s training set has {defaults.num_demos} "
@@ -57,30 +68,27 @@ def run(task_name: str) -> dict:
   num_test = defaults.num_test if _NUM_TEST.value is None else _NUM_TEST.value
   lengths = defaults.test_lengths
   if _TEST_LENGTHS.value is not None:
-    if not all(n.isdigit() for n in _TEST_LENGTHS.value):
+    if not (_TEST_LENGTHS.value and all(n.isdigit() for n in _TEST_LENGTHS.value)):
       raise training.UsageError(f"--test_lengths must list positive integers; got {','.join(_TEST_LENGTHS.value)}")
     lengths = [int(n) for n in _TEST_LENGTHS.value]
   if num_test < 1 or any(n < 1 for n in lengths):
     raise training.UsageError(f"--num_test and --test_lengths must be positive; got {num_test}, {list(lengths)}")
-  config = training.config_from_flags(defaults)
-  try:
-    train.check_config(task.spec, config)
-  except ValueError as e:
-    raise training.UsageError(f"--{e}") from None
+  if NUM_VALIDATION.value < 1:
+    raise training.UsageError(f"--num_validation must be a positive integer; got {NUM_VALIDATION.value}")
+  if LSTM_HIDDEN.value < 1:
+    raise training.UsageError(f"--lstm_hidden must be a positive integer; got {LSTM_HIDDEN.value}")
+  workdir, overwrite, wait = training.WORKDIR.value, training.OVERWRITE.value, training.WAIT.value
   if SEEDS.value is None:
-    demos, validate, test, extra = _seed_run(task, seed, num_demos, num_test, lengths)
-    return training.train_and_evaluate(task_name, task.spec, demos, config, training.WORKDIR.value, validate, test,
-                                       extra, LSTM_HIDDEN.value if MODEL.value == "flat_lstm" else None)
+    return train_and_evaluate(_experiment(task_name, task, config.seed, num_demos, num_test, lengths), config,
+                              workdir, overwrite, LSTM_HIDDEN.value if MODEL.value == "flat_lstm" else None, wait)
   seeds = _seeds(config)
-  demos, validate, test, extra = (list(x) for x in zip(*(_seed_run(task, s, num_demos, num_test, lengths)
-                                                          for s in seeds)))
+  experiments = [_experiment(task_name, task, s, num_demos, num_test, lengths) for s in seeds]
   try:
-    php_seeds.common_call_graph(task.spec, demos, [config] * len(seeds))
+    train.common_call_graph(task.spec, [e.demos for e in experiments], [config] * len(seeds))
   except ValueError as e:
     raise training.UsageError(f"--seeds: {e}") from None
-  return training.train_and_evaluate_seeds(task_name, task.spec, demos,
-                                           [dataclasses.replace(config, seed=s) for s in seeds],
-                                           training.WORKDIR.value, validate, test, extra)
+  return train_and_evaluate_seeds(experiments, [dataclasses.replace(config, seed=s) for s in seeds], workdir,
+                                  overwrite, wait)
 
 
 def _seeds(config: train.TrainConfig) -> list[int]:
@@ -97,16 +105,19 @@ def _seeds(config: train.TrainConfig) -> list[int]:
     raise training.UsageError(str(e)) from None
 
 
-def _seed_run(task, seed: int, num_demos: int, num_test: int, lengths) -> tuple:
-  """Seed's (training demonstrations, validate(model), test(model), results.json entries)."""
+def _experiment(task_name: str, task, seed: int, num_demos: int, num_test: int, lengths) -> Experiment:
+  """Seed's run of task (named task_name on the command line): its training demonstrations, validation and
+  test sets, results.json entries."""
   demos = datasets.training_demos(task, seed, num_demos, NUM_STRONG.value)
   validation = task.validation_problems(seed + datasets.SEED_OFFSETS["validation"], NUM_VALIDATION.value)
   test_seed = seed + datasets.SEED_OFFSETS["test"]
   test_sets = ({str(n): task.test_problems(test_seed, num_test, n) for n in lengths} if lengths
                else {"accuracy": task.test_problems(test_seed, num_test, None)})
-  return (demos, lambda model: evaluation.accuracy(task, model, validation),
-          lambda model: {key: evaluation.accuracy(task, model, problems) for key, problems in test_sets.items()},
-          {"seed": seed, "num_demos": num_demos, "num_strong": int(demos.strong.sum()), "num_test": num_test})
+  return Experiment(task_name, task.spec, demos, lambda model: evaluation.accuracy(task, model, validation),
+                    lambda model: {key: evaluation.accuracy(task, model, problems)
+                                   for key, problems in test_sets.items()},
+                    {"seed": seed, "num_demos": num_demos, "num_strong": int(demos.strong.sum()),
+                     "num_test": num_test})
 
 
 def main_for(task_name: str | None):

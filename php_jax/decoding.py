@@ -9,33 +9,12 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from php_jax import stack_lattice
 from php_jax.demos import Demonstration
 from php_jax.model import PHPHierarchy
-
-
-def stack_inputs(hierarchy: PHPHierarchy, capacity: tuple[int, ...], observations: jax.Array, actions: jax.Array,
-                 length: jax.Array) -> stack_lattice.StackInputs:
-  """The stack lattice's inputs from the networks of every level, for one demonstration.
-
-  observations [T+1, D], actions [T, F], length [], capacity per level (root first) → StackInputs (level i:
-  log_call [T, K_i, C_i, K_{i+1}] for i < d−1, log_act [T, K_{d−1}, C_{d−1}], log_stop / log_cont [T, K_i, C_i]).
-  """
-  depth = len(hierarchy.levels)
-  log_call, log_stop, log_cont = [], [], []
-  for level, php in enumerate(hierarchy.levels):
-    tau = jnp.arange(capacity[level], dtype=jnp.float32)
-    if level < depth - 1:
-      log_call.append(php.op_log_probs(observations[:-1], tau)[0])
-    z = php.termination_logits(observations[1:], tau)
-    log_stop.append(jax.nn.log_sigmoid(z))
-    log_cont.append(jax.nn.log_sigmoid(-z))
-  tau = jnp.arange(capacity[-1], dtype=jnp.float32)
-  log_act = hierarchy.levels[-1].log_op(observations[:-1], tau, actions)
-  return stack_lattice.StackInputs(tuple(log_call), log_act, tuple(log_stop), tuple(log_cont), length)
+from php_jax.objective import stack_inputs
 
 
 class Decoded(NamedTuple):

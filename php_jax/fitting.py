@@ -1,6 +1,7 @@
-"""Full-batch Adam with the project's snapshot rule and resumable progress: the loop that both the PHP
-levels (php_jax.train) and the flat LSTM baseline (php_jax.flat_lstm) train with (`fit`), and the same loop
-for several seeds' models at once, vmapped (`fit_seeds`, for php_jax.seeds)."""
+"""Full-batch Adam with the project's snapshot rule and resumable progress: the loop that the PHP levels
+(php_jax.train), joint training (php_jax.joint) and the flat LSTM baseline (php_jax.flat_lstm) train with
+(`fit`), and the same loop and update step for several seeds' models at once, vmapped (`fit_seeds`, for
+php_jax.train.train_seeds)."""
 from __future__ import annotations
 
 import functools
@@ -54,15 +55,12 @@ def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array], iterations: int, l
   progress = resume if resume is not None else Progress(0, params, optimizer.init(params), params, None, None,
                                                         [])
 
-  def step(params, opt_state, args):
-    loss, grads = jax.value_and_grad(lambda p: loss_fn(nnx.merge(graphdef, p, rest), *args))(params)
-    updates, opt_state = optimizer.update(grads, opt_state, params)
-    return optax.apply_updates(params, updates), opt_state, loss
-
-  if mesh is None:  # the data as constants, folded into the program by XLA: one device's numbers as before meshes
-    update = jax.jit(lambda params, opt_state: step(params, opt_state, args))
+  step = _adam_step(graphdef, loss_fn, optimizer)
+  if mesh is None:  # the data as constants, folded into the program by XLA
+    update = jax.jit(lambda params, opt_state: step(params, opt_state, rest, args))
   else:  # as arguments: a constant would sit whole on one device
-    update = functools.partial(jax.jit(step), args=args)
+    update = functools.partial(jax.jit(lambda params, opt_state, args: step(params, opt_state, rest, args)),
+                               args=args)
   params, opt_state = sharding.replicate((progress.params, progress.opt_state), mesh)
   [progress] = _iterate(update, params, opt_state, [progress], [model], iterations, eval_every,
                         (lambda iteration, losses: [on_eval(iteration, losses[0])]) if on_eval else None,
@@ -92,17 +90,22 @@ def fit_seeds(models: Sequence[nnx.Module], loss_fn: Callable[..., jax.Array], i
   progress = resume if resume is not None else [Progress(0, p, optimizer.init(p), p, None, None, [])
                                                 for _, p, _ in splits]
 
-  def step(params, opt_state, rest, args):
-    loss, grads = jax.value_and_grad(lambda p: loss_fn(nnx.merge(graphdef, p, rest), *args))(params)
-    updates, opt_state = optimizer.update(grads, opt_state, params)
-    return optax.apply_updates(params, updates), opt_state, loss
-
-  update = jax.jit(jax.vmap(step))
+  update = jax.jit(jax.vmap(_adam_step(graphdef, loss_fn, optimizer)))
   params, opt_state = sharding.replicate((_stack([p.params for p in progress]),
                                           _stack([p.opt_state for p in progress])), mesh)
   rest = sharding.replicate(rest, mesh)
   return _iterate(lambda params, opt_state: update(params, opt_state, rest, args), params, opt_state, progress,
                   models, iterations, eval_every, on_eval, log, save, snapshot, save_seconds, mesh, part=_unstack)
+
+
+def _adam_step(graphdef: nnx.GraphDef, loss_fn: Callable[..., jax.Array], optimizer: optax.GradientTransformation):
+  """step(params, opt_state, rest, args) → (params, opt_state, loss): one update of the model
+  nnx.merge(graphdef, params, rest) on loss_fn(model, *args); `fit` runs it, `fit_seeds` vmaps it."""
+  def step(params, opt_state, rest, args):
+    loss, grads = jax.value_and_grad(lambda p: loss_fn(nnx.merge(graphdef, p, rest), *args))(params)
+    updates, opt_state = optimizer.update(grads, opt_state, params)
+    return optax.apply_updates(params, updates), opt_state, loss
+  return step
 
 
 def _iterate(update, params, opt_state, progress: list[Progress], models: Sequence[nnx.Module], iterations: int,

@@ -1,22 +1,29 @@
-"""One level's Expectation–Gradient objective (paper §4.2): the lattice's inputs from the level's networks,
-the loss over a batch of level views, and decoding of weak views.
+"""The Expectation–Gradient objective (paper §4.2) of both training modes: the lattices' inputs from the
+networks, their counter capacities, the weighted negative log-likelihood, and decoding of weak level views.
 
-Level i's loss on its views is −(w_strong Σ_strong log P(ζ, ξ) + Σ_weak log P(ξ)) / N, each term the
-lattice's exact log-likelihood (strong views through `annotate`). Below the root level, a root network (MLP
-or LSTM over the view's observations) stands in for the untrained levels above; the root level is the
-lattice's top-level mode (one procedure, called once). An optional call penalty λ is a prior on the latent
-call sequence: the root's log η_⊥ drops by λ at every push, so weak views' posteriors favour fewer, longer
-calls (a strong view's log-likelihood drops by λ per call, a constant).
+The loss is −(w_strong Σ_strong log P(ζ, ξ) + Σ_weak log P(ξ)) / N, each term an exact log-likelihood:
+- level-wise (`level_loss`), of one level's views under the two-level lattice (`lattice`; strong views through
+  `annotate`). Below the root level, a root network (MLP or LSTM over the view's observations) stands in for
+  the untrained levels above; the root level is the lattice's top-level mode (one procedure, called once). An
+  optional call penalty λ is a prior on the latent call sequence: the root's log η_⊥ drops by λ at every push,
+  so weak views' posteriors favour fewer, longer calls (a strong view's log-likelihood drops by λ per call, a
+  constant);
+- jointly (`stack_loss`), of the demonstrations' elementary actions under the whole hierarchy, summed over
+  every call stack that agrees with their (complete, partial or absent) annotation (`stack_lattice`).
 """
 from __future__ import annotations
+
+import math
+from typing import Iterable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from php_jax import lattice, views
-from php_jax.model import PHPLevel
+from php_jax import lattice, stack_lattice, views
+from php_jax.demos import UNKNOWN, Demonstration
+from php_jax.model import PHPHierarchy, PHPLevel
 
 DECODERS = ("sample", "viterbi", "max_marginal")
 
@@ -66,14 +73,67 @@ def view_log_likelihoods(model: LevelModel, batch: views.LevelView, capacity: in
 
 def level_loss(model: LevelModel, buckets: list[views.LevelView], capacity: int, strong_weight: float,
                used_capacity=None) -> jax.Array:
-  """−(w_strong Σ_strong log P(ζ, ξ) + Σ_weak log P(ξ)) / N over the real views of every length bucket (the
-  copies that pad a bucket weigh 0 and are not counted in N). used_capacity: as in `lattice_inputs`."""
+  """[] weighted negative log-likelihood of the real views of every length bucket (`weighted_nll`).
+  used_capacity: as in `lattice_inputs`."""
+  return weighted_nll(((view_log_likelihoods(model, batch, capacity, used_capacity), batch.real, batch.strong)
+                       for batch in buckets), strong_weight)
+
+
+def stack_inputs(hierarchy: PHPHierarchy, capacity: tuple[int, ...], observations: jax.Array, actions: jax.Array,
+                 length: jax.Array) -> stack_lattice.StackInputs:
+  """The whole-stack lattice's inputs from the networks of every level, for one demonstration.
+
+  observations [T+1, D], actions [T, F], length [], capacity per level (root first) → StackInputs (level i:
+  log_call [T, K_i, C_i, K_{i+1}] for i < d−1, log_act [T, K_{d−1}, C_{d−1}], log_stop / log_cont [T, K_i, C_i]).
+  """
+  depth = len(hierarchy.levels)
+  log_call, log_stop, log_cont = [], [], []
+  for level, php in enumerate(hierarchy.levels):
+    tau = jnp.arange(capacity[level], dtype=jnp.float32)
+    if level < depth - 1:
+      log_call.append(php.op_log_probs(observations[:-1], tau)[0])
+    z = php.termination_logits(observations[1:], tau)
+    log_stop.append(jax.nn.log_sigmoid(z))
+    log_cont.append(jax.nn.log_sigmoid(-z))
+  tau = jnp.arange(capacity[-1], dtype=jnp.float32)
+  log_act = hierarchy.levels[-1].log_op(observations[:-1], tau, actions)
+  return stack_lattice.StackInputs(tuple(log_call), log_act, tuple(log_stop), tuple(log_cont), length)
+
+
+def stack_log_likelihoods(hierarchy: PHPHierarchy, batch: Demonstration, capacity: tuple[int, ...]) -> jax.Array:
+  """[B] log P(ζ_known, ξ) of each demonstration of batch under the whole hierarchy."""
+  def one(obs, act, procs, taus, n):
+    return stack_lattice.log_likelihood(stack_inputs(hierarchy, capacity, obs, act, n), procs, taus)
+  return jax.vmap(one)(batch.observations, batch.actions, batch.procedures, batch.counters, batch.length)
+
+
+def stack_loss(hierarchy: PHPHierarchy, buckets: list[tuple[Demonstration, jax.Array]], capacity: tuple[int, ...],
+               strong_weight: float) -> jax.Array:
+  """[] weighted negative log-likelihood (`weighted_nll`) of the real demonstrations of every bucket
+  (batch, real [B]) under the whole hierarchy."""
+  return weighted_nll(((stack_log_likelihoods(hierarchy, batch, capacity), real, batch.strong)
+                       for batch, real in buckets), strong_weight)
+
+
+def weighted_nll(terms: Iterable[tuple[jax.Array, jax.Array, jax.Array]], strong_weight: float) -> jax.Array:
+  """−(w_strong Σ_strong log P + Σ_weak log P) / N over every (log_likelihoods, real, strong) [B] of terms: the
+  copies that pad a batch (real False) weigh 0 and are not counted in N."""
   total, count = 0.0, 0
-  for batch in buckets:
-    weights = jnp.where(batch.real, jnp.where(batch.strong, strong_weight, 1.0), 0.0)
-    total = total - jnp.sum(weights * view_log_likelihoods(model, batch, capacity, used_capacity))
-    count = count + jnp.sum(batch.real)
+  for log_likelihoods, real, strong in terms:
+    weights = jnp.where(real, jnp.where(strong, strong_weight, 1.0), 0.0)
+    total = total - jnp.sum(weights * log_likelihoods)
+    count = count + jnp.sum(real)
   return total / count
+
+
+def counter_capacity(annotated: np.ndarray, default: int, least: int = 0, longest: int = 1,
+                     longest_annotated: int = 1) -> int:
+  """The counter capacity C of one level: its longest annotated call (annotated: its annotated counters, any
+  shape, UNKNOWN skipped) scaled by longest / longest_annotated, or `default` when nothing is annotated; at
+  least `least`. The networks are evaluated on every counter cell, so C is kept as small as the calls allow."""
+  annotated = np.asarray(annotated)[np.asarray(annotated) != UNKNOWN]
+  needed = math.ceil((int(annotated.max()) + 1) * longest / longest_annotated) if annotated.size else default
+  return max(needed, least)
 
 
 def decode(model: LevelModel, view: views.LevelView, capacity: int, method: str, key: jax.Array):

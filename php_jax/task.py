@@ -41,25 +41,24 @@ class Environment(Protocol):
 
 @dataclasses.dataclass(frozen=True)
 class TrainingDefaults:
-  """A task's defaults for the training command (each overridable by a flag of the same name).
+  """A task's training set and test sets, and its overrides of the training settings (`config.TrainConfig`,
+  each also overridable by the flag of the same name). A setting left None is TrainConfig's default.
 
   Attributes:
     num_demos: demonstrations in the training set.
     num_demos_fixed: whether the training set's size is fixed (then --num_demos may not change it).
     hidden: hidden layer sizes of every operation / termination network.
     tau_in_termination: per level, root first, whether ψ sees the counter τ.
-    tau_limit: per level, root first, the networks see min(τ, limit) (None: no limit); None: none anywhere.
+    tau_limit: per level, root first, the networks see min(τ, limit) (None: no limit).
     min_capacity: per level, root first, the least counter capacity below the root (when calls can be
-      longer than the annotated ones); None: the longest annotated call decides.
+      longer than the annotated ones).
     test_lengths: problem sizes tested (one accuracy each); empty: one test set from the training
       distribution, reported as "accuracy".
     num_test: test problems per test set.
     iterations: Adam iterations per level.
     learning_rate: Adam's learning rate.
     training: "levelwise" (one level at a time, the paper's) or "joint" (every level at once).
-    call_graph: which operations each procedure may take (`php_jax.call_graph`): "all" (any), "calls" (a
-      procedure the annotated demonstrations show calling may call only what they show it calling) or
-      "operations" (also, a lowest-level procedure only the elementary action values they show it taking).
+    call_graph: which operations each procedure may take ("all", "calls" or "operations").
   """
   num_demos: int
   num_demos_fixed: bool
@@ -69,10 +68,16 @@ class TrainingDefaults:
   min_capacity: tuple[int, ...] | None = None
   test_lengths: tuple[int, ...] = ()
   num_test: int = 100
-  iterations: int = 2000
-  learning_rate: float = 3e-3
-  training: str = "levelwise"
-  call_graph: str = "all"
+  iterations: int | None = None
+  learning_rate: float | None = None
+  training: str | None = None
+  call_graph: str | None = None
+
+  def overrides(self) -> dict[str, Any]:
+    """{TrainConfig field: value} of the settings this task sets."""
+    names = ("hidden", "tau_in_termination", "tau_limit", "min_capacity", "iterations", "learning_rate",
+             "training", "call_graph")
+    return {name: getattr(self, name) for name in names if getattr(self, name) is not None}
 
 
 @dataclasses.dataclass(frozen=True)

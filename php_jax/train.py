@@ -2,84 +2,28 @@
 
 Each level is fitted on its views (`views`) with its EG objective (`objective`); then its weak views are
 decoded (Viterbi, per-step max-marginal, or a posterior sample) into the views of the level above. Progress
-is checkpointed (`checkpoint`), and a rerun resumes it.
+is checkpointed (`checkpoint`), and a rerun resumes it. Several seeds train as one program (`train_seeds`):
+one seed's run is the same loop with S = 1.
 """
 from __future__ import annotations
 
 import dataclasses
 import hashlib
 import json
-import math
 import time
-from typing import Callable
+from typing import Callable, Sequence
 
 import jax
 import numpy as np
 from flax import nnx
 
 from php_jax import agreement, call_graph, checkpoint, fitting, sharding, views
+from php_jax.config import TrainConfig, check_levels
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.demos import validate as validate_demos
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy, RootLSTM, RootMLP
-from php_jax.objective import DECODERS, LevelModel, decode, level_loss
-
-
-ROOTS = ("lstm", "mlp")
-TRAININGS = ("levelwise", "joint")  # one level at a time (the paper), or every level at once (php_jax.joint)
-
-
-@dataclasses.dataclass(frozen=True)
-class TrainConfig:
-  """Hyper-parameters of level-wise EG training (defaults follow the paper where it says)."""
-  iterations: int = 2000            # per level, as in the paper
-  learning_rate: float = 3e-3
-  hidden: tuple[int, ...] = (64, 64)
-  root: str = "lstm"                # network standing in for untrained levels: "lstm" or "mlp"
-  root_hidden: int = 64
-  tau_in_termination: tuple[bool, ...] | None = None  # per level; None: all True
-  tau_limit: tuple[int | None, ...] | None = None  # per level, the networks see min(τ, limit); None: no limit
-  strong_weight: float | None = None  # weight on strongly supervised demonstrations' loss; None: balanced
-  root_strong_weight: float | None = None  # the root level's: its weak views have no latent choice; None: the same
-  strong_warmup: int = 0            # below the root, iterations on the strong views alone before those on all
-  call_penalty: tuple[float, ...] | None = None  # per level (root first), log-prior cost of each call; None: 0
-  decode: str = "sample"            # how weak views are decoded for the level above (the paper sampled)
-  capacity: int = 8                 # counter capacity C below the root level when nothing is annotated
-  min_capacity: tuple[int, ...] | None = None  # per level, the least C below the root (calls may be longer
-                                               # than the annotated ones)
-  eval_every: int = 100             # logging, checkpoint and root-snapshot interval
-  snapshot: str = "latest"          # root snapshot among the equally best-validated: "latest" or "earliest"
-  length_buckets: int = 4           # views are batched by length into this many buckets
-  seed: int = 0
-  training: str = "levelwise"       # TRAININGS
-  call_graph: str = "all"           # call_graph.CALL_GRAPHS: any operation, or the annotated calls (and actions)
-
-  def __post_init__(self):
-    """Raises ValueError naming the first setting that is not allowed."""
-    for name in ("root_hidden", "capacity", "eval_every", "length_buckets"):
-      if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
-        raise ValueError(f"{name} must be a positive integer; got {getattr(self, name)!r}")
-    for name in ("iterations", "strong_warmup"):  # 0 iterations: a warm-up alone
-      if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 0):
-        raise ValueError(f"{name} must be a non-negative integer; got {getattr(self, name)!r}")
-    if not (math.isfinite(self.learning_rate) and self.learning_rate > 0):
-      raise ValueError(f"learning_rate must be a positive finite number; got {self.learning_rate!r}")
-    if not (self.hidden and all(isinstance(h, int) and h >= 1 for h in self.hidden)):
-      raise ValueError(f"hidden must list positive layer sizes; got {self.hidden!r}")
-    for name in ("strong_weight", "root_strong_weight"):
-      value = getattr(self, name)
-      if value is not None and not (math.isfinite(value) and value > 0):
-        raise ValueError(f"{name} must be a positive finite number; got {value!r}")
-    if self.tau_limit is not None and not all(v is None or (isinstance(v, int) and v >= 0) for v in self.tau_limit):
-      raise ValueError(f"tau_limit values must be non-negative integers or None; got {self.tau_limit!r}")
-    if self.min_capacity is not None and not all(isinstance(v, int) and v >= 0 for v in self.min_capacity):
-      raise ValueError(f"min_capacity values must be non-negative integers; got {self.min_capacity!r}")
-    if self.call_penalty is not None and not all(math.isfinite(v) and v >= 0 for v in self.call_penalty):
-      raise ValueError(f"call_penalty values must be finite and non-negative; got {self.call_penalty!r}")
-    for name, allowed in (("root", ROOTS), ("decode", DECODERS), ("snapshot", fitting.SNAPSHOT_RULES),
-                          ("training", TRAININGS), ("call_graph", call_graph.CALL_GRAPHS)):
-      if getattr(self, name) not in allowed:
-        raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
+from php_jax.objective import LevelModel, counter_capacity, decode, level_loss
 
 
 def train_level(model: LevelModel, view: views.LevelView, capacity: int, config: TrainConfig,
@@ -97,19 +41,58 @@ def train_level(model: LevelModel, view: views.LevelView, capacity: int, config:
   τ = step), so it has no warm-up.
 
   With more than one device, each length bucket is split over all of them (`sharding.data_mesh`)."""
-  strong_weight = level_strong_weight(config, model.root is None)
-  mesh = sharding.data_mesh()
+  level = LevelFit([model], [view], [capacity], [config], batched=False)
+  [progress] = level.fit((lambda it, losses: [on_eval(it, losses[0])]) if on_eval else None,
+                         lambda s, row: log(row), None if resume is None else [resume],
+                         (lambda progress: save(progress[0])) if save else None)
+  return progress
 
-  def fit(part: views.LevelView, iterations: int, progress: fitting.Progress | None) -> fitting.Progress:
-    buckets = [views.device_view(b, mesh) for b in views.length_buckets(part, config.length_buckets)]
-    return fitting.fit(model, lambda m, buckets: level_loss(m, buckets, capacity, strong_weight), iterations,
-                       config.learning_rate, config.eval_every, on_eval, log, progress, save, config.snapshot,
-                       args=(buckets,), mesh=mesh)
 
-  warmup = warmup_iterations(view, config, model.root is None)
-  if warmup and (resume is None or resume.iteration < warmup):
-    resume = fit(views.select(view, view.strong), warmup, resume)
-  return fit(view, warmup + config.iterations, resume)
+class LevelFit:
+  """One level's fit for S seeds (models[s] on views[s] with capacities[s] and configs[s]; the configs
+  differ only in their seed and strong weight): one model's fit (`fitting.fit`), or with batched S models'
+  updates as one vmapped program (`fitting.fit_seeds`), their views padded to common shapes
+  (`views.stack_seeds`: padding copies weigh 0) and their capacities to the largest, each seed's own
+  capacity masking the counters above it (`objective.lattice_inputs`' used_capacity), so that every seed's
+  loss and gradients are its separate run's, to float rounding."""
+
+  def __init__(self, models: list[LevelModel], level_views: list[views.LevelView], capacities: list[int],
+               configs: list[TrainConfig], batched: bool):
+    self.models, self.views, self.capacities, self.configs = models, level_views, capacities, configs
+    self.batched, self.is_root = batched, models[0].root is None
+    warmups = {warmup_iterations(v, c, self.is_root) for v, c in zip(level_views, configs)}
+    if len(warmups) != 1:
+      raise ValueError(f"the seeds' strong warm-ups differ ({sorted(warmups)}): some have no strong or no weak "
+                       "views at this level")
+    self.warmup = warmups.pop()
+
+  def fit(self, on_eval, log: Callable[[int, dict], None], resume: list[fitting.Progress] | None,
+          save: Callable[[list[fitting.Progress]], None] | None) -> list[fitting.Progress]:
+    """The warm-up on the strong views (if any and not done), then every view; on_eval(iteration, losses) →
+    each seed's score or None, log(s, row), resume and save one Progress per seed (`fitting.fit_seeds`)."""
+    if self.warmup and (resume is None or resume[0].iteration < self.warmup):
+      resume = self._fit([views.select(v, v.strong) for v in self.views], self.warmup, on_eval, log, resume, save)
+    return self._fit(self.views, self.warmup + self.configs[0].iterations, on_eval, log, resume, save)
+
+  def _fit(self, parts: list[views.LevelView], iterations: int, on_eval, log, resume, save):
+    config, mesh = self.configs[0], sharding.data_mesh()
+    weights = [level_strong_weight(c, self.is_root) for c in self.configs]
+    common = dict(iterations=iterations, learning_rate=config.learning_rate, eval_every=config.eval_every,
+                  snapshot=config.snapshot, mesh=mesh)
+    if not self.batched:
+      buckets = [views.device_view(b, mesh) for b in views.length_buckets(parts[0], config.length_buckets)]
+      capacity = self.capacities[0]
+      return [fitting.fit(self.models[0], lambda m, buckets: level_loss(m, buckets, capacity, weights[0]),
+                          on_eval=(lambda it, loss: on_eval(it, [loss])[0]) if on_eval else None,
+                          log=lambda row: log(0, row), resume=resume and resume[0],
+                          save=(lambda progress: save([progress])) if save else None, args=(buckets,), **common)]
+    buckets = views.stack_seeds([views.length_buckets(p, config.length_buckets) for p in parts], mesh)
+    weights, used = sharding.replicate((np.asarray(weights, np.float32), np.asarray(self.capacities, np.int32)),
+                                       mesh)
+    largest = max(self.capacities)
+    return fitting.fit_seeds(self.models, lambda model, buckets, weight, used_capacity: level_loss(
+        model, buckets, largest, weight, used_capacity), on_eval=on_eval, log=log, resume=resume, save=save,
+        args=(buckets, weights, used), **common)
 
 
 def level_strong_weight(config: TrainConfig, is_root: bool) -> float:
@@ -124,14 +107,12 @@ def warmup_iterations(view: views.LevelView, config: TrainConfig, is_root: bool)
 
 
 def level_capacity(view: views.LevelView, level: int, config: TrainConfig) -> int:
-  """The root level needs its whole view; below, the longest annotated call (the cells the networks are
-  evaluated on scale with C), or config.capacity when nothing is annotated, and at least
-  config.min_capacity[level]."""
+  """The root level needs its whole view; below, `objective.counter_capacity` of its strong views' counters
+  (config.capacity when nothing is annotated, at least config.min_capacity[level])."""
   if level == 0:
     return int(view.length.max())
-  annotated = view.counters[view.strong][view.counters[view.strong] >= 0]
-  capacity = int(annotated.max()) + 1 if annotated.size else config.capacity
-  return max(capacity, config.min_capacity[level]) if config.min_capacity else capacity
+  return counter_capacity(view.counters[view.strong], config.capacity,
+                          config.min_capacity[level] if config.min_capacity else 0)
 
 
 def balanced_strong_weight(strong) -> float:
@@ -157,21 +138,10 @@ def make_root(spec: HierarchySpec, level: int, config: TrainConfig) -> nnx.Modul
   return RootMLP(spec.obs_dim, spec.num_procs(level), (config.root_hidden,), rngs=rngs)
 
 
-def check_config(spec: HierarchySpec, config: TrainConfig) -> None:
-  """Raises ValueError naming the first per-level setting that does not fit the hierarchy."""
-  for name in ("tau_in_termination", "tau_limit", "min_capacity"):
-    values = getattr(config, name)
-    if values is not None and len(values) != spec.num_levels:
-      raise ValueError(f"{name} needs one value per level, root first ({spec.num_levels}); got {values}")
-  if config.call_penalty is not None and (len(config.call_penalty) != spec.num_levels or config.call_penalty[0]):
-    raise ValueError(f"call_penalty needs one value per level, root first, the root's 0 (it has no stand-in root); "
-                     f"got {config.call_penalty} for {spec.num_levels} levels")
-
-
 def prepare(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> TrainConfig:
   """config with its strong weight resolved, once the settings and the demonstrations' annotations are checked
   against the hierarchy (ValueError naming the first setting, or the demonstration and step, that is wrong)."""
-  check_config(spec, config)
+  check_levels(spec, config)
   validate_demos(demos, spec)
   return with_strong_weight(config, demos)
 
@@ -249,49 +219,121 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
   "logged": n}: the first n rows logged before stay valid, later ones will be logged again. Returns the
   hierarchy and a report (per level: losses, capacity, decoding agreement with the supervisor on weak
   demonstrations, wall time)."""
-  config = prepare(spec, demos, config)
-  hierarchy = make_hierarchy(spec, config, call_graph.resolve(config.call_graph, demos, spec))
-  settings = run_settings(spec, demos, config)
-  saved = checkpoint.read_training(checkpoint_path)
-  report, decoded, counted_log = {}, {}, CountedLog(log)
-  if saved is not None:
-    counted_log.resumed(resume_from(checkpoint_path, saved, settings, hierarchy))
-    report = {int(k): v for k, v in saved[0]["report"].items()}
-    decoded = checkpoint.decoded_views(saved)
+  store = _Store(checkpoint_path, None, batched=False)
+  [trained] = _train_levels(spec, [demos], [config], validate and [validate], lambda s, row: log(row), store)
+  return trained
 
-  def save(level: int, progress: fitting.Progress | None) -> None:
-    if checkpoint_path:
-      checkpoint.write_training(checkpoint_path, hierarchy, {"level": level, "report": report,
-                                                             "settings": settings, "logged": counted_log.logged},
-                                progress, decoded)
 
-  view = views.lowest_view(demos, spec.num_levels)
+def train_seeds(spec: HierarchySpec, demos: Sequence[Demonstration], configs: Sequence[TrainConfig],
+                validate: Sequence[Callable[[PHPHierarchy], float]] | None = None,
+                log: Callable[[int, dict], None] = lambda s, row: print(s, row),
+                checkpoint_path: str | None = None,
+                seed_checkpoint_paths: Sequence[str] | None = None) -> list[tuple[PHPHierarchy, dict]]:
+  """train_hierarchy for each seed s (demos[s], configs[s], validate[s]), all at once: per level, their EG
+  updates run as one vmapped program (`LevelFit`); decoding and validation run per seed. The configs may
+  differ only in their seed and strong weight (the balanced default follows each seed's demonstrations), and
+  the seeds need as many length buckets and the same strong warm-up at every level (else ValueError), as the
+  training sets of `experiments.train` have (the same numbers of demonstrations and of annotated ones).
+  log(s, row) gets seed s's rows, as train_hierarchy's log would (a resumed run first gets {"resumed": True,
+  ..., "logged": n} for each seed). With checkpoint_path, progress is saved there (every seed in one file) and
+  a rerun resumes it. When training ends, seed_checkpoint_paths[s] gets seed s's finished training
+  checkpoint, the file its separate run would leave (its decoded views, for `experiments.segmentation`).
+  Returns each seed's (hierarchy, report)."""
+  return _train_levels(spec, list(demos), list(configs), validate and list(validate), log,
+                       _Store(checkpoint_path, seed_checkpoint_paths, batched=True))
+
+
+def common_call_graph(spec: HierarchySpec, demos: Sequence[Demonstration],
+                      configs: Sequence[TrainConfig]) -> tuple:
+  """The call graph every seed's config and demonstrations give (`call_graph.resolve`); ValueError if they
+  differ (seeds trained together share one program, so one graph)."""
+  graphs = {call_graph.resolve(c.call_graph, d, spec) for d, c in zip(demos, configs)}
+  if len(graphs) != 1:
+    raise ValueError(f"the seeds' annotated demonstrations show different call graphs ({configs[0].call_graph}); "
+                     "train them separately, or allow every operation (call_graph=all)")
+  return graphs.pop()
+
+
+class _Store:
+  """Where the level-wise loop keeps its progress: one run's training checkpoint (batched False), or one file
+  for every seed's (batched True) and, once training ends, each seed's own file at seed_paths[s]."""
+
+  def __init__(self, path: str | None, seed_paths: Sequence[str] | None, batched: bool):
+    self.path, self.seed_paths, self.batched = path, seed_paths, batched
+
+  def read(self, num_seeds: int) -> list[tuple[dict, dict]] | None:
+    if not self.batched:
+      saved = checkpoint.read_training(self.path)
+      return None if saved is None else [saved]
+    saved = checkpoint.read_training_seeds(self.path)
+    if saved is not None and len(saved) != num_seeds:
+      raise checkpoint.CheckpointError(f"{self.path} holds {len(saved)} seeds; this run has {num_seeds}")
+    return saved
+
+  def write(self, states: list[tuple], finished: bool) -> None:
+    """states: each seed's (hierarchy, meta, progress, decoded), as checkpoint.write_training takes them."""
+    if self.path:
+      if self.batched:
+        checkpoint.write_training_seeds(self.path, states)
+      else:
+        checkpoint.write_training(self.path, *states[0])
+    if finished and self.seed_paths:
+      for path, state in zip(self.seed_paths, states):
+        checkpoint.write_training(path, *state)
+
+
+def _train_levels(spec: HierarchySpec, demos: list[Demonstration], configs: list[TrainConfig],
+                  validate: list[Callable[[PHPHierarchy], float]] | None, log: Callable[[int, dict], None],
+                  store: _Store) -> list[tuple[PHPHierarchy, dict]]:
+  """The level-wise loop of train_hierarchy (one seed, not batched) and train_seeds."""
+  configs = [prepare(spec, d, c) for d, c in zip(demos, configs)]
+  if len({dataclasses.replace(c, seed=0, strong_weight=None) for c in configs}) != 1:
+    raise ValueError("seeds trained together must have the same settings but for their seed")
+  if store.batched and configs[0].training != "levelwise":
+    raise ValueError("seeds are trained together level-wise only (training: levelwise)")
+  graph = common_call_graph(spec, demos, configs)
+  hierarchies = [make_hierarchy(spec, c, graph) for c in configs]
+  settings = [run_settings(spec, d, c) for d, c in zip(demos, configs)]
+  reports, decoded = [{} for _ in configs], [{} for _ in configs]
+  logs = [CountedLog(lambda row, s=s: log(s, row)) for s in range(len(configs))]
+  saved = store.read(len(configs))
+  for s, state in enumerate(saved or ()):
+    logs[s].resumed(resume_from(store.path, state, settings[s], hierarchies[s]))
+    reports[s] = {int(k): v for k, v in state[0]["report"].items()}
+    decoded[s] = checkpoint.decoded_views(state)
+
+  def save(level: int, progress: list[fitting.Progress] | None) -> None:
+    store.write([(hierarchies[s], {"level": level, "report": reports[s], "settings": settings[s],
+                                   "logged": logs[s].logged}, progress and progress[s], decoded[s])
+                 for s in range(len(configs))], finished=level == -1)
+
+  level_views = [views.lowest_view(d, spec.num_levels) for d in demos]
   for level in range(spec.num_levels - 1, -1, -1):
-    if level not in report:
-      in_progress = saved is not None and saved[0]["progress"] is not None and saved[0]["level"] == level
-      report[level] = _train_one_level(spec, demos, view, level, hierarchy, config, validate, counted_log, decoded,
-                                       lambda progress, level=level: save(level, progress),
-                                       saved if in_progress else None, checkpoint_path)
+    if level not in reports[0]:
+      start = time.time()
+      in_progress = saved is not None and saved[0][0]["progress"] is not None and saved[0][0]["level"] == level
+      models = [level_model(spec, h, level, c) for h, c in zip(hierarchies, configs)]
+      fit = LevelFit(models, level_views, [level_capacity(v, level, c) for v, c in zip(level_views, configs)],
+                     configs, store.batched)
+      resume = [checkpoint.restore_progress(store.path, state, model)
+                for state, model in zip(saved, models)] if in_progress else None
+      if resume is None:
+        for s, (view, capacity) in enumerate(zip(level_views, fit.capacities)):
+          logs[s]({"level": level, "capacity": capacity, "view_length": int(view.length.max())})
+      on_eval = ((lambda iteration, losses: [v(h) for v, h in zip(validate, hierarchies)])
+                 if level == 0 and validate else None)
+      progress = fit.fit(on_eval, lambda s, row, level=level: logs[s]({"level": level, **row}), resume,
+                         (lambda progress, level=level: save(level, progress)) if store.path else None)
+      for s in range(len(configs)):
+        reports[s][level] = finish_level(demos[s], level_views[s], level, models[s], fit.capacities[s],
+                                         configs[s], progress[s], decoded[s], start)
       save(level - 1, None)  # the level is complete: its result survives a restart
+    elif level == 0 and store.seed_paths:  # finished before: the seeds' own checkpoints may not all be written
+      save(-1, None)
     if level > 0:
-      view = views.view_above(demos, view, level, *decoded[level])
-  return hierarchy, report
-
-
-def _train_one_level(spec, demos, view, level, hierarchy, config, validate, log, decoded, save, saved,
-                     checkpoint_path) -> dict:
-  """Fits one level (resuming `saved` if given), decodes its weak views into decoded[level]; its report."""
-  start = time.time()
-  capacity = level_capacity(view, level, config)
-  model = level_model(spec, hierarchy, level, config)
-  resume = checkpoint.restore_progress(checkpoint_path, saved, model) if saved is not None else None
-  on_eval = (lambda it, loss: validate(hierarchy)) if (level == 0 and validate) else None
-  if resume is None:
-    log({"level": level, "capacity": capacity, "view_length": int(view.length.max())})
-  progress = train_level(model, view, capacity, config, on_eval,
-                         log=lambda row: log({"level": level, **row}), resume=resume,
-                         save=save if checkpoint_path else None)
-  return finish_level(demos, view, level, model, capacity, config, progress, decoded, start)
+      level_views = [views.view_above(d, v, level, *decoded[s][level])
+                     for s, (d, v) in enumerate(zip(demos, level_views))]
+  return list(zip(hierarchies, reports))
 
 
 def level_model(spec: HierarchySpec, hierarchy: PHPHierarchy, level: int, config: TrainConfig) -> LevelModel:

@@ -10,13 +10,17 @@ entries are latent.
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import NamedTuple, TypeVar
+
+import jax
 
 import numpy as np
 from jax.sharding import Mesh
 
 from php_jax import sharding
 from php_jax.demos import UNKNOWN, Demonstration
+
+Batch = TypeVar("Batch", "LevelView", Demonstration)
 
 
 class LevelView(NamedTuple):
@@ -58,22 +62,31 @@ def length_groups(lengths: np.ndarray, num_buckets: int) -> list[tuple[np.ndarra
   return [(group, int(lengths[group].max())) for group in np.array_split(order, min(num_buckets, len(order)))]
 
 
-def length_buckets(view: LevelView, num_buckets: int) -> list[LevelView]:
-  """The views in `length_groups`, each trimmed to its longest view."""
+def length_buckets(batch: Batch, num_buckets: int) -> list[Batch]:
+  """batch (LevelView or Demonstration [B, ...]) in `length_groups`, each group trimmed to its longest: its
+  step arrays ([B, T, ...]) to that many steps, its observations to one more."""
   buckets = []
-  for group, width in length_groups(view.length, num_buckets):
-    buckets.append(LevelView(
-        view.observations[group, :width + 1], view.actions[group, :width], view.procedures[group, :width],
-        view.counters[group, :width], view.length[group], view.times[group, :width], view.strong[group],
-        view.real[group]))
+  for group, width in length_groups(np.asarray(batch.length), num_buckets):
+    buckets.append(type(batch)(*(_trim(np.asarray(x)[group], width + (name == "observations"))
+                                 for name, x in zip(batch._fields, batch))))
   return buckets
+
+
+def _trim(x: np.ndarray, width: int) -> np.ndarray:
+  return x[:, :width] if x.ndim >= 2 else x
 
 
 def device_view(view: LevelView, mesh: Mesh | None = None) -> LevelView:
   """The view as device arrays, with annotations only on strong demonstrations. With a mesh, padded to a
   multiple of its device count (`sharding.pad`: real False on the copies) and split over its devices along B."""
-  view, real = sharding.pad(_annotated_strong_only(view), mesh)
+  view, real = sharding.pad(strong_annotations_only(view), mesh)
   return sharding.put(view._replace(real=view.real & real), mesh)
+
+
+def device_demonstrations(demos: Demonstration, mesh: Mesh | None = None) -> tuple[Demonstration, jax.Array]:
+  """(demos as device arrays with annotations only on strong ones, real [B'] bool): `device_view` for
+  demonstrations, which carry no `real` field of their own."""
+  return sharding.put(sharding.pad(strong_annotations_only(demos), mesh), mesh)
 
 
 def stack_seeds(buckets: list[list[LevelView]], mesh: Mesh | None = None) -> list[LevelView]:
@@ -89,15 +102,16 @@ def stack_seeds(buckets: list[list[LevelView]], mesh: Mesh | None = None) -> lis
     size = max(len(b.length) for b in group)
     size += -size % mesh.size if mesh is not None else 0
     width = max(b.actions.shape[1] for b in group)
-    padded = [_pad(_annotated_strong_only(b), size, width) for b in group]
+    padded = [_pad(strong_annotations_only(b), size, width) for b in group]
     stacked.append(sharding.put(LevelView(*(np.stack(x) for x in zip(*padded))), mesh, axis=1))
   return stacked
 
 
-def _annotated_strong_only(view: LevelView) -> LevelView:
-  strong = view.strong[:, None]
-  return view._replace(procedures=np.where(strong, view.procedures, UNKNOWN),
-                       counters=np.where(strong, view.counters, UNKNOWN))
+def strong_annotations_only(batch: Batch) -> Batch:
+  """batch (LevelView or Demonstration) with procedures and counters UNKNOWN on every weak entry."""
+  strong = np.asarray(batch.strong).reshape(-1, *[1] * (np.ndim(batch.procedures) - 1))
+  return batch._replace(procedures=np.where(strong, batch.procedures, UNKNOWN),
+                        counters=np.where(strong, batch.counters, UNKNOWN))
 
 
 def _pad(view: LevelView, size: int, width: int) -> LevelView:

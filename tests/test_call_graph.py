@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from php_jax import call_graph, checkpoint, datasets, decoding, joint, stack_lattice, tasks, train
+from php_jax import call_graph, checkpoint, datasets, objective, stack_lattice, tasks, train
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy, PHPLevel
@@ -102,12 +102,12 @@ def test_the_stack_lattice_of_a_graph_is_the_free_one_renormalised_over_allowed_
                         procs, taus, np.array([4, 3, 2, 1]), np.array([False, False, False, True]))
 
   def renormalised(obs, act, n):
-    inputs = decoding.stack_inputs(free, capacity, obs, act, n)
+    inputs = objective.stack_inputs(free, capacity, obs, act, n)
     allowed = np.asarray(graph[1])[None, :, None, :]
     log_call = inputs.log_call[1] - jax.nn.logsumexp(jnp.where(allowed, inputs.log_call[1], -jnp.inf), -1, keepdims=True)
     return stack_lattice.log_likelihood(inputs._replace(log_call=(inputs.log_call[0], jnp.where(allowed, log_call,
                                                                                                  -jnp.inf))))
-  ours, expected = jax.jit(lambda: (joint.log_likelihoods(masked, batch, capacity),
+  ours, expected = jax.jit(lambda: (objective.stack_log_likelihoods(masked, batch, capacity),
                                     jax.vmap(renormalised)(batch.observations[:3], batch.actions[:3],
                                                            batch.length[:3])))()
   np.testing.assert_allclose(ours[:3], expected, rtol=1e-5)

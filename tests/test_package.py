@@ -7,7 +7,7 @@ import jax
 import pytest
 
 import php_jax
-from experiments import provenance
+from php_jax import provenance
 from php_jax import checkpoint
 
 

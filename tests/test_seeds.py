@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from php_jax import checkpoint, datasets, evaluation, fitting, objective, seeds, tasks, train, views
+from php_jax import checkpoint, datasets, evaluation, fitting, objective, tasks, train, views
 from php_jax.envs import nanocraft, nanocraft_task
 
 NANOCRAFT = tasks.get("nanocraft")
@@ -77,7 +77,7 @@ def test_seeds_trained_together_match_their_separate_runs():
   demos = [_demos(s) for s in SEEDS]
   configs = [dataclasses.replace(CONFIG, seed=s) for s in SEEDS]
   rows = {s: [] for s in range(len(SEEDS))}
-  together = seeds.train_seeds(NANOCRAFT.spec, demos, configs, [_validator(s) for s in SEEDS],
+  together = train.train_seeds(NANOCRAFT.spec, demos, configs, [_validator(s) for s in SEEDS],
                                log=lambda s, row: rows[s].append(row))
   capacities = [[report[level]["capacity"] for level in range(3)] for _, report in together]
   assert capacities[0] != capacities[1]  # each seed's own capacity, inside the padded one
@@ -108,7 +108,7 @@ def test_interrupted_seeds_resume_to_the_same_result(tmp_path):
     def log(s, row):
       if stop_at and s == 1 and (row.get("level"), row.get("iteration")) == stop_at:
         raise _Interrupt
-    return seeds.train_seeds(NANOCRAFT.spec, demos, configs, validate, log=log, checkpoint_path=path)
+    return train.train_seeds(NANOCRAFT.spec, demos, configs, validate, log=log, checkpoint_path=path)
 
   reference = run(str(tmp_path / "uninterrupted.msgpack"))
   path = str(tmp_path / "interrupted.msgpack")
@@ -122,12 +122,12 @@ def test_interrupted_seeds_resume_to_the_same_result(tmp_path):
     assert a_report[0]["losses"] == b_report[0]["losses"] and a_report[0]["best_iteration"] == b_report[0][
         "best_iteration"]
   with pytest.raises(checkpoint.CheckpointError, match="holds 2 seeds; this run has 1"):
-    seeds.train_seeds(NANOCRAFT.spec, demos[:1], configs[:1], validate[:1], checkpoint_path=path)
+    train.train_seeds(NANOCRAFT.spec, demos[:1], configs[:1], validate[:1], checkpoint_path=path)
   with pytest.raises(checkpoint.CheckpointError, match="other settings.*iterations: 20 there, 40 here"):
-    seeds.train_seeds(NANOCRAFT.spec, demos, [dataclasses.replace(c, iterations=40) for c in configs], validate,
+    train.train_seeds(NANOCRAFT.spec, demos, [dataclasses.replace(c, iterations=40) for c in configs], validate,
                       checkpoint_path=path)
   with pytest.raises(ValueError, match="same settings but for their seed"):
-    seeds.train_seeds(NANOCRAFT.spec, demos, [configs[0], dataclasses.replace(configs[1], hidden=(4,))])
+    train.train_seeds(NANOCRAFT.spec, demos, [configs[0], dataclasses.replace(configs[1], hidden=(4,))])
 
 
 BASE = [sys.executable, "-m", "experiments.train", "--task=tests.test_task_interface:COUNTDOWN", "--num_strong=2",

@@ -90,7 +90,7 @@ hierarchy = train.make_hierarchy(task.spec, config)
 graphdef, params, rest = nnx.split(hierarchy, nnx.Param, ...)
 capacities = joint.joint_capacity(demos, task.spec, config)
 joint_grad = jax.jit(jax.value_and_grad(
-    lambda p, b: joint.joint_loss(nnx.merge(graphdef, p, rest), b, capacities, config.strong_weight)))
+    lambda p, b: objective.stack_loss(nnx.merge(graphdef, p, rest), b, capacities, config.strong_weight)))
 one, many = joint._buckets(demos, 1), joint._buckets(demos, 1, mesh)
 out["joint"] = compare(joint_grad, params, one, many)
 out["joint_shards"] = shards(many)

@@ -15,6 +15,7 @@ import pytest
 from flax import struct
 
 from php_jax import checkpoint, datasets, demos, evaluation, objective, tasks, train, views
+from php_jax import config as config_lib
 from php_jax.hierarchy import HierarchySpec
 from php_jax.task import Task, TrainingDefaults
 
@@ -278,10 +279,10 @@ def test_bad_training_settings_are_refused_naming_the_setting(tmp_path):
                            ({"root": "gru"}, "root"), ({"hidden": (0,)}, "hidden")]:
     with pytest.raises(ValueError, match=message):
       train.TrainConfig(**changes)
-  with pytest.raises(ValueError, match="min_capacity needs one value per level"):
-    train.check_config(SPEC, train.TrainConfig(min_capacity=(0, 9)))
+  with pytest.raises(config_lib.ConfigError, match="min_capacity: needs one value per level"):
+    config_lib.check_levels(SPEC, train.TrainConfig(min_capacity=(0, 9)))
   proc = subprocess.run([sys.executable, "-m", "experiments.train", "--task=tests.test_task_interface:COUNTDOWN",
                          f"--workdir={tmp_path / 'run'}", "--tau_limit=0,x,none"], capture_output=True, text=True,
                         timeout=300, cwd=ROOT)
-  assert proc.returncode == 2 and proc.stderr.strip() == "error: --tau_limit: values must be integers; got 'x'"
+  assert proc.returncode == 2 and proc.stderr.strip() == "error: --tau_limit must list integers or 'none'; got '0,x,none'"
   assert not (tmp_path / "run").exists()

@@ -15,7 +15,7 @@ import php_jax
 
 def code_version() -> str | None:
   """The git commit that ran, with "+dirty" if php_jax/ or experiments/ had uncommitted changes; None
-  outside a git checkout."""
+  outside a git checkout (an installed package)."""
   root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
   try:
     head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True)

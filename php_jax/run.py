@@ -1,0 +1,254 @@
+"""A training run in a workdir, from start to results: the workdir's files, the metrics log, resuming, the
+saved model and results.json, whichever model and training mode the settings ask for.
+
+A run writes workdir/metrics.jsonl (one JSON row per logged event, each with "seconds" since the run
+started), workdir/checkpoint.msgpack while it trains (a rerun resumes from it, ending as an uninterrupted
+run would: rows logged after the checkpoint are dropped and logged again), the model (model.json and
+model.msgpack, which `checkpoint.load_policy` reads) and results.json (settings, training summary, test
+results, wall time, the code's commit and the package versions). Several seeds trained as one program
+(`train_and_evaluate_seeds`) write one such run per seed, in workdir/seed=S, and their common progress in
+workdir/seeds_checkpoint.msgpack. Of several processes (jax.distributed), only the first writes files.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import fcntl
+import glob
+import json
+import os
+import time
+from typing import Any, Callable
+
+import jax
+from flax import nnx
+from jax.experimental import multihost_utils
+
+from php_jax import checkpoint, flat_lstm, joint, provenance, train
+from php_jax.config import TrainConfig
+from php_jax.demos import Demonstration
+from php_jax.hierarchy import HierarchySpec
+
+METRICS_FILE, RESULTS_FILE, SEEDS_CHECKPOINT = "metrics.jsonl", "results.json", "seeds_checkpoint.msgpack"
+RUN_FILES = (checkpoint.TRAINING_FILE, METRICS_FILE, RESULTS_FILE, checkpoint.ARCHITECTURE_FILE,
+             checkpoint.MODEL_FILE)
+
+
+class WorkdirError(ValueError):
+  """A workdir that cannot hold a run; the message names it."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Experiment:
+  """What one run trains on and how it is judged.
+
+  Attributes:
+    name: the task's name (model.json records it, for `experiments.evaluate`).
+    spec: the hierarchy's levels, action factor sizes and observation size.
+    demos: the training demonstrations [B, ...].
+    validate: model → validation score (the kept snapshot has the best).
+    test: model → the test results (results.json's "test").
+    extra: more entries for results.json (e.g. the seed and the data set's sizes).
+  """
+  name: str
+  spec: HierarchySpec
+  demos: Demonstration
+  validate: Callable[[Any], float]
+  test: Callable[[Any], dict]
+  extra: dict
+
+
+def train_and_evaluate(experiment: Experiment, config: TrainConfig, workdir: str, overwrite: bool = False,
+                       flat_lstm_hidden: int | None = None, wait: bool = False) -> dict:
+  """Trains a PHP hierarchy by config.training (resuming the workdir's checkpoint if an earlier run was
+  interrupted), or with flat_lstm_hidden the flat LSTM baseline of that many units; saves it, tests it,
+  writes results.json; returns the results. overwrite: delete an earlier run's files first (else it is
+  resumed, or refused with CheckpointError if its settings differ). The run holds the workdir's lock
+  throughout (`workdir_lock`; wait: for another run holding it to end)."""
+  config = train.with_strong_weight(config, experiment.demos)  # resolved here so that results.json records it
+  commit = provenance.code_version()  # the code as it was when the run started
+  spec = experiment.spec
+  with workdir_lock(workdir, wait):
+    clear_workdir(workdir, RUN_FILES, overwrite)
+    with MetricsLog(workdir) as log:
+      if flat_lstm_hidden:
+        model, trained = _train_flat_lstm(experiment, config, flat_lstm_hidden, log)
+        checkpoint.save_flat_lstm(workdir, experiment.name, model, spec)
+      else:
+        model, trained, capacity = _train_php(experiment, config, log,
+                                              os.path.join(workdir, checkpoint.TRAINING_FILE))
+        checkpoint.save_hierarchy(workdir, experiment.name, model, config.hidden, capacity)
+    results = {"task": experiment.name, "model": "flat_lstm" if flat_lstm_hidden else "php",
+               "config": dataclasses.asdict(config), **experiment.extra, **trained}
+    return _write_results(workdir, results, experiment.test(model), log.start, commit)
+
+
+def train_and_evaluate_seeds(experiments: list[Experiment], configs: list[TrainConfig], workdir: str,
+                             overwrite: bool = False, wait: bool = False) -> list[dict]:
+  """train_and_evaluate for several seeds' PHP hierarchies (experiments[s] with configs[s]), trained
+  level-wise as one program (`train.train_seeds`): seed s's run goes to workdir/seed=S with the files its
+  separate run would write, its results.json also naming the seeds trained with it ("trained_with_seeds":
+  its wall time and per-level seconds are those of the shared program); the progress of all is checkpointed
+  in workdir/seeds_checkpoint.msgpack and resumed from there. The run holds workdir's lock throughout."""
+  workdirs = [os.path.join(workdir, f"seed={c.seed}") for c in configs]
+  configs = [train.with_strong_weight(c, e.demos) for c, e in zip(configs, experiments)]
+  commit, spec = provenance.code_version(), experiments[0].spec
+  with contextlib.ExitStack() as stack:
+    stack.enter_context(workdir_lock(workdir, wait))
+    clear_workdir(workdir, (SEEDS_CHECKPOINT,), overwrite)
+    for run_dir in workdirs:
+      clear_workdir(run_dir, RUN_FILES, overwrite)
+    logs = [stack.enter_context(MetricsLog(run_dir, {"seed": c.seed})) for run_dir, c in zip(workdirs, configs)]
+    trained = train.train_seeds(spec, [e.demos for e in experiments], configs, [e.validate for e in experiments],
+                                log=lambda s, row: logs[s](row),
+                                checkpoint_path=os.path.join(workdir, SEEDS_CHECKPOINT),
+                                seed_checkpoint_paths=[os.path.join(w, checkpoint.TRAINING_FILE) for w in workdirs])
+    for run_dir, e, (hierarchy, report) in zip(workdirs, experiments, trained):
+      checkpoint.save_hierarchy(run_dir, e.name, hierarchy, configs[0].hidden,
+                                [report[level]["capacity"] for level in range(spec.num_levels)])
+    for log in logs:
+      log.close()
+    together = {"trained_with_seeds": [c.seed for c in configs]}  # its times are the shared program's
+    return [_write_results(run_dir, {"task": e.name, "model": "php", "config": dataclasses.asdict(c), **e.extra,
+                                     **together, **_levels(report)}, e.test(hierarchy), log.start, commit,
+                           {"seed": c.seed})
+            for run_dir, c, e, (hierarchy, report), log in zip(workdirs, configs, experiments, trained, logs)]
+
+
+LOCK_FILE = ".lock"
+
+
+@contextlib.contextmanager
+def workdir_lock(workdir: str, wait: bool = False):
+  """Makes workdir (WorkdirError if a file has that name) and holds its lock while the block runs: an
+  exclusive `fcntl.flock` on workdir/.lock, which the kernel releases when the process ends, however it
+  ends, so a lock left by a killed run never blocks. If another run holds it: WorkdirError naming that run's
+  pid, or with wait, waiting for it to end. Of several processes (jax.distributed), process 0 takes it."""
+  if os.path.exists(workdir) and not os.path.isdir(workdir):
+    raise WorkdirError(f"{workdir} is a file, not a directory")
+  if jax.process_index() != 0:
+    yield
+    return
+  os.makedirs(workdir, exist_ok=True)
+  with open(os.path.join(workdir, LOCK_FILE), "a+") as lock:
+    try:
+      fcntl.flock(lock, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+    except BlockingIOError:
+      lock.seek(0)
+      holder = lock.read().strip() or "unknown"
+      raise WorkdirError(f"{workdir} is in use by another run (pid {holder}); wait for it to end, or give "
+                         "--wait to wait for it") from None
+    lock.truncate(0)
+    lock.write(str(os.getpid()))
+    lock.flush()
+    try:
+      yield
+    finally:
+      fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def clear_workdir(workdir: str, files: tuple[str, ...], overwrite: bool = False) -> None:
+  """Makes workdir; with overwrite, deletes `files` there first; removes temporary files a SIGKILL left."""
+  if jax.process_index() == 0:  # of several processes (jax.distributed), the one that writes files
+    if overwrite:
+      for name in files:
+        if os.path.exists(os.path.join(workdir, name)):
+          os.remove(os.path.join(workdir, name))
+    os.makedirs(workdir, exist_ok=True)
+    for leftover in glob.glob(os.path.join(workdir, ".*.tmp")):  # a write cut off by SIGKILL
+      os.remove(leftover)
+  if jax.process_count() > 1:  # the others read the workdir (to resume) once process 0 has cleared it
+    multihost_utils.sync_global_devices("workdir ready")
+
+
+class MetricsLog:
+  """A run's metrics.jsonl (process 0's) and clock: each row logged gets "seconds" since the run started, is
+  appended and printed (with `label` added to the printed copy). A {"resumed": True, "logged": n} row keeps
+  the file's first n rows, and the clock goes on from the last of them; a run whose first row is another
+  (it resumes nothing) starts the file afresh, so that rows of an attempt killed before its first checkpoint
+  are not kept twice."""
+
+  def __init__(self, workdir: str, label: dict | None = None):
+    self.path, self.label, self.start = os.path.join(workdir, METRICS_FILE), label or {}, time.time()
+    self.file, self.first = None, True
+
+  def __enter__(self):
+    if jax.process_index() == 0:
+      self.file = open(self.path, "a")
+    return self
+
+  def __exit__(self, *exc):
+    self.close()
+
+  def close(self) -> None:
+    if self.file:
+      self.file.close()
+      self.file = None
+
+  def __call__(self, row: dict) -> None:
+    if row.get("resumed"):
+      self.start -= _keep_rows(self.file, self.path, row["logged"])
+    else:
+      if self.first and self.file:
+        self.file.truncate(0)
+      row = {**row, "seconds": round(time.time() - self.start, 2)}
+      if self.file:
+        self.file.write(json.dumps(row) + "\n")
+        self.file.flush()
+    self.first = False
+    print(json.dumps({**self.label, **row}), flush=True)
+
+
+def _keep_rows(metrics, path: str, count: int) -> float:
+  """Truncates the open metrics file (None: only reads it) to its first `count` rows; returns the last kept
+  row's "seconds"."""
+  with open(path, "rb") as f:
+    rows = f.read().splitlines(keepends=True)[:count]
+  if metrics:
+    metrics.truncate(sum(map(len, rows)))
+  return json.loads(rows[-1])["seconds"] if rows else 0.0
+
+
+def _write_results(workdir: str, results: dict, test_results: dict, start: float, commit,
+                   label: dict | None = None) -> dict:
+  """results.json: `results` with the test results, wall time, commit and versions; returns it. Prints the
+  test results and wall time (with `label`)."""
+  results = {**results, "test": test_results, "wall_seconds": round(time.time() - start, 1), "commit": commit,
+             "versions": provenance.environment_versions()}
+  checkpoint.write_atomically(os.path.join(workdir, RESULTS_FILE), json.dumps(results, indent=1).encode())
+  print(json.dumps({**(label or {}), "test": test_results, "wall_seconds": results["wall_seconds"]}), flush=True)
+  return results
+
+
+def _train_php(experiment: Experiment, config: TrainConfig, log, path: str):
+  """(hierarchy, its results.json entries, capacity per level) by config.training: {"levels": {level: summary}}
+  level-wise, {"joint": summary} joint."""
+  spec, demos, validate = experiment.spec, experiment.demos, experiment.validate
+  if config.training == "joint":
+    hierarchy, report = joint.train_joint(spec, demos, config, validate, log=log, checkpoint_path=path)
+    return hierarchy, {"joint": _summary(report)}, report["capacity"]
+  hierarchy, report = train.train_hierarchy(spec, demos, config, validate, log=log, checkpoint_path=path)
+  return hierarchy, _levels(report), [report[level]["capacity"] for level in range(spec.num_levels)]
+
+
+def _levels(report: dict) -> dict:
+  """results.json's entry of a level-wise report."""
+  return {"levels": {str(level): _summary(entry) for level, entry in report.items()}}
+
+
+def _summary(entry: dict) -> dict:
+  """A training report entry without its loss curve (metrics.jsonl has it), with the final loss."""
+  return {k: v for k, v in entry.items() if k != "losses"} | {
+      "final_loss": entry["losses"][-1][1] if entry["losses"] else None}
+
+
+def _train_flat_lstm(experiment: Experiment, config: TrainConfig, hidden: int, log):
+  """The baseline on the same demonstrations' elementary actions (annotations unused), same iterations,
+  learning rate, seed and snapshot rule."""
+  spec = experiment.spec
+  policy = flat_lstm.FlatLSTMPolicy(spec.obs_dim, spec.action_sizes, hidden, rngs=nnx.Rngs(config.seed))
+  report = flat_lstm.train(policy, experiment.demos, config.iterations, config.learning_rate, config.eval_every,
+                           on_eval=lambda iteration: experiment.validate(policy), log=log,
+                           snapshot=config.snapshot)
+  return policy, {"flat_lstm": {"hidden": hidden, "best_iteration": report["best_iteration"],
+                                "validation": report["validation"], "final_loss": report["losses"][-1][1]}}
