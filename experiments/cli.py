@@ -1,16 +1,84 @@
-"""What every command shares: a bad flag or input ends in one line on stderr and exit status 2."""
+"""What every command shares: a bad flag or input ends in one line on stderr and exit status 2; Ctrl-C or
+SIGTERM in one line and exit status 130, at once, whatever is being computed."""
 from __future__ import annotations
 
+import contextlib
+import os
+import signal
 import sys
+import threading
 from typing import NoReturn
 
 from absl import flags, logging
+
+from php_jax import checkpoint
 
 
 def fail(message: str) -> NoReturn:
   """Prints "error: message" to stderr and exits with status 2."""
   print(f"error: {message}", file=sys.stderr)
   sys.exit(2)
+
+
+def exit_on_interrupt(message: str) -> None:
+  """From now on, SIGINT (Ctrl-C) or SIGTERM ends the command within moments, even inside a long compiled
+  computation (which Python's own handling would wait out): "interrupted: message" on stderr, exit status 130.
+  A file being written (`checkpoint.write_atomically`) is first put in place. Call it from the main thread.
+
+  The signals' handlers only wake a watcher thread through the wakeup fd, which the kernel-level handler
+  writes to in whichever thread receives the signal; the watcher ends the process."""
+  read, write = os.pipe()
+  os.set_blocking(write, False)
+  signal.set_wakeup_fd(write)
+  for signum in (signal.SIGINT, signal.SIGTERM):
+    signal.signal(signum, lambda *_: None)
+
+  def watch():
+    os.read(read, 1)
+    with checkpoint.WRITING:
+      print(f"interrupted: {message}", file=sys.stderr, flush=True)
+      os._exit(130)
+
+  threading.Thread(target=watch, name="interrupt watcher", daemon=True).start()
+
+
+def check_outputs(outputs: dict[str, str | None], inputs: dict[str, str | None]) -> None:
+  """Raises ValueError naming the flag of the first output ({flag: path}; None: not asked for) that could
+  not be written, before any work: an empty path, a directory, a file in a missing or unwritable directory,
+  one of the inputs ({flag: path}) or another output."""
+  seen = dict(inputs)
+  for flag, path in outputs.items():
+    if path is None:
+      continue
+    if not path:
+      raise ValueError(f"--{flag}: must name a file; got ''")
+    if os.path.isdir(path):
+      raise ValueError(f"--{flag}={path} is a directory")
+    directory = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(directory):
+      raise ValueError(f"--{flag}={path}: directory {directory} does not exist")
+    if not os.access(directory, os.W_OK | os.X_OK):
+      raise ValueError(f"--{flag}={path}: directory {directory} is not writable")
+    for other, other_path in seen.items():
+      if other_path and _same_file(path, other_path):
+        raise ValueError(f"--{flag}={path} is the {'input file' if other in inputs else 'same file as'} "
+                         f"--{other}={other_path}")
+    seen[flag] = path
+
+
+def _same_file(a: str, b: str) -> bool:
+  return os.path.realpath(a) == os.path.realpath(b) or (
+      os.path.exists(a) and os.path.exists(b) and os.path.samefile(a, b))
+
+
+@contextlib.contextmanager
+def output_errors(flag: str, path: str):
+  """Ends the command in one line naming the flag (exit status 2) if writing its file fails in the block (a
+  full disk, a file system made read-only); `checkpoint.write_atomically` leaves nothing behind."""
+  try:
+    yield
+  except OSError as e:
+    fail(f"--{flag}={path}: cannot write: {e.strerror or e}")
 
 
 def seed_list(values: list[str]) -> list[int]:

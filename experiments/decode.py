@@ -5,7 +5,8 @@ call stack at every step, and whether the hierarchy replays it.
 
 --policy is a workdir of `experiments.fit` (or of `experiments.train`). Each output line, in input order:
 
-  {"log_likelihood": float,             log P(actions | observations), summed over every call stack
+  {"log_likelihood": float or null,     log P(actions | observations), summed over every call stack (null
+                                        where no call stack the hierarchy allows fits the demonstration)
    "stack": [[[h, tau], ...], ...],     per step, root first: the most likely stack (exact, whole-stack Viterbi)
    "replayed": bool,                    the argmax policy, run on the recorded observations, takes every
                                         recorded action and its root returns after the last
@@ -23,7 +24,6 @@ import numpy as np
 from absl import app, flags
 
 from experiments import cli
-from experiments import problems as problem_files
 from php_jax import agreement, checkpoint, decoding, demo_files, replay
 from php_jax.demos import UNKNOWN
 from php_jax.model import PHPHierarchy
@@ -42,7 +42,8 @@ def decode_lines(hierarchy: PHPHierarchy, capacity, batch) -> tuple[list[dict], 
   for b, n in enumerate(np.asarray(batch.length)):
     stack = np.stack([decoded.procedures[b, :n], decoded.counters[b, :n]], axis=-1).tolist()
     mismatch = int(replayed.first_mismatch[b])
-    lines.append({"log_likelihood": float(decoded.log_likelihood[b]), "stack": stack,
+    log_likelihood = float(decoded.log_likelihood[b])
+    lines.append({"log_likelihood": log_likelihood if np.isfinite(log_likelihood) else None, "stack": stack,
                   "replayed": bool(replayed.replayed[b]), "first_mismatch": None if mismatch < 0 else mismatch})
   return lines, decoded
 
@@ -64,8 +65,9 @@ def stack_agreement(batch, decoded: decoding.Decoded, level: int) -> tuple[float
 def main(argv):
   if argv[1:]:
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
+  cli.exit_on_interrupt(f"--out={_OUT.value} not written")
   try:
-    problem_files.check_out(_DEMOS.value, _OUT.value, "demos")
+    cli.check_outputs({"out": _OUT.value}, {"demos": _DEMOS.value})
     _, hierarchy = checkpoint.load_policy(_POLICY.value)
     capacity = checkpoint.saved_capacity(_POLICY.value)
     if not isinstance(hierarchy, PHPHierarchy) or capacity is None:
@@ -75,7 +77,8 @@ def main(argv):
   except (OSError, ValueError) as e:  # DemoFileError and CheckpointError are ValueErrors
     cli.fail(str(e))
   lines, decoded = decode_lines(hierarchy, capacity, batch)
-  checkpoint.write_atomically(_OUT.value, "".join(json.dumps(line) + "\n" for line in lines).encode())
+  with cli.output_errors("out", _OUT.value):
+    checkpoint.write_atomically(_OUT.value, "".join(json.dumps(line) + "\n" for line in lines).encode())
   replayed = sum(line["replayed"] for line in lines)
   print(f"{hierarchy.spec.name}: {replayed}/{len(lines)} replayed -> {_OUT.value}")
   for level in range(1, hierarchy.spec.num_levels):

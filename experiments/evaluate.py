@@ -40,15 +40,17 @@ def load_policy(task_name: str, task: Task, policy: str):
 def main(argv):
   if argv[1:]:
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
+  cli.exit_on_interrupt(f"--out={_OUT.value} not written")
   try:
-    problem_files.check_out(_PROBLEMS.value, _OUT.value)
+    cli.check_outputs({"out": _OUT.value}, {"problems": _PROBLEMS.value})
     task = tasks.get(_TASK.value)
     problems = problem_files.read_problems(_PROBLEMS.value, task)
     policy = load_policy(_TASK.value, task, _POLICY.value)
   except (OSError, ValueError) as e:  # ProblemFileError and CheckpointError are ValueErrors
     cli.fail(str(e))
   outcomes = evaluation.solve(task, policy, problems, batch_size=_BATCH_SIZE.value)
-  checkpoint.write_atomically(_OUT.value, "".join(json.dumps(o) + "\n" for o in outcomes).encode())
+  with cli.output_errors("out", _OUT.value):
+    checkpoint.write_atomically(_OUT.value, "".join(json.dumps(o) + "\n" for o in outcomes).encode())
   correct = sum(o["correct"] for o in outcomes)
   print(f"{task.name}: {correct}/{len(outcomes)} correct -> {_OUT.value}")
 

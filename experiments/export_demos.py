@@ -31,15 +31,24 @@ _HIERARCHY_OUT = flags.DEFINE_string("hierarchy_out", None, "Also write the task
 def main(argv):
   if argv[1:]:
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
+  cli.exit_on_interrupt(f"--out={_OUT.value} not written")
   try:
     task = tasks.get(_TASK.value)
   except ValueError as e:
     cli.fail(f"--task: {e}")
+  try:
+    cli.check_outputs({"out": _OUT.value, "hierarchy_out": _HIERARCHY_OUT.value}, {})
+  except ValueError as e:
+    cli.fail(str(e))
   num = task.defaults.num_demos if _NUM_DEMOS.value is None else _NUM_DEMOS.value
   if num < 1 or not 0 <= _NUM_STRONG.value <= num:
     cli.fail(f"--num_strong must be in 0..--num_demos={num} and --num_demos ≥ 1; got {_NUM_STRONG.value} of {num}")
   if _SIZE.value is not None and _SPLIT.value != "test":
     cli.fail("--size is for --split=test")
+  if _SIZE.value is not None and _SIZE.value < 1:
+    cli.fail(f"--size must be a positive integer; got {_SIZE.value}")
+  if _SEED.value < 0:
+    cli.fail(f"--seed must be a non-negative integer; got {_SEED.value}")
   seed = _SEED.value + datasets.SEED_OFFSETS[_SPLIT.value]
   if _SPLIT.value == "training":
     problems = task.training_problems(seed, num)
@@ -50,9 +59,11 @@ def main(argv):
   batch = datasets.problem_demonstrations(task, problems, 0)
   annotated = datasets.strong_mask(len(problems), _NUM_STRONG.value, _SEED.value)
   lines = demo_files.demonstration_lines(batch, annotated)
-  checkpoint.write_atomically(_OUT.value, "".join(line + "\n" for line in lines).encode())
+  with cli.output_errors("out", _OUT.value):
+    checkpoint.write_atomically(_OUT.value, "".join(line + "\n" for line in lines).encode())
   if _HIERARCHY_OUT.value:
-    demo_files.write_hierarchy(_HIERARCHY_OUT.value, task.spec)
+    with cli.output_errors("hierarchy_out", _HIERARCHY_OUT.value):
+      demo_files.write_hierarchy(_HIERARCHY_OUT.value, task.spec)
   print(f"{task.name}: {len(lines)} {_SPLIT.value} demonstrations ({int(annotated.sum())} annotated) -> {_OUT.value}")
 
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from absl import app, flags
 
-from experiments import cli, training
+from experiments import cli, config_flags, training
 from php_jax import call_graph, demo_files, replay
 from php_jax.run import Experiment, train_and_evaluate
 from php_jax.demos import Demonstration
@@ -30,8 +30,9 @@ _VALIDATION_FRACTION = flags.DEFINE_float("validation_fraction", 0.1, "Share of 
 DEFAULT_CAPACITY = 8
 _FIT_DEFAULTS = {"hidden": '64, or the hierarchy file\'s "hidden"', "tau_in_termination": "1 at every level",
                  "min_capacity": f'{DEFAULT_CAPACITY} below the root, or the hierarchy file\'s "capacity"'}
-training.define_config_flags(lambda name, default: _FIT_DEFAULTS.get(name) or training.default_text(default))
+config_flags.define_config_flags(lambda name, default: _FIT_DEFAULTS.get(name) or config_flags.default_text(default))
 flags.adopt_module_key_flags(training)
+flags.adopt_module_key_flags(config_flags)
 
 
 def fit_overrides(hierarchy: demo_files.Hierarchy) -> dict:
@@ -63,9 +64,9 @@ def run() -> dict:
   try:
     hierarchy = demo_files.read_hierarchy(_HIERARCHY.value)
   except demo_files.DemoFileError as e:
-    raise training.UsageError(str(e)) from None
-  config = training.config_from_flags(fit_overrides(hierarchy))
-  training.check_levels(hierarchy.spec, config)
+    raise config_flags.UsageError(str(e)) from None
+  config = config_flags.config_from_flags(fit_overrides(hierarchy))
+  config_flags.check_levels(hierarchy.spec, config)
   try:
     demos, spec = demo_files.read_demonstrations(_DEMOS.value, hierarchy.spec)
     in_file = demos
@@ -73,19 +74,19 @@ def run() -> dict:
       held_out, spec = demo_files.read_demonstrations(_VALIDATION.value, spec)
     else:
       if not 0 < _VALIDATION_FRACTION.value < 1:
-        raise training.UsageError(f"--validation_fraction must be between 0 and 1; got {_VALIDATION_FRACTION.value}")
+        raise config_flags.UsageError(f"--validation_fraction must be between 0 and 1; got {_VALIDATION_FRACTION.value}")
       if len(demos.length) < 2:
-        raise training.UsageError(f"--demos={_DEMOS.value} has one demonstration: give --validation, or more")
+        raise config_flags.UsageError(f"--demos={_DEMOS.value} has one demonstration: give --validation, or more")
       if held_out_count(len(demos.length), _VALIDATION_FRACTION.value) >= len(demos.length):
-        raise training.UsageError(f"--validation_fraction={_VALIDATION_FRACTION.value} holds out all "
+        raise config_flags.UsageError(f"--validation_fraction={_VALIDATION_FRACTION.value} holds out all "
                                   f"{len(demos.length)} demonstrations of --demos: lower it, or give --validation")
       demos, held_out = split(demos, _VALIDATION_FRACTION.value, config.seed)
   except demo_files.DemoFileError as e:
-    raise training.UsageError(str(e)) from None
+    raise config_flags.UsageError(str(e)) from None
   try:
     call_graph.resolve(config.call_graph, in_file, spec)
   except ValueError as e:  # demonstrations are numbered from 0 in the file's order
-    raise training.UsageError(f"--demos={_DEMOS.value}: {e}") from None
+    raise config_flags.UsageError(f"--demos={_DEMOS.value}: {e}") from None
 
   def rate(model) -> float:
     return replay.replayed_fraction(model, spec, held_out)

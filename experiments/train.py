@@ -11,7 +11,7 @@ the same command to resume an interrupted run. Flags left unset take the task's 
 
 With --seeds, each seed's run (its own training set, initialisation, snapshot and test) goes to
 WORKDIR/seed=S, with the files `--seed=S --workdir=WORKDIR/seed=S` would write; the seeds' updates run as one
-vmapped program per level (`php_jax.seeds`).
+vmapped program per level (`php_jax.train.train_seeds`).
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ import dataclasses
 
 from absl import app, flags
 
-from experiments import cli, training
+from experiments import cli, config_flags, training
 from php_jax import datasets, evaluation, tasks, train
 from php_jax.run import Experiment, train_and_evaluate, train_and_evaluate_seeds
 
@@ -41,12 +41,13 @@ _NUM_TEST = flags.DEFINE_integer("num_test", None, "Test problems per test set. 
 
 def _task_defaults(name: str, default) -> str:
   """A setting's default as --help shows it: TrainConfig's, and the registered tasks that override it."""
-  return training.default_text(default, {task.name: task.defaults.overrides()[name] for task in tasks.TASKS.values()
+  return config_flags.default_text(default, {task.name: task.defaults.overrides()[name] for task in tasks.TASKS.values()
                                          if name in task.defaults.overrides()})
 
 
-training.define_config_flags(_task_defaults)
+config_flags.define_config_flags(_task_defaults)
 flags.adopt_module_key_flags(training)
+flags.adopt_module_key_flags(config_flags)
 
 
 def run(task_name: str) -> dict:
@@ -54,29 +55,29 @@ def run(task_name: str) -> dict:
   try:
     task = tasks.get(task_name)
   except ValueError as e:
-    raise training.UsageError(f"--task: {e}") from None
+    raise config_flags.UsageError(f"--task: {e}") from None
   defaults = task.defaults
-  config = training.config_from_flags(defaults.overrides())
-  training.check_levels(task.spec, config)
+  config = config_flags.config_from_flags(defaults.overrides())
+  config_flags.check_levels(task.spec, config)
   num_demos = defaults.num_demos if _NUM_DEMOS.value is None else _NUM_DEMOS.value
   if defaults.num_demos_fixed and num_demos != defaults.num_demos:
-    raise training.UsageError(f"--num_demos: {task.name}'s training set has {defaults.num_demos} "
+    raise config_flags.UsageError(f"--num_demos: {task.name}'s training set has {defaults.num_demos} "
                               f"demonstrations; got {num_demos}")
   if num_demos < 1 or not 0 <= NUM_STRONG.value <= num_demos:
-    raise training.UsageError(f"--num_strong must be in 0..--num_demos={num_demos} and --num_demos ≥ 1; got "
+    raise config_flags.UsageError(f"--num_strong must be in 0..--num_demos={num_demos} and --num_demos ≥ 1; got "
                               f"{NUM_STRONG.value} of {num_demos}")
   num_test = defaults.num_test if _NUM_TEST.value is None else _NUM_TEST.value
   lengths = defaults.test_lengths
   if _TEST_LENGTHS.value is not None:
     if not (_TEST_LENGTHS.value and all(n.isdigit() for n in _TEST_LENGTHS.value)):
-      raise training.UsageError(f"--test_lengths must list positive integers; got {','.join(_TEST_LENGTHS.value)}")
+      raise config_flags.UsageError(f"--test_lengths must list positive integers; got {','.join(_TEST_LENGTHS.value)}")
     lengths = [int(n) for n in _TEST_LENGTHS.value]
   if num_test < 1 or any(n < 1 for n in lengths):
-    raise training.UsageError(f"--num_test and --test_lengths must be positive; got {num_test}, {list(lengths)}")
+    raise config_flags.UsageError(f"--num_test and --test_lengths must be positive; got {num_test}, {list(lengths)}")
   if NUM_VALIDATION.value < 1:
-    raise training.UsageError(f"--num_validation must be a positive integer; got {NUM_VALIDATION.value}")
+    raise config_flags.UsageError(f"--num_validation must be a positive integer; got {NUM_VALIDATION.value}")
   if LSTM_HIDDEN.value < 1:
-    raise training.UsageError(f"--lstm_hidden must be a positive integer; got {LSTM_HIDDEN.value}")
+    raise config_flags.UsageError(f"--lstm_hidden must be a positive integer; got {LSTM_HIDDEN.value}")
   workdir, overwrite, wait = training.WORKDIR.value, training.OVERWRITE.value, training.WAIT.value
   if SEEDS.value is None:
     return train_and_evaluate(_experiment(task_name, task, config.seed, num_demos, num_test, lengths), config,
@@ -86,7 +87,7 @@ def run(task_name: str) -> dict:
   try:
     train.common_call_graph(task.spec, [e.demos for e in experiments], [config] * len(seeds))
   except ValueError as e:
-    raise training.UsageError(f"--seeds: {e}") from None
+    raise config_flags.UsageError(f"--seeds: {e}") from None
   return train_and_evaluate_seeds(experiments, [dataclasses.replace(config, seed=s) for s in seeds], workdir,
                                   overwrite, wait)
 
@@ -94,15 +95,15 @@ def run(task_name: str) -> dict:
 def _seeds(config: train.TrainConfig) -> list[int]:
   """--seeds' values, checked against the other flags."""
   if flags.FLAGS["seed"].present:
-    raise training.UsageError("--seeds and --seed: give one of them")
+    raise config_flags.UsageError("--seeds and --seed: give one of them")
   if MODEL.value != "php":
-    raise training.UsageError("--seeds trains PHP hierarchies (not --model=flat_lstm)")
+    raise config_flags.UsageError("--seeds trains PHP hierarchies (not --model=flat_lstm)")
   if config.training != "levelwise":
-    raise training.UsageError(training.joint_refusal("--seeds trains level-wise only"))
+    raise config_flags.UsageError(config_flags.joint_refusal("--seeds trains level-wise only"))
   try:
     return cli.seed_list(SEEDS.value)
   except ValueError as e:
-    raise training.UsageError(str(e)) from None
+    raise config_flags.UsageError(str(e)) from None
 
 
 def _experiment(task_name: str, task, seed: int, num_demos: int, num_test: int, lengths) -> Experiment:

@@ -4,14 +4,14 @@ import dataclasses
 import pytest
 from absl import flags
 
-from experiments import training
+from experiments import config_flags
 from php_jax import config as config_lib
 from php_jax import tasks
 
 
-def _flags(*argv: str, defaults=lambda name, default: training.default_text(default)) -> flags.FlagValues:
+def _flags(*argv: str, defaults=lambda name, default: config_flags.default_text(default)) -> flags.FlagValues:
   values = flags.FlagValues()
-  training.define_config_flags(defaults, values)
+  config_flags.define_config_flags(defaults, values)
   values(["prog", *argv])
   return values
 
@@ -29,17 +29,17 @@ def test_help_shows_the_tasks_overrides():
   overrides = {task.name: task.defaults.overrides()["iterations"] for task in tasks.TASKS.values()
                if "iterations" in task.defaults.overrides()}
   assert overrides == {"bubblesort": 1000}
-  assert training.default_text(2000, overrides) == "2000 (bubblesort: 1000)"
-  assert training.default_text(None, {"bubblesort": (0, 1, None)}) == "unset (bubblesort: 0,1,none)"
+  assert config_flags.default_text(2000, overrides) == "2000 (bubblesort: 1000)"
+  assert config_flags.default_text(None, {"bubblesort": (0, 1, None)}) == "unset (bubblesort: 0,1,none)"
 
 
 def test_flags_override_the_task_which_overrides_the_defaults():
   nanocraft = tasks.get("nanocraft").defaults.overrides()
-  config = training.config_from_flags(nanocraft, _flags("--iterations=7", "--tau_in_termination=1,0,1"))
+  config = config_flags.config_from_flags(nanocraft, _flags("--iterations=7", "--tau_in_termination=1,0,1"))
   assert (config.iterations, config.tau_in_termination, config.hidden, config.training) == (
       7, (True, False, True), (32,), "joint")
   assert config.learning_rate == config_lib.TrainConfig().learning_rate  # neither the task nor a flag set it
-  assert training.config_from_flags({}, _flags("--tau_limit=0,none,3")).tau_limit == (0, None, 3)
+  assert config_flags.config_from_flags({}, _flags("--tau_limit=0,none,3")).tau_limit == (0, None, 3)
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -56,8 +56,8 @@ def test_flags_override_the_task_which_overrides_the_defaults():
                                           "(--training=joint): add --training=levelwise or drop --root"),
 ])
 def test_bad_flags_are_refused_naming_the_flag(argv, message):
-  with pytest.raises(training.UsageError) as refused:
-    training.config_from_flags({}, _flags(*argv))
+  with pytest.raises(config_flags.UsageError) as refused:
+    config_flags.config_from_flags({}, _flags(*argv))
   assert str(refused.value).startswith(message), str(refused.value)
 
 
