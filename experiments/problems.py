@@ -2,9 +2,9 @@
 where the outcomes go."""
 from __future__ import annotations
 
-import json
 import os
 
+from php_jax import json_lines
 from php_jax.task import Task
 
 
@@ -27,15 +27,13 @@ def check_out(problems: str, out: str, input_flag: str = "problems") -> None:
 
 def read_problems(path: str, task: Task) -> list:
   """All problems of a JSON-lines file (blank lines skipped), parsed by the task. Raises ProblemFileError
-  at the first bad line (not UTF-8, not JSON, not a problem), or naming the file if it holds no problem."""
+  at the first bad line (not UTF-8, not JSON within php_jax.json_lines' bounds, not a problem), or naming the
+  file if it holds no problem."""
   problems = []
   with open(path, "rb") as f:
-    for number, raw in enumerate(f, start=1):
+    for number, raw in json_lines.lines(f):
       try:
-        line = raw.decode("utf-8")
-        if not line.strip():
-          continue
-        obj = json.loads(line)
+        obj = json_lines.loads(raw)
         if not isinstance(obj, dict):
           raise ValueError("a problem must be a JSON object")
         problems.append(task.parse_problem(obj))

@@ -18,18 +18,22 @@ one JSON object:
                                               below the root (`experiments.fit`'s default: 8)
    "hidden": [64]}                            optional: hidden layer sizes of every network
 
-Every reader raises DemoFileError with "PATH:LINE: what is wrong" at the first problem.
+A hierarchy file holds at most MAX_COUNT levels, action factors and hidden layers, and at most MAX_SIZE
+procedures per level, values per action factor, units per layer and counters per level. Lines and files are
+read by php_jax.json_lines (its bounds: length, nesting, numbers within float32's range, no repeated keys);
+observations must be real numbers (not booleans), actions, procedures and counters integers. Every reader
+raises DemoFileError with "PATH:LINE: what is wrong" at the first problem.
 """
 from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 
 import numpy as np
 
 from php_jax import demos as demos_lib
+from php_jax import json_lines
 from php_jax.checkpoint import write_atomically
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.hierarchy import HierarchySpec
@@ -37,6 +41,8 @@ from php_jax.task import check_keys
 
 HIERARCHY_KEYS = ("levels", "action_sizes", "name", "capacity", "hidden")
 DEMONSTRATION_KEYS = ("observations", "actions", "stack")
+MAX_COUNT = 64
+MAX_SIZE = 4096
 
 
 class DemoFileError(ValueError):
@@ -61,12 +67,16 @@ def _is_int(x) -> bool:
   return isinstance(x, int) and not isinstance(x, bool)
 
 
+def _is_size(x) -> bool:
+  return _is_int(x) and 1 <= x <= MAX_SIZE
+
+
 def read_hierarchy(path: str) -> Hierarchy:
   """Parses a hierarchy file. Raises DemoFileError naming the file and the problem."""
   try:
     with open(path, "rb") as f:
-      obj = json.loads(f.read().decode("utf-8"))
-  except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+      obj = json_lines.loads(f.read(json_lines.MAX_LINE_BYTES + 1))
+  except (OSError, ValueError) as e:  # not UTF-8, not JSON, or outside json_lines' bounds
     raise DemoFileError(f"{path}: cannot read a hierarchy: {e}") from None
   try:
     return _hierarchy(obj, os.path.splitext(os.path.basename(path))[0])
@@ -79,26 +89,32 @@ def _hierarchy(obj, default_name: str) -> Hierarchy:
     raise ValueError("a hierarchy must be a JSON object")
   check_keys(obj, HIERARCHY_KEYS, "hierarchy")
   levels, sizes = obj.get("levels"), obj.get("action_sizes")
-  if not (isinstance(levels, list) and len(levels) >= 2 and all(
-      isinstance(level, list) and level and all(isinstance(n, str) and n for n in level) for level in levels)):
-    raise ValueError('"levels" must list at least two levels, root first, each a non-empty list of names')
+  if not (isinstance(levels, list) and 2 <= len(levels) <= MAX_COUNT and all(
+      isinstance(level, list) and 1 <= len(level) <= MAX_SIZE and all(isinstance(n, str) and n for n in level)
+      for level in levels)):
+    raise ValueError(f'"levels" must list at least two levels (at most {MAX_COUNT}), root first, each a non-empty '
+                     f'list of names (at most {MAX_SIZE})')
   if len(levels[0]) != 1:
-    raise ValueError(f'"levels": the root level has one procedure; got {levels[0]}')
+    raise ValueError(f'"levels": the root level has one procedure; got {json_lines.shown(levels[0])}')
   for i, level in enumerate(levels):
     if len(set(level)) != len(level):
-      raise ValueError(f'"levels": level {i} repeats a name: {level}')
-  if not (isinstance(sizes, list) and sizes and all(_is_int(n) and n >= 1 for n in sizes)):
-    raise ValueError('"action_sizes" must list positive integers, one per action factor')
+      raise ValueError(f'"levels": level {i} repeats a name: {json_lines.shown(level)}')
+  if not (isinstance(sizes, list) and 1 <= len(sizes) <= MAX_COUNT and all(map(_is_size, sizes))):
+    raise ValueError(f'"action_sizes" must list positive integers (at most {MAX_SIZE}), one per action factor '
+                     f'(at most {MAX_COUNT}); got {json_lines.shown(sizes)}')
   name = obj.get("name", default_name)
   if not (isinstance(name, str) and name):
     raise ValueError('"name" must be a non-empty string')
   capacity = obj.get("capacity")
   if capacity is not None and not (isinstance(capacity, list) and len(capacity) == len(levels) and all(
-      c is None or (_is_int(c) and c >= 1) for c in capacity)):
-    raise ValueError(f'"capacity" must give one positive integer or null per level, root first ({len(levels)})')
+      c is None or _is_size(c) for c in capacity)):
+    raise ValueError(f'"capacity" must give one positive integer (at most {MAX_SIZE}) or null per level, root '
+                     f'first ({len(levels)}); got {json_lines.shown(capacity)}')
   hidden = obj.get("hidden")
-  if hidden is not None and not (isinstance(hidden, list) and hidden and all(_is_int(h) and h >= 1 for h in hidden)):
-    raise ValueError('"hidden" must list positive layer sizes')
+  if hidden is not None and not (isinstance(hidden, list) and 1 <= len(hidden) <= MAX_COUNT
+                                 and all(map(_is_size, hidden))):
+    raise ValueError(f'"hidden" must list positive layer sizes (at most {MAX_SIZE}, at most {MAX_COUNT} layers); '
+                     f'got {json_lines.shown(hidden)}')
   spec = HierarchySpec(name, tuple(tuple(level) for level in levels), tuple(sizes), 0)
   return Hierarchy(spec, tuple(capacity) if capacity else None, tuple(hidden) if hidden else None)
 
@@ -117,55 +133,42 @@ def _parse_line(obj, spec: HierarchySpec) -> tuple[np.ndarray, np.ndarray, np.nd
   observations, actions = obj.get("observations"), obj.get("actions")
   if not isinstance(actions, list) or not actions:
     raise ValueError('"actions" must be a non-empty list (one elementary action per step)')
-  num_factors = len(spec.action_sizes)
-  rows = _as_array(actions, "i")
-  if rows is not None and rows.ndim == 1 and num_factors == 1:
-    rows = rows[:, None]
-  if rows is None or rows.ndim != 2 or rows.shape[1] != num_factors:
-    _action_error(actions, num_factors)
-  bad = np.argwhere((rows < 0) | (rows >= np.array(spec.action_sizes)))
-  if bad.size:
-    t, f = bad[0]
-    raise ValueError(f"action {t}: factor {f} = {rows[t, f]} is outside 0..{spec.action_sizes[f] - 1}")
+  rows = _actions(actions, spec.action_sizes)
   if not (isinstance(observations, list) and len(observations) == len(actions) + 1):
     raise ValueError(f'"observations" must list T+1 = {len(actions) + 1} vectors (one more than the actions)')
-  obs = _as_array(observations, "if")
-  if obs is None or obs.ndim != 2 or not obs.shape[1] or not np.isfinite(obs).all():
-    _observation_error(observations)
+  obs = _observations(observations)
   stack = obj.get("stack")
   procs = taus = None
   if stack is not None:
     procs, taus = _parse_stack(stack, len(actions), spec)
-  return obs.astype(np.float32), rows.astype(np.int32), procs, taus
+  return obs, rows, procs, taus
 
 
-def _as_array(values: list, kinds: str) -> np.ndarray | None:
-  """values as one rectangular NumPy array of a dtype kind in kinds ("i" int, "f" float), or None."""
-  try:
-    array = np.array(values)
-  except ValueError:  # ragged
-    return None
-  return array if array.dtype.kind in kinds else None
-
-
-def _action_error(actions: list, num_factors: int):
-  """Raises ValueError naming the first action that is not num_factors integers."""
+def _actions(actions: list, sizes: tuple[int, ...]) -> np.ndarray:
+  """[T, F] int32 actions (a bare int stands for a one-factor action); ValueError naming the first action
+  that is not F integers, each in its factor's range."""
+  rows = []
   for t, action in enumerate(actions):
-    action = [action] if _is_int(action) and num_factors == 1 else action
-    if not (isinstance(action, list) and len(action) == num_factors and all(map(_is_int, action))):
-      raise ValueError(f"action {t} must be a list of {num_factors} integers (one per factor); got {action!r}")
-  raise ValueError(f"actions must be lists of {num_factors} integers (one per factor)")
+    action = [action] if _is_int(action) and len(sizes) == 1 else action
+    if not (isinstance(action, list) and len(action) == len(sizes) and all(map(_is_int, action))):
+      raise ValueError(f"action {t} must be a list of {len(sizes)} integers (one per factor); "
+                       f"got {json_lines.shown(action)}")
+    for f, (a, size) in enumerate(zip(action, sizes)):
+      if not 0 <= a < size:
+        raise ValueError(f"action {t}: factor {f} = {a} is outside 0..{size - 1}")
+    rows.append(action)
+  return np.array(rows, np.int32)
 
 
-def _observation_error(observations: list):
-  """Raises ValueError naming the first observation that is not a vector of finite numbers of one size."""
+def _observations(observations: list) -> np.ndarray:
+  """[T+1, D] float32 observations; ValueError naming the first that is not D real numbers (booleans are
+  not). They are finite in float32: json_lines refuses numbers beyond its range, NaN and infinities."""
   for t, o in enumerate(observations):
-    if not (isinstance(o, list) and o and all(isinstance(x, (int, float)) and not isinstance(x, bool)
-                                              and math.isfinite(x) for x in o)):
-      raise ValueError(f"observation {t} must be a non-empty list of finite numbers")
+    if not (isinstance(o, list) and o and set(map(type, o)) <= {int, float}):
+      raise ValueError(f"observation {t} must be a non-empty list of finite numbers (true, false and null are not)")
     if len(o) != len(observations[0]):
       raise ValueError(f"observation {t} has {len(o)} numbers; observation 0 has {len(observations[0])}")
-  raise ValueError("observations must be vectors of finite numbers, all of one size")
+  return np.array(observations, np.float32)
 
 
 def _parse_stack(stack, num_steps: int, spec: HierarchySpec) -> tuple[np.ndarray, np.ndarray]:
@@ -183,13 +186,29 @@ def _parse_stack(stack, num_steps: int, spec: HierarchySpec) -> tuple[np.ndarray
       if frame is None:
         continue
       if not (isinstance(frame, list) and len(frame) == 2 and all(map(_is_int, frame))):
-        raise ValueError(f"stack step {t}, level {level}: expected [procedure, counter] or null; got {frame!r}")
+        raise ValueError(f"stack step {t}, level {level}: expected [procedure, counter] or null; "
+                         f"got {json_lines.shown(frame)}")
       if frame != [UNKNOWN, UNKNOWN]:
+        procedure, counter = frame
+        if not UNKNOWN <= procedure < spec.num_procs(level):
+          raise ValueError(f"stack step {t}: procedure id {procedure} at level {level} is unknown (level "
+                           f"{level} has {spec.num_procs(level)} procedures)")
+        if not UNKNOWN <= counter <= t + 1:  # stored in int32; stack_error and the check below see the rest
+          raise _counter_error(t, level, counter)
         procs[t, level], taus[t, level] = frame
   error = demos_lib.stack_error(procs, taus, spec)
   if error:
     raise ValueError(f"stack {error}")
+  late = np.argwhere(taus > np.arange(num_steps)[:, None])
+  if late.size:
+    t, level = late[0]
+    raise _counter_error(t, level, taus[t, level])
   return procs, taus
+
+
+def _counter_error(t: int, level: int, counter: int) -> ValueError:
+  return ValueError(f"stack step {t}, level {level}: counter {counter} is outside 0..{t} (a procedure runs at "
+                    "most one operation per step)")
 
 
 def read_demonstrations(path: str, spec: HierarchySpec) -> tuple[Demonstration, HierarchySpec]:
@@ -203,12 +222,9 @@ def read_demonstrations(path: str, spec: HierarchySpec) -> tuple[Demonstration, 
     raise DemoFileError(f"{path}: cannot read demonstrations: {e.strerror}") from None
   obs_dim = spec.obs_dim
   with f:
-    for number, raw in enumerate(f, start=1):
+    for number, raw in json_lines.lines(f):
       try:
-        line = raw.decode("utf-8")
-        if not line.strip():
-          continue
-        one = _parse_line(json.loads(line), spec)
+        one = _parse_line(json_lines.loads(raw), spec)
         if obs_dim and one[0].shape[1] != obs_dim:
           raise ValueError(f"observations have {one[0].shape[1]} numbers; expected {obs_dim}"
                            + ("" if parsed else " (the model's observation size)"))
@@ -216,7 +232,7 @@ def read_demonstrations(path: str, spec: HierarchySpec) -> tuple[Demonstration, 
         parsed.append(one)
       except UnicodeDecodeError as e:
         raise DemoFileError(f"{path}:{number}: not UTF-8 text ({e.reason} at byte {e.start})") from None
-      except ValueError as e:  # json.JSONDecodeError included
+      except ValueError as e:  # json.JSONDecodeError and json_lines.JSONBoundsError included
         raise DemoFileError(f"{path}:{number}: malformed demonstration: {e}") from None
   if not parsed:
     raise DemoFileError(f"{path}: no demonstrations")
