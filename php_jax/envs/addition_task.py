@@ -79,17 +79,27 @@ def bucket(problem: tuple[str, str]) -> int:
   return max(8, 1 << (addition.width_for(len(problem[0])) - 1).bit_length())
 
 
+_MAX_DIGITS = (1 << 20) - 2  # tapes of at most 2^20 columns: a batch of 64 problems holds 1 GiB of tapes
+
+
 def parse_problem(obj: dict) -> tuple[str, str]:
-  """{"a": "0123", "b": "4567"} → ("0123", "4567")."""
+  """{"a": "0123", "b": "4567"} → ("0123", "4567"): equal lengths, at most _MAX_DIGITS digits."""
   check_keys(obj, ("a", "b"))
   a, b = obj.get("a"), obj.get("b")
   if not isinstance(a, str) or not isinstance(b, str):
     raise ValueError('needs string fields "a" and "b"')
+  if max(len(a), len(b)) > _MAX_DIGITS:
+    raise ValueError(f'"a" and "b" may have at most {_MAX_DIGITS} digits (tapes of 2^20 columns); got '
+                     f'{len(a)} and {len(b)}')
   if not (a.isascii() and a.isdigit() and b.isascii() and b.isdigit()):
-    raise ValueError(f'"a" and "b" must be non-empty strings of decimal digits; got {a!r}, {b!r}')
+    raise ValueError(f'"a" and "b" must be non-empty strings of decimal digits; got {_shown(a)}, {_shown(b)}')
   if len(a) != len(b):
     raise ValueError(f'"a" and "b" must have the same number of digits; got {len(a)} and {len(b)}')
   return a, b
+
+
+def _shown(text: str) -> str:
+  return repr(text) if len(text) <= 40 else f"{text[:32]!r}... ({len(text)} characters)"
 
 
 def outcome(problem: tuple[str, str], final_state: addition.State) -> tuple[dict, bool]:

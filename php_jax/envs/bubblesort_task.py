@@ -56,18 +56,27 @@ def make_states(problems: list[tuple[int, ...]], width: int) -> bubblesort.State
   return jax.tree.map(lambda *x: jnp.asarray(np.stack(x)), *states)  # one host copy, not a jnp.stack of B operands
 
 
+_MAX_LENGTH = (1 << 14) - 1  # a longer array's tape (2^15) has a step budget beyond 32-bit step counts
+
+
 def parse_problem(obj: dict) -> tuple[int, ...]:
-  """{"array": [3, 1, 2]} → (3, 1, 2)."""
+  """{"array": [3, 1, 2]} → (3, 1, 2): 2 to _MAX_LENGTH digits."""
   check_keys(obj, ("array",))
   array = obj.get("array")
   if not isinstance(array, list):
     raise ValueError('needs a list field "array"')
-  if len(array) < 2:
-    raise ValueError(f'"array" must hold at least 2 digits; got {len(array)}')
+  if not 2 <= len(array) <= _MAX_LENGTH:
+    raise ValueError(f'"array" must hold at least 2 digits and at most {_MAX_LENGTH} (beyond, its step budget '
+                     f'overflows 32-bit step counts); got {len(array)}')
   for position, d in enumerate(array):
     if not (isinstance(d, int) and not isinstance(d, bool) and 0 <= d <= 9):
-      raise ValueError(f'"array" entries must be digits 0-9; entry {position} is {d!r}')
+      raise ValueError(f'"array" entries must be digits 0-9; entry {position} is {_shown(d)}')
   return tuple(array)
+
+
+def _shown(value) -> str:
+  text = repr(value)
+  return text if len(text) <= 40 else f"{text[:32]}... ({len(text)} characters)"
 
 
 def outcome(problem: tuple[int, ...], final_state: bubblesort.State) -> tuple[dict, bool]:
