@@ -213,8 +213,7 @@ def bench_train_step():
   def networks_only(m):  # the lattice's inputs, summed where finite: the same networks, no E-step
     total = 0.0
     for b in buckets:
-      inputs = jax.vmap(lambda *a: objective.lattice_inputs(m, *a, capacity))(
-          b.observations, b.actions, b.procedures, b.counters, b.length)
+      inputs = jax.vmap(lambda view: objective.lattice_inputs(m, view, capacity))(b)
       total = total + sum(jnp.sum(jnp.where(jnp.isfinite(x), x, 0.0)) for x in inputs)
     return total
 

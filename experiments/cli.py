@@ -88,13 +88,21 @@ def seed_list(values: list[str]) -> list[int]:
   return [int(v) for v in values]
 
 
+_HELP = {"--help", "-help", "-h", "-?", "--helpshort", "--helpfull", "--helpxml"}
+
+
 def parse_flags(argv: list[str]) -> list[str]:
-  """absl's flag parsing, with a bad flag reported in one line and exit status 2 (for app.run's flags_parser).
-  Log messages below warnings (JAX's start-up notes) are not shown unless --verbosity asks for them."""
+  """absl's flag parsing, with a bad flag reported in one line and exit status 2 (for app.run's flags_parser),
+  and --help (absl's exits 1 once it has printed the help) exiting 0. Log messages below warnings (JAX's
+  start-up notes) are not shown unless --verbosity asks for them."""
   try:
     argv = flags.FLAGS(argv)
   except flags.Error as e:
     fail(str(e))
+  except SystemExit as e:
+    if e.code == 1 and set(argv[1:]) & _HELP:
+      sys.exit(0)
+    raise
   if not flags.FLAGS["verbosity"].present:
     logging.set_verbosity(logging.WARNING)
   return argv

@@ -27,6 +27,7 @@ import concurrent.futures
 import itertools
 import os
 import queue
+import shutil
 import subprocess
 import sys
 from typing import Callable, Iterator, TypeVar
@@ -34,6 +35,7 @@ from typing import Callable, Iterator, TypeVar
 from absl import app, flags
 
 from experiments import cli
+from php_jax import tasks
 
 _TASK = flags.DEFINE_string("task", None, "The task trained (what experiments.train --task takes).")
 _WORKDIR = flags.DEFINE_string("workdir", None, "Parent directory of the runs' workdirs.")
@@ -110,13 +112,23 @@ def run_on_devices(jobs: list[Job], run: Callable[[Job, str | None], Result], de
     yield from pool.map(one, jobs)
 
 
-def _run(task: str, workdir: str, combo: dict[str, str], extra: list[str], gpu: str | None) -> tuple[str, int]:
+def _run(task: str, workdir: str, combo: dict[str, str], extra: list[str],
+         gpu: str | None) -> tuple[str, int, str | None]:
+  """(workdir, exit status, refusal): a run refused before any work (exit status 2) leaves no workdir behind
+  and gives its one-line refusal."""
+  fresh = not os.path.exists(workdir)
   os.makedirs(workdir, exist_ok=True)
+  log = os.path.join(workdir, "stdout.log")
   command = [sys.executable, "-m", "experiments.train", f"--task={task}", f"--workdir={workdir}",
              *(f"--{k}={v}" for k, v in combo.items()), *extra]
-  with open(os.path.join(workdir, "stdout.log"), "a") as out:
-    return workdir, subprocess.run(command, stdout=out, stderr=subprocess.STDOUT,
-                                   env=device_environment(gpu)).returncode
+  with open(log, "a") as out:
+    code = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, env=device_environment(gpu)).returncode
+  if code == 2 and fresh and os.listdir(workdir) == ["stdout.log"]:
+    with open(log) as f:
+      refusal = (f.read().strip().splitlines() or [""])[-1]
+    shutil.rmtree(workdir)
+    return workdir, code, refusal
+  return workdir, code, None
 
 
 def main(argv):
@@ -139,14 +151,21 @@ def main(argv):
   gpus = _GPUS.value or [None]
   if _GPUS.value is not None and not (all(_GPUS.value) and len(set(_GPUS.value)) == len(_GPUS.value)):
     cli.fail(f"--gpus={','.join(_GPUS.value)}: GPU ids must be distinct and non-empty")
+  try:
+    tasks.get(_TASK.value)
+  except ValueError as e:
+    cli.fail(f"--task: {e}")
   todo = pending(combos, _WORKDIR.value, seeds)
   print(f"{len(combos)} runs, {len(combos) - len(todo)} already done, {len(todo)} to run", flush=True)
   failed = []
-  for workdir, code in run_on_devices(todo, lambda wc, gpu: _run(_TASK.value, wc[0], wc[1], extra, gpu), gpus,
-                                      _PARALLEL.value):
-    print(f"{'done' if code == 0 else f'FAILED (exit {code})'}: {workdir}", flush=True)
-    if code:
+  for workdir, code, refusal in run_on_devices(todo, lambda wc, gpu: _run(_TASK.value, wc[0], wc[1], extra, gpu),
+                                               gpus, _PARALLEL.value):
+    print(f"{'done' if code == 0 else f'FAILED (exit {code})'}: {workdir}" + (f": {refusal}" if refusal else ""),
+          flush=True)
+    if code and not refusal:
       failed.append(workdir)
+    elif refusal:
+      failed.append(f"{workdir} (refused, nothing written)")
   if failed:
     print(f"{len(failed)} runs failed; see stdout.log in: {', '.join(failed)}", file=sys.stderr)
     sys.exit(1)

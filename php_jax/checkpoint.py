@@ -110,13 +110,20 @@ def _digest(data: bytes) -> str:
   return hashlib.sha256(data).hexdigest()
 
 
+def _model_digest(params: bytes, architecture: dict) -> str:
+  """The checksum model.json carries: of the parameters and of every other entry of model.json, so that
+  neither file can be edited, cut short or swapped for another run's unnoticed."""
+  described = json.dumps({k: v for k, v in architecture.items() if k != "sha256"}, sort_keys=True)
+  return _digest(params + described.encode())
+
+
 def _save(workdir: str, model, architecture: dict) -> None:
-  """model.msgpack, then model.json with the parameters' checksum (so a model.json never describes other
+  """model.msgpack, then model.json with the checksum of both (so a model.json never describes other
   parameters, even if a write is cut off between the two)."""
   params = serialization.msgpack_serialize(named_arrays(nnx.state(model, nnx.Param)))
   write_atomically(os.path.join(workdir, MODEL_FILE), params)
   write_atomically(os.path.join(workdir, ARCHITECTURE_FILE),
-                   json.dumps({**architecture, "sha256": _digest(params)}, indent=1).encode())
+                   json.dumps({**architecture, "sha256": _model_digest(params, architecture)}, indent=1).encode())
 
 
 def _spec_json(spec: HierarchySpec) -> dict:
@@ -205,8 +212,9 @@ def load_policy(workdir: str) -> tuple[str, PHPHierarchy | FlatLSTMPolicy]:
   task_name, kind, hidden, tau = _architecture(arch_path, architecture)
   with open(model_path, "rb") as f:
     params = f.read()
-  if architecture.get("sha256") != _digest(params):
-    raise CheckpointError(f"{model_path} does not match {arch_path} (checksum): corrupt, or from another run")
+  if architecture.get("sha256") != _model_digest(params, architecture):
+    raise CheckpointError(f"{model_path} does not match {arch_path} (checksum): edited, corrupt, from another "
+                          "run, or saved by an older php_jax (then train it again)")
   spec = _saved_spec(arch_path, architecture)
   if kind == "flat_lstm":
     model = FlatLSTMPolicy(spec.obs_dim, spec.action_sizes, hidden, rngs=nnx.Rngs(0))

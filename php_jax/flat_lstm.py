@@ -9,7 +9,6 @@ PHP training: the latest (or earliest) snapshot with the best validation accurac
 from __future__ import annotations
 
 import functools
-from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -102,16 +101,13 @@ def rollout_batch(policy: FlatLSTMPolicy, env, states, max_steps: int) -> execut
                           valid=valid, failed_action=failed_action)
 
 
-def train(policy: FlatLSTMPolicy, demos: Demonstration, iterations: int, learning_rate: float,
-          eval_every: int = 100, on_eval: Callable[[int], float] | None = None,
-          log: Callable[[dict], None] = print, snapshot: str = "latest") -> dict:
-  """Behaviour cloning: full-batch Adam on −mean log p(demonstration). Updates `policy` in place; keeps the
-  latest (snapshot="earliest": the earliest) snapshot with the best on_eval() score, else the final one.
-  Returns a report."""
+def train(policy: FlatLSTMPolicy, demos: Demonstration, schedule: fitting.Schedule,
+          hooks: fitting.Hooks = fitting.Hooks()) -> dict:
+  """Behaviour cloning: full-batch Adam on −mean log p(demonstration) (`fitting.fit`: the snapshot with the
+  best hooks.on_eval score is kept, else the final one). Updates `policy` in place. Returns a report."""
   observations, actions = jnp.asarray(demos.observations), jnp.asarray(demos.actions)
   length = jnp.asarray(demos.length)
   progress = fitting.fit(
-      policy, lambda model: -jnp.mean(jax.vmap(model.log_likelihood)(observations, actions, length)),
-      iterations, learning_rate, eval_every, on_eval=(lambda it, loss: on_eval(it)) if on_eval else None, log=log,
-      snapshot=snapshot)
+      policy, lambda model: -jnp.mean(jax.vmap(model.log_likelihood)(observations, actions, length)), schedule,
+      hooks)
   return {"losses": progress.losses, "best_iteration": progress.best_iteration, "validation": progress.best_score}

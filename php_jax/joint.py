@@ -65,9 +65,10 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   start = time.time()
   mesh = sharding.data_mesh()  # with more than one device, each bucket is split over all of them
   buckets = _buckets(demos, config.length_buckets, mesh)
+  schedule = fitting.Schedule(config.iterations, config.learning_rate, config.eval_every, config.snapshot)
+  hooks = fitting.Hooks((lambda it, loss: validate(hierarchy)) if validate else None, counted_log,
+                        save if checkpoint_path else None)
   progress = fitting.fit(hierarchy, lambda h, buckets: stack_loss(h, buckets, capacity, config.strong_weight),
-                         config.iterations, config.learning_rate, config.eval_every,
-                         (lambda it, loss: validate(hierarchy)) if validate else None, counted_log, resume,
-                         save if checkpoint_path else None, config.snapshot, args=(buckets,), mesh=mesh)
+                         schedule, hooks, resume, args=(buckets,), mesh=mesh)
   return hierarchy, {"capacity": list(capacity), "losses": progress.losses, "best_iteration": progress.best_iteration,
                      "validation": progress.best_score, "seconds": time.time() - start}

@@ -38,15 +38,14 @@ class LevelModel(nnx.Module):
     self.call_penalty = call_penalty
 
 
-def lattice_inputs(model: LevelModel, observations, actions, procedures, counters, length, capacity: int,
-                   used_capacity=None):
-  """One view → the lattice's inputs, annotated where procedures/counters are known.
-
-  observations [T+1, D], actions [T, F], procedures/counters [T] (UNKNOWN = −1), length [] →
-  (log_root [T, K], log_op, log_stop, log_cont [T, K, C]). With used_capacity [] int (≤ capacity), counters
-  ≥ used_capacity are masked out: the same lattice as with capacity = used_capacity, padded (seeds of
-  different capacities trained as one program, `php_jax.seeds`).
+def lattice_inputs(model: LevelModel, view: views.LevelView, capacity: int, used_capacity=None):
+  """One view (a LevelView without its batch axis: observations [T+1, D], actions [T, F], procedures and
+  counters [T] (UNKNOWN = −1), length []) → the lattice's inputs, annotated where procedures/counters are
+  known: (log_root [T, K], log_op, log_stop, log_cont [T, K, C]). With used_capacity [] int (≤ capacity),
+  counters ≥ used_capacity are masked out: the same lattice as with capacity = used_capacity, padded (seeds
+  of different capacities trained as one program, `train.train_seeds`).
   """
+  observations, actions, length = view.observations, view.actions, view.length
   tau = jnp.arange(capacity, dtype=jnp.float32)
   log_op = model.php.log_op(observations[:-1], tau, actions)
   z = model.php.termination_logits(observations[1:], tau)
@@ -59,16 +58,16 @@ def lattice_inputs(model: LevelModel, observations, actions, procedures, counter
     log_stop = lattice.top_level(log_stop, length)
   else:
     log_root = model.root(observations[:-1]) - model.call_penalty
-  return log_root, lattice.annotate(log_op, procedures, counters), log_stop, log_cont
+  return log_root, lattice.annotate(log_op, view.procedures, view.counters), log_stop, log_cont
 
 
 def view_log_likelihoods(model: LevelModel, batch: views.LevelView, capacity: int,
                          used_capacity=None) -> jax.Array:
   """[B] log P(ζ, ξ) for annotated views, log P(ξ) for the others."""
-  def one(obs, act, proc, tau, n):
-    return lattice.forward_backward(*lattice_inputs(model, obs, act, proc, tau, n, capacity, used_capacity),
-                                    length=n).log_likelihood
-  return jax.vmap(one)(batch.observations, batch.actions, batch.procedures, batch.counters, batch.length)
+  def one(view):
+    return lattice.forward_backward(*lattice_inputs(model, view, capacity, used_capacity),
+                                    length=view.length).log_likelihood
+  return jax.vmap(one)(batch)
 
 
 def level_loss(model: LevelModel, buckets: list[views.LevelView], capacity: int, strong_weight: float,
@@ -141,8 +140,8 @@ def decode(model: LevelModel, view: views.LevelView, capacity: int, method: str,
   [B, T] numpy."""
   batch = views.device_view(view)
 
-  def one(obs, act, proc, tau, n, k):
-    inputs = lattice_inputs(model, obs, act, proc, tau, n, capacity)
+  def one(view, k):
+    inputs, n = lattice_inputs(model, view, capacity), view.length
     if method == "viterbi":
       return lattice.viterbi(*inputs, length=n)
     if method == "sample":
@@ -150,6 +149,5 @@ def decode(model: LevelModel, view: views.LevelView, capacity: int, method: str,
     return lattice.max_marginal_path(lattice.forward_backward(*inputs, length=n), length=n)
 
   keys = jax.random.split(key, view.length.shape[0])
-  paths = jax.jit(jax.vmap(one))(batch.observations, batch.actions, batch.procedures, batch.counters,
-                                 batch.length, keys)
+  paths = jax.jit(jax.vmap(one))(batch, keys)
   return np.asarray(paths.procedure), np.asarray(paths.counter)

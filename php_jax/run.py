@@ -24,7 +24,7 @@ import jax
 from flax import nnx
 from jax.experimental import multihost_utils
 
-from php_jax import checkpoint, flat_lstm, joint, provenance, train
+from php_jax import checkpoint, fitting, flat_lstm, joint, provenance, train
 from php_jax.config import TrainConfig
 from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
@@ -89,12 +89,14 @@ def train_and_evaluate_seeds(experiments: list[Experiment], configs: list[TrainC
   level-wise as one program (`train.train_seeds`): seed s's run goes to workdir/seed=S with the files its
   separate run would write, its results.json also naming the seeds trained with it ("trained_with_seeds":
   its wall time and per-level seconds are those of the shared program); the progress of all is checkpointed
-  in workdir/seeds_checkpoint.msgpack and resumed from there. The run holds workdir's lock throughout."""
+  in workdir/seeds_checkpoint.msgpack and resumed from there. The run holds the locks of workdir and of every
+  seed's workdir throughout."""
   workdirs = [os.path.join(workdir, f"seed={c.seed}") for c in configs]
   configs = [train.with_strong_weight(c, e.demos) for c, e in zip(configs, experiments)]
   commit, spec = provenance.code_version(), experiments[0].spec
   with contextlib.ExitStack() as stack:
-    stack.enter_context(workdir_lock(workdir, wait))
+    for locked in (workdir, *workdirs):  # each seed's workdir too, as its separate run would
+      stack.enter_context(workdir_lock(locked, wait))
     clear_workdir(workdir, (SEEDS_CHECKPOINT,), overwrite)
     for run_dir in workdirs:
       clear_workdir(run_dir, RUN_FILES, overwrite)
@@ -247,8 +249,8 @@ def _train_flat_lstm(experiment: Experiment, config: TrainConfig, hidden: int, l
   learning rate, seed and snapshot rule."""
   spec = experiment.spec
   policy = flat_lstm.FlatLSTMPolicy(spec.obs_dim, spec.action_sizes, hidden, rngs=nnx.Rngs(config.seed))
-  report = flat_lstm.train(policy, experiment.demos, config.iterations, config.learning_rate, config.eval_every,
-                           on_eval=lambda iteration: experiment.validate(policy), log=log,
-                           snapshot=config.snapshot)
+  schedule = fitting.Schedule(config.iterations, config.learning_rate, config.eval_every, config.snapshot)
+  report = flat_lstm.train(policy, experiment.demos, schedule,
+                           fitting.Hooks(lambda iteration, loss: experiment.validate(policy), log))
   return policy, {"flat_lstm": {"hidden": hidden, "best_iteration": report["best_iteration"],
                                 "validation": report["validation"], "final_loss": report["losses"][-1][1]}}

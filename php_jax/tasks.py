@@ -18,8 +18,9 @@ def get(name: str) -> Task:
   if colon and module_name and attribute:
     try:
       task = getattr(importlib.import_module(module_name), attribute)
-    except (ImportError, AttributeError) as e:
-      raise ValueError(f"cannot load task {name!r}: {e}") from None
+    except Exception as e:  # whatever importing the user's module raises (a command's module: its flags clash)
+      raise ValueError(f"cannot load task {name!r}: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
+                       ) from None
     if isinstance(task, Task):
       return task
     raise ValueError(f"{name!r} is a {type(task).__name__}, not a php_jax Task")

@@ -27,12 +27,10 @@ from php_jax.objective import LevelModel, counter_capacity, decode, level_loss
 
 
 def train_level(model: LevelModel, view: views.LevelView, capacity: int, config: TrainConfig,
-                on_eval: Callable[[int, float], float | None] | None = None,
-                log: Callable[[dict], None] = print, resume: fitting.Progress | None = None,
-                save: Callable[[fitting.Progress], None] | None = None) -> fitting.Progress:
+                hooks: fitting.Hooks = fitting.Hooks(), resume: fitting.Progress | None = None) -> fitting.Progress:
   """Full-batch Adam on one level's EG loss over its views in length buckets (`fitting.fit`: snapshots,
-  saving, resuming). Updates `model` in place. The root level's strong weight is config.root_strong_weight
-  when set.
+  saving, resuming; hooks as fitting.fit takes them). Updates `model` in place. The root level's strong
+  weight is config.root_strong_weight when set.
 
   Below the root level, with config.strong_warmup = W (and both kinds of view present), iterations 1..W fit
   the strong views alone and W+1..W+config.iterations all of them: the weak views' posteriors then start
@@ -41,10 +39,11 @@ def train_level(model: LevelModel, view: views.LevelView, capacity: int, config:
   τ = step), so it has no warm-up.
 
   With more than one device, each length bucket is split over all of them (`sharding.data_mesh`)."""
-  level = LevelFit([model], [view], [capacity], [config], batched=False)
-  [progress] = level.fit((lambda it, losses: [on_eval(it, losses[0])]) if on_eval else None,
-                         lambda s, row: log(row), None if resume is None else [resume],
-                         (lambda progress: save(progress[0])) if save else None)
+  on_eval, log, save = hooks
+  many = fitting.Hooks((lambda it, losses: [on_eval(it, losses[0])]) if on_eval else None,
+                       lambda s, row: log(row), (lambda progress: save(progress[0])) if save else None)
+  [progress] = LevelFit([model], [view], [capacity], [config], batched=False).fit(
+      many, None if resume is None else [resume])
   return progress
 
 
@@ -66,33 +65,32 @@ class LevelFit:
                        "views at this level")
     self.warmup = warmups.pop()
 
-  def fit(self, on_eval, log: Callable[[int, dict], None], resume: list[fitting.Progress] | None,
-          save: Callable[[list[fitting.Progress]], None] | None) -> list[fitting.Progress]:
-    """The warm-up on the strong views (if any and not done), then every view; on_eval(iteration, losses) →
-    each seed's score or None, log(s, row), resume and save one Progress per seed (`fitting.fit_seeds`)."""
+  def fit(self, hooks: fitting.Hooks, resume: list[fitting.Progress] | None) -> list[fitting.Progress]:
+    """The warm-up on the strong views (if any and not done), then every view; hooks and resume as
+    `fitting.fit_seeds` takes them (one Progress per seed)."""
     if self.warmup and (resume is None or resume[0].iteration < self.warmup):
-      resume = self._fit([views.select(v, v.strong) for v in self.views], self.warmup, on_eval, log, resume, save)
-    return self._fit(self.views, self.warmup + self.configs[0].iterations, on_eval, log, resume, save)
+      resume = self._fit([views.select(v, v.strong) for v in self.views], self.warmup, hooks, resume)
+    return self._fit(self.views, self.warmup + self.configs[0].iterations, hooks, resume)
 
-  def _fit(self, parts: list[views.LevelView], iterations: int, on_eval, log, resume, save):
+  def _fit(self, parts: list[views.LevelView], iterations: int, hooks: fitting.Hooks,
+           resume: list[fitting.Progress] | None) -> list[fitting.Progress]:
     config, mesh = self.configs[0], sharding.data_mesh()
     weights = [level_strong_weight(c, self.is_root) for c in self.configs]
-    common = dict(iterations=iterations, learning_rate=config.learning_rate, eval_every=config.eval_every,
-                  snapshot=config.snapshot, mesh=mesh)
+    schedule = fitting.Schedule(iterations, config.learning_rate, config.eval_every, config.snapshot)
     if not self.batched:
       buckets = [views.device_view(b, mesh) for b in views.length_buckets(parts[0], config.length_buckets)]
-      capacity = self.capacities[0]
-      return [fitting.fit(self.models[0], lambda m, buckets: level_loss(m, buckets, capacity, weights[0]),
-                          on_eval=(lambda it, loss: on_eval(it, [loss])[0]) if on_eval else None,
-                          log=lambda row: log(0, row), resume=resume and resume[0],
-                          save=(lambda progress: save([progress])) if save else None, args=(buckets,), **common)]
+      capacity, (on_eval, log, save) = self.capacities[0], hooks
+      one = fitting.Hooks((lambda it, loss: on_eval(it, [loss])[0]) if on_eval else None, lambda row: log(0, row),
+                          (lambda progress: save([progress])) if save else None)
+      return [fitting.fit(self.models[0], lambda m, buckets: level_loss(m, buckets, capacity, weights[0]), schedule,
+                          one, resume and resume[0], args=(buckets,), mesh=mesh)]
     buckets = views.stack_seeds([views.length_buckets(p, config.length_buckets) for p in parts], mesh)
     weights, used = sharding.replicate((np.asarray(weights, np.float32), np.asarray(self.capacities, np.int32)),
                                        mesh)
     largest = max(self.capacities)
     return fitting.fit_seeds(self.models, lambda model, buckets, weight, used_capacity: level_loss(
-        model, buckets, largest, weight, used_capacity), on_eval=on_eval, log=log, resume=resume, save=save,
-        args=(buckets, weights, used), **common)
+        model, buckets, largest, weight, used_capacity), schedule, hooks, resume, args=(buckets, weights, used),
+        mesh=mesh)
 
 
 def level_strong_weight(config: TrainConfig, is_root: bool) -> float:
@@ -166,6 +164,10 @@ def run_settings(spec: HierarchySpec, demos: Demonstration, config: TrainConfig)
 _BEFORE_THEY_EXISTED = {"snapshot": "earliest"}  # settings whose default differs from what runs did before them
 
 
+_WHY = {"demonstrations": " (another seed, number of demonstrations or of annotated ones, or data file; the "
+                          "balanced strong_weight follows them)", "levels": " (another hierarchy)"}
+
+
 def check_resumable(path: str, saved_settings: dict, settings: dict) -> None:
   """Raises CheckpointError naming the settings that differ between a checkpoint and this run. A setting the
   checkpoint does not name (it predates the setting) counts as what runs did before it: its default, or
@@ -175,8 +177,8 @@ def check_resumable(path: str, saved_settings: dict, settings: dict) -> None:
   if saved_settings == settings:
     return
   old_config, new_config = saved_settings["config"], settings["config"]
-  differ = [f"{k}: {old_config.get(k)!r} there, {v!r} here" for k, v in new_config.items() if old_config.get(k) != v]
-  differ += [f"{k} differ" for k in ("levels", "demonstrations") if saved_settings.get(k) != settings[k]]
+  differ = [f"{k} differ{_WHY[k]}" for k in ("demonstrations", "levels") if saved_settings.get(k) != settings[k]]
+  differ += [f"{k}: {old_config.get(k)!r} there, {v!r} here" for k, v in new_config.items() if old_config.get(k) != v]
   raise checkpoint.CheckpointError(f"{path} was made with other settings ({'; '.join(differ) or 'unknown'}); "
                                    "use a fresh workdir, or --overwrite to start again")
 
@@ -322,11 +324,15 @@ def _train_levels(spec: HierarchySpec, demos: list[Demonstration], configs: list
           logs[s]({"level": level, "capacity": capacity, "view_length": int(view.length.max())})
       on_eval = ((lambda iteration, losses: [v(h) for v, h in zip(validate, hierarchies)])
                  if level == 0 and validate else None)
-      progress = fit.fit(on_eval, lambda s, row, level=level: logs[s]({"level": level, **row}), resume,
-                         (lambda progress, level=level: save(level, progress)) if store.path else None)
+      hooks = fitting.Hooks(on_eval, lambda s, row, level=level: logs[s]({"level": level, **row}),
+                            (lambda progress, level=level: save(level, progress)) if store.path else None)
+      progress = fit.fit(hooks, resume)
       for s in range(len(configs)):
-        reports[s][level] = finish_level(demos[s], level_views[s], level, models[s], fit.capacities[s],
-                                         configs[s], progress[s], decoded[s], start)
+        entry, frames = finish_level(demos[s], level_views[s], level, models[s], fit.capacities[s], configs[s],
+                                     progress[s])
+        if frames is not None:
+          decoded[s][level] = frames
+        reports[s][level] = {**entry, "seconds": time.time() - start}
       save(level - 1, None)  # the level is complete: its result survives a restart
     elif level == 0 and store.seed_paths:  # finished before: the seeds' own checkpoints may not all be written
       save(-1, None)
@@ -343,18 +349,19 @@ def level_model(spec: HierarchySpec, hierarchy: PHPHierarchy, level: int, config
 
 
 def finish_level(demos: Demonstration, view: views.LevelView, level: int, model: LevelModel, capacity: int,
-                 config: TrainConfig, progress: fitting.Progress, decoded: dict, start: float) -> dict:
-  """After a level's fit: decodes its weak views into decoded[level] (levels > 0); returns the level's report
-  entry (capacity, losses, snapshot, decoding agreement with the supervisor, seconds since `start`)."""
+                 config: TrainConfig, progress: fitting.Progress) -> tuple[dict, tuple | None]:
+  """After a level's fit: its report entry (capacity, losses, snapshot, decoding agreement with the
+  supervisor) and, for levels > 0, its view's frames (procedures, counters) [B, T]: annotated where the view
+  is strong, decoded where weak."""
   entry = {"capacity": capacity, "losses": progress.losses, "best_iteration": progress.best_iteration,
            "validation": progress.best_score}
-  if level > 0:
-    key = jax.random.fold_in(jax.random.key(config.seed), level)
-    procs, taus = decode(model, view, capacity, config.decode, key)
-    known = view.strong[:, None] & (view.procedures != UNKNOWN)  # a strong view's path follows its annotation
-    decoded[level] = (np.where(known, view.procedures, procs), np.where(known, view.counters, taus))
-    counts = agreement.agreement_counts(demos, view, level, *decoded[level])  # counted once for both measures
-    entry["decoding_agreement"] = agreement.exact_fraction(*counts)
-    entry["relabelled_agreement"] = agreement.relabelled_fraction(*counts)
-  entry["seconds"] = time.time() - start
-  return entry
+  if level == 0:
+    return entry, None
+  key = jax.random.fold_in(jax.random.key(config.seed), level)
+  procs, taus = decode(model, view, capacity, config.decode, key)
+  known = view.strong[:, None] & (view.procedures != UNKNOWN)  # a strong view's path follows its annotation
+  frames = (np.where(known, view.procedures, procs), np.where(known, view.counters, taus))
+  counts = agreement.agreement_counts(demos, view, level, *frames)  # counted once for both measures
+  entry["decoding_agreement"] = agreement.exact_fraction(*counts)
+  entry["relabelled_agreement"] = agreement.relabelled_fraction(*counts)
+  return entry, frames

@@ -13,7 +13,7 @@ import pytest
 from flax import nnx, serialization
 
 from experiments import plot, segmentation, sweep
-from php_jax import checkpoint, datasets, decoding, evaluation, flat_lstm, tasks, train, views
+from php_jax import checkpoint, datasets, decoding, evaluation, fitting, flat_lstm, tasks, train, views
 from php_jax.envs import nanocraft, nanocraft_task
 
 NANOCRAFT = tasks.get("nanocraft")
@@ -44,7 +44,7 @@ def test_flat_lstm_log_likelihood_matches_stepping_by_hand():
 def test_flat_lstm_clones_its_training_demonstrations_and_survives_saving(tmp_path):
   problems, demos = _demos(8)
   policy = flat_lstm.FlatLSTMPolicy(5, (5,), 32, rngs=nnx.Rngs(1))
-  report = flat_lstm.train(policy, demos, iterations=400, learning_rate=1e-2, eval_every=100, log=lambda r: None)
+  report = flat_lstm.train(policy, demos, fitting.Schedule(400, 1e-2, 100), fitting.Hooks(log=lambda r: None))
   assert report["losses"][-1][1] < 0.05 * report["losses"][0][1]
   outcomes = evaluation.solve(NANOCRAFT, policy, problems)
   assert np.mean([o["correct"] for o in outcomes]) >= 0.75  # its own training problems
@@ -105,7 +105,7 @@ def test_sweep_run_sees_only_its_gpu_without_preallocation(tmp_path, monkeypatch
                       subprocess.CompletedProcess(command, 0))
   monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "0,1,2,3")
   monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE", raising=False)
-  assert sweep._run("nanocraft", str(tmp_path / "a"), {"seed": "1"}, [], "2") == (str(tmp_path / "a"), 0)
+  assert sweep._run("nanocraft", str(tmp_path / "a"), {"seed": "1"}, [], "2") == (str(tmp_path / "a"), 0, None)
   sweep._run("nanocraft", str(tmp_path / "b"), {"seed": "2"}, [], None)
   assert envs[0]["CUDA_VISIBLE_DEVICES"] == "2" and envs[0]["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"
   assert envs[1]["CUDA_VISIBLE_DEVICES"] == "0,1,2,3" and "XLA_PYTHON_CLIENT_PREALLOCATE" not in envs[1]
@@ -218,12 +218,17 @@ def test_sweep_command_refuses_bad_flags_and_writes_nothing(tmp_path):
   for flags, message in [(["--grid=num_demos=16,x"], "num_demos values"), (["--parallel=0"], "parallel"),
                          (["--grid=seed=1", "--grid=seed=2"], "given twice"), (["--gpus=0,0"], "distinct"),
                          (["--seeds=1,x"], "distinct non-negative integers"),
-                         (["--seeds=1,2", "--grid=seed=3"], "give one of them")]:
+                         (["--seeds=1,2", "--grid=seed=3"], "give one of them"),
+                         (["--task=sorting"], "--task: unknown task 'sorting'")]:
     proc = subprocess.run([sys.executable, "-m", "experiments.sweep", "--task=nanocraft", f"--workdir={workdir}",
                            *flags], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, (
         flags, proc.stderr)
   assert not workdir.exists()
+  proc = subprocess.run([sys.executable, "-m", "experiments.sweep", "--task=nanocraft", f"--workdir={workdir}",
+                         "--grid=seed=1", "--", "--hidden="], capture_output=True, text=True, timeout=300)
+  assert proc.returncode == 1 and "seed=1: error: --hidden must list integers" in proc.stdout, proc.stdout
+  assert list(workdir.iterdir()) == []  # the refused run left no workdir
 
 
 def test_plot_names_a_corrupt_results_file(tmp_path):

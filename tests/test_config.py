@@ -1,5 +1,8 @@
 """Training settings written once: TrainConfig's checks, the flags generated from its fields, task overrides."""
 import dataclasses
+import pathlib
+import subprocess
+import sys
 
 import pytest
 from absl import flags
@@ -7,6 +10,8 @@ from absl import flags
 from experiments import config_flags
 from php_jax import config as config_lib
 from php_jax import tasks
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
 def _flags(*argv: str, defaults=lambda name, default: config_flags.default_text(default)) -> flags.FlagValues:
@@ -73,3 +78,12 @@ def test_config_errors_name_the_field():
     config_lib.check_levels(tasks.get("addition").spec, config)
   assert refused.value.field == "min_capacity"
   assert dataclasses.replace(config, min_capacity=(0, 4, 4)).min_capacity == (0, 4, 4)
+
+
+def test_help_exits_0_and_shows_every_setting():
+  proc = subprocess.run([sys.executable, "-m", "experiments.train", "--help"], capture_output=True, text=True,
+                        timeout=120, cwd=ROOT)
+  assert proc.returncode == 0, proc.stderr[-2000:]
+  for field in config_lib.fields():
+    assert f"--{field.name}:" in proc.stdout or f"--[no]{field.name}:" in proc.stdout, field.name
+  assert "2000 (bubblesort: 1000)" in proc.stdout

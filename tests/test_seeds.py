@@ -57,15 +57,15 @@ def test_each_seeds_loss_and_fit_inside_the_stacked_program_are_its_own():
   alone = []
   for model, view, capacity, config in zip(models(), level_views, capacities, configs):
     buckets = [views.device_view(view)]
-    progress = fitting.fit(model, lambda m, b: objective.level_loss(m, b, capacity, config.strong_weight), 3, 1e-2,
-                           1, log=lambda row: None, args=(buckets,))
+    progress = fitting.fit(model, lambda m, b: objective.level_loss(m, b, capacity, config.strong_weight),
+                           fitting.Schedule(3, 1e-2, 1), fitting.Hooks(log=lambda row: None), args=(buckets,))
     alone.append((progress.losses, model))
   stacked = views.stack_seeds([[v] for v in level_views])
   together_models = models()
   progress = fitting.fit_seeds(
-      together_models, lambda m, b, w, used: objective.level_loss(m, b, max(capacities), w, used), 3, 1e-2, 1,
-      log=lambda s, row: None, args=(stacked, np.asarray([c.strong_weight for c in configs], np.float32),
-                                     np.asarray(capacities, np.int32)))
+      together_models, lambda m, b, w, used: objective.level_loss(m, b, max(capacities), w, used),
+      fitting.Schedule(3, 1e-2, 1), fitting.Hooks(log=lambda s, row: None),
+      args=(stacked, np.asarray([c.strong_weight for c in configs], np.float32), np.asarray(capacities, np.int32)))
   for (losses, model), p, together in zip(alone, progress, together_models):
     np.testing.assert_allclose([l for _, l in p.losses], [l for _, l in losses], rtol=1e-5)
     for a, b in zip(_params(model), _params(together)):

@@ -66,8 +66,9 @@ out["level_real"] = [np.asarray(b.real).tolist() for b in many]
 
 def fit(buckets, mesh):
   model = level_model()
-  progress = fitting.fit(model, lambda m, b: objective.level_loss(m, b, capacity, config.strong_weight), 10,
-                         1e-2, 5, log=lambda row: None, args=(buckets,), mesh=mesh)
+  progress = fitting.fit(model, lambda m, b: objective.level_loss(m, b, capacity, config.strong_weight),
+                         fitting.Schedule(10, 1e-2, 5), fitting.Hooks(log=lambda row: None), args=(buckets,),
+                         mesh=mesh)
   return progress.losses, jax.tree.leaves(nnx.state(model, nnx.Param))
 (losses_1, params_1), (losses_4, params_4) = fit(one, None), fit(many, mesh)
 out["fit_losses"] = [losses_1, losses_4]
@@ -80,8 +81,9 @@ two_capacity = max(train.level_capacity(v, level, config) for v in two_views)
 def fit_seeds(mesh):
   buckets = views.stack_seeds([views.length_buckets(v, 1) for v in two_views], mesh)
   progress = fitting.fit_seeds([level_model(), level_model()],
-                               lambda m, b: objective.level_loss(m, b, two_capacity, config.strong_weight), 10,
-                               1e-2, 5, log=lambda s, row: None, args=(buckets,), mesh=mesh)
+                               lambda m, b: objective.level_loss(m, b, two_capacity, config.strong_weight),
+                               fitting.Schedule(10, 1e-2, 5), fitting.Hooks(log=lambda s, row: None),
+                               args=(buckets,), mesh=mesh)
   return [p.losses for p in progress], buckets
 (out["seeds_losses_1"], _), (out["seeds_losses_4"], buckets) = fit_seeds(None), fit_seeds(mesh)
 out["seeds_shards"] = [[int(s.data.shape[1]) for s in x.addressable_shards] for x in jax.tree.leaves(buckets[0])]

@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 from flax import struct
 
-from php_jax import checkpoint, datasets, demos, evaluation, objective, tasks, train, views
+from php_jax import checkpoint, datasets, demos, evaluation, fitting, objective, tasks, train, views
 from php_jax import config as config_lib
+from php_jax import run
 from php_jax.hierarchy import HierarchySpec
 from php_jax.task import Task, TrainingDefaults
 
@@ -98,7 +99,7 @@ def test_a_task_defined_outside_the_library_demonstrates_and_trains_one_level():
   config = train.TrainConfig(iterations=60, eval_every=30, hidden=(8,), root="mlp", root_hidden=8,
                              learning_rate=3e-2, strong_weight=1.0)
   model = objective.LevelModel(train.make_hierarchy(SPEC, config).levels[2], train.make_root(SPEC, 2, config))
-  progress = train.train_level(model, view, 2, config, log=lambda row: None)
+  progress = train.train_level(model, view, 2, config, fitting.Hooks(log=lambda row: None))
   assert progress.losses[-1][1] < progress.losses[0][1]
   assert evaluation.accuracy(COUNTDOWN, COUNTDOWN.oracle, [1, 3, 5]) == 1.0
   assert tasks.get("tests.test_task_interface:COUNTDOWN") is COUNTDOWN
@@ -159,11 +160,14 @@ def test_a_workdir_made_with_other_settings_is_refused_until_overwrite(tmp_path)
           f"--workdir={workdir}", "--num_strong=2", "--root=mlp", "--iterations=20", "--eval_every=10"]
   first = subprocess.run(base, capture_output=True, text=True, timeout=600, cwd=ROOT)
   assert first.returncode == 0, first.stderr[-3000:]
-  before = {p.name: p.read_bytes() for p in workdir.iterdir()}
+  def files():  # but the lock, which the refused run held (its pid in it)
+    return {p.name: p.read_bytes() for p in workdir.iterdir() if p.name != run.LOCK_FILE}
+
+  before = files()
   proc = subprocess.run(base + ["--iterations=30"], capture_output=True, text=True, timeout=600, cwd=ROOT)
   assert proc.returncode == 2 and "iterations: 20 there, 30 here" in proc.stderr, proc.stderr[-2000:]
   assert proc.stderr.count("\n") == 1 and "--overwrite" in proc.stderr
-  assert {p.name: p.read_bytes() for p in workdir.iterdir()} == before  # nothing written
+  assert files() == before  # nothing written
   again = subprocess.run(base + ["--iterations=30", "--overwrite"], capture_output=True, text=True, timeout=600,
                          cwd=ROOT)
   assert again.returncode == 0, again.stderr[-3000:]

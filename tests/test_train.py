@@ -52,7 +52,8 @@ def test_level_loss_is_the_complete_data_log_likelihood_for_strong_views():
   direct = []
   for b in range(2):
     none = -jnp.ones_like(batch.procedures[b])
-    inputs = objective.lattice_inputs(model, batch.observations[b], batch.actions[b], none, none, batch.length[b], 4)
+    one = jax.tree.map(lambda x: x[b], batch)._replace(procedures=none, counters=none)
+    inputs = objective.lattice_inputs(model, one, 4)
     direct.append(lattice.complete_log_likelihood(*inputs, batch.procedures[b], batch.counters[b], batch.length[b]))
   np.testing.assert_allclose(loss, -np.mean(direct), rtol=1e-5)
 
@@ -121,6 +122,9 @@ def test_corrupt_or_mismatched_saved_files_are_refused_naming_the_file(tmp_path)
   for name, content, message in [
       ("model.msgpack", bytes(flipped), "does not match"), ("model.msgpack", params[:len(params) // 2], "does not match"),
       ("model.json", json.dumps({**architecture, "hidden": [16]}), "does not match|needs"),
+      ("model.json", json.dumps({**architecture, "capacity": [1]}), "does not match"),
+      ("model.json", json.dumps({**architecture, "spec": {**architecture["spec"], "action_sizes": [2 ** 40]}}),
+       "does not match"),
       ("model.json", description[:20], "corrupt or truncated JSON"), ("model.json", "[]", "not a model description")]:
     original = (workdir / name).read_bytes()
     (workdir / name).write_bytes(content.encode() if isinstance(content, str) else content)
@@ -129,9 +133,10 @@ def test_corrupt_or_mismatched_saved_files_are_refused_naming_the_file(tmp_path)
     (workdir / name).write_bytes(original)
   wider = train.make_hierarchy(NANOCRAFT.spec, dataclasses.replace(config, hidden=(16,)))
   checkpoint.save_hierarchy(str(tmp_path / "wide"), "nanocraft", wider, (16,))
-  (workdir / "model.msgpack").write_bytes((tmp_path / "wide" / "model.msgpack").read_bytes())
-  (workdir / "model.json").write_text(json.dumps({**architecture, "sha256": json.loads(
-      (tmp_path / "wide" / "model.json").read_text())["sha256"]}))  # a consistent checksum, other shapes
+  wide_params = (tmp_path / "wide" / "model.msgpack").read_bytes()
+  (workdir / "model.msgpack").write_bytes(wide_params)
+  (workdir / "model.json").write_text(json.dumps({**architecture, "sha256": checkpoint._model_digest(
+      wide_params, architecture)}))  # a consistent checksum, other shapes
   with pytest.raises(checkpoint.CheckpointError, match=r"is float32\[.*16.*the model needs"):
     checkpoint.load_policy(str(workdir))
   path = tmp_path / "checkpoint.msgpack"
@@ -265,7 +270,7 @@ def test_strong_warmup_fits_the_strong_views_alone_first():
   def trained(part, **changes):
     model = objective.LevelModel(train.make_hierarchy(NANOCRAFT.spec, config).levels[2],
                              train.make_root(NANOCRAFT.spec, 2, config))
-    train.train_level(model, part, 2, dataclasses.replace(config, **changes), log=lambda row: None)
+    train.train_level(model, part, 2, dataclasses.replace(config, **changes), fitting.Hooks(log=lambda row: None))
     return jax.tree.leaves(nnx.state(model, nnx.Param))
 
   strong_only = trained(views.select(view, view.strong), iterations=30)
@@ -295,16 +300,16 @@ def test_call_penalty_is_a_prior_on_the_number_of_calls():
   php, root = train.make_hierarchy(NANOCRAFT.spec, config).levels[2], train.make_root(NANOCRAFT.spec, 2, config)
   capacity, penalty = train.level_capacity(view, 2, config), 1.5
   for b in range(view.length.shape[0]):
-    obs, act, proc, tau, n = (x[b] for x in (view.observations, view.actions, view.procedures, view.counters,
-                                             view.length))
-    free = objective.lattice_inputs(objective.LevelModel(php, root), obs, act, proc, tau, n, capacity)
-    penalised = objective.lattice_inputs(objective.LevelModel(php, root, penalty), obs, act, proc, tau, n, capacity)
+    one = jax.tree.map(lambda x: x[b], view)
+    n = one.length
+    free = objective.lattice_inputs(objective.LevelModel(php, root), one, capacity)
+    penalised = objective.lattice_inputs(objective.LevelModel(php, root, penalty), one, capacity)
 
     def log_likelihood(cost):
       return lattice.forward_backward(free[0] - cost, *free[1:], length=n).log_likelihood
 
     if view.strong[b]:  # one known path: its log-likelihood drops by the penalty once per call
-      calls = np.sum(np.asarray(tau[:n]) == 0)
+      calls = np.sum(np.asarray(one.counters[:n]) == 0)
       np.testing.assert_allclose(log_likelihood(penalty), log_likelihood(0.0) - penalty * calls, rtol=1e-5)
     else:  # d/dλ log Σ_ζ P(ζ, ξ) e^(−λ·calls(ζ)) = −E[calls | ξ] under the penalised posterior
       posterior = lattice.forward_backward(*penalised, length=n)
@@ -328,20 +333,21 @@ def test_fit_keeps_the_earliest_or_latest_of_the_best_validated_snapshots(rule, 
     snapshots[iteration] = np.asarray(model.kernel[...]).copy()
     return next(scores)
 
-  progress = fitting.fit(model, lambda m: jnp.sum(m(jnp.ones((1, 2))) ** 2), 40, 0.1, 10, on_eval,
-                         log=lambda row: None, snapshot=rule)
+  progress = fitting.fit(model, lambda m: jnp.sum(m(jnp.ones((1, 2))) ** 2), fitting.Schedule(40, 0.1, 10, rule),
+                         fitting.Hooks(on_eval, lambda row: None))
   assert progress.best_iteration == kept and progress.best_score == 1.0
   np.testing.assert_array_equal(model.kernel[...], snapshots[kept])
   with pytest.raises(ValueError, match="snapshot must be one of"):
-    fitting.fit(model, lambda m: jnp.sum(m(jnp.ones((1, 2)))), 1, 0.1, 1, snapshot="best")
+    fitting.fit(model, lambda m: jnp.sum(m(jnp.ones((1, 2)))), fitting.Schedule(1, 0.1, 1, "best"))
 
 
 def test_fit_saves_by_time_between_evaluations_and_resumes_from_there():
   def run(resume=None, saves=None):
     model = nnx.Linear(2, 1, rngs=nnx.Rngs(0))
-    progress = fitting.fit(model, lambda m: jnp.sum((m(jnp.ones((1, 2))) - 3.0) ** 2), 40, 0.1, 10,
-                           log=lambda row: None, resume=resume, save=saves.append if saves is not None else None,
-                           save_seconds=0.0)
+    progress = fitting.fit(model, lambda m: jnp.sum((m(jnp.ones((1, 2))) - 3.0) ** 2),
+                           fitting.Schedule(40, 0.1, 10, save_seconds=0.0),
+                           fitting.Hooks(log=lambda row: None, save=saves.append if saves is not None else None),
+                           resume=resume)
     return progress, model
 
   saves = []
