@@ -1,8 +1,5 @@
-"""Problem files (JSON lines) for `experiments.evaluate`: parsing with line-numbered errors, and checking
-where the outcomes go."""
+"""Problem files (JSON lines) for `experiments.evaluate`: parsing with line-numbered errors."""
 from __future__ import annotations
-
-import os
 
 from php_jax import json_lines
 from php_jax.task import Task
@@ -10,19 +7,6 @@ from php_jax.task import Task
 
 class ProblemFileError(ValueError):
   """A malformed problem line (the message starts with 'PATH:LINE:'), or a file without problems."""
-
-
-def check_out(problems: str, out: str, input_flag: str = "problems") -> None:
-  """Raises ValueError naming --out if the outcomes could not be written there: a directory, a file in a
-  missing directory, or the input file itself (the --input_flag one)."""
-  if os.path.isdir(out):
-    raise ValueError(f"--out={out} is a directory")
-  directory = os.path.dirname(os.path.abspath(out))
-  if not os.path.isdir(directory):
-    raise ValueError(f"--out={out}: directory {directory} does not exist")
-  if os.path.realpath(out) == os.path.realpath(problems) or (
-      os.path.exists(out) and os.path.exists(problems) and os.path.samefile(out, problems)):
-    raise ValueError(f"--out={out} is the input file --{input_flag}={problems}")
 
 
 def read_problems(path: str, task: Task) -> list:

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import pytest
 from flax import struct
 
+from experiments import cli
 from experiments import problems as problem_files
 from php_jax import evaluation, tasks
 from php_jax.envs import addition, bubblesort_task, nanocraft_task
@@ -69,12 +70,15 @@ def test_unusable_out_paths_are_refused(tmp_path):
   problems.write_text("")
   (tmp_path / "link.jsonl").symlink_to(problems)
   (tmp_path / "hard.jsonl").hardlink_to(problems)
+  inputs = {"problems": str(problems)}
   for out, message in [(tmp_path, "is a directory"), (tmp_path / "missing" / "out.jsonl", "does not exist"),
-                       (problems, "is the input file"), (tmp_path / "link.jsonl", "is the input file"),
-                       (tmp_path / "hard.jsonl", "is the input file")]:
+                       (problems, "is the input file --problems="), (tmp_path / "link.jsonl", "is the input file"),
+                       (tmp_path / "hard.jsonl", "is the input file"), ("", "--out: must name a file")]:
     with pytest.raises(ValueError, match=message):
-      problem_files.check_out(str(problems), str(out))
-  problem_files.check_out(str(problems), str(tmp_path / "out.jsonl"))
+      cli.check_outputs({"out": str(out)}, inputs)
+  cli.check_outputs({"out": str(tmp_path / "out.jsonl"), "log": None}, inputs)
+  with pytest.raises(ValueError, match="--log=.*is the same file as --out="):
+    cli.check_outputs({"out": str(tmp_path / "o.jsonl"), "log": str(tmp_path / "o.jsonl")}, inputs)
 
 
 def test_malformed_line_exits_2_with_line_number_and_writes_nothing(tmp_path):
