@@ -17,6 +17,7 @@ from typing import Any, Callable, Protocol
 import jax
 
 from php_jax.hierarchy import HierarchySpec, Policy
+from php_jax.json_lines import shown
 
 Problem = Any
 
@@ -26,7 +27,7 @@ def check_keys(obj: dict, known: tuple[str, ...], kind: str = "problem") -> None
   object not in known."""
   for key in obj:
     if key not in known:
-      raise ValueError(f"unknown key {key!r}; a {kind} has {', '.join(map(repr, known))}")
+      raise ValueError(f"unknown key {shown(key)}; a {kind} has {', '.join(map(repr, known))}")
 
 
 class Environment(Protocol):

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from php_jax.envs import addition, addition_oracle
+from php_jax.json_lines import shown
 from php_jax.task import Task, TrainingDefaults, check_keys
 
 TRAINING_LENGTHS = tuple(range(1, 11))
@@ -92,14 +93,11 @@ def parse_problem(obj: dict) -> tuple[str, str]:
     raise ValueError(f'"a" and "b" may have at most {_MAX_DIGITS} digits (tapes of 2^20 columns); got '
                      f'{len(a)} and {len(b)}')
   if not (a.isascii() and a.isdigit() and b.isascii() and b.isdigit()):
-    raise ValueError(f'"a" and "b" must be non-empty strings of decimal digits; got {_shown(a)}, {_shown(b)}')
+    raise ValueError(f'"a" and "b" must be non-empty strings of decimal digits; got {shown(a)}, {shown(b)}')
   if len(a) != len(b):
     raise ValueError(f'"a" and "b" must have the same number of digits; got {len(a)} and {len(b)}')
   return a, b
 
-
-def _shown(text: str) -> str:
-  return repr(text) if len(text) <= 40 else f"{text[:32]!r}... ({len(text)} characters)"
 
 
 def outcome(problem: tuple[str, str], final_state: addition.State) -> tuple[dict, bool]:

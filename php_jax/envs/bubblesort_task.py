@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from php_jax.envs import bubblesort, bubblesort_oracle
+from php_jax.json_lines import shown
 from php_jax.task import Task, TrainingDefaults, check_keys
 
 TRAINING_LENGTHS = tuple(range(2, 10))
@@ -70,13 +71,9 @@ def parse_problem(obj: dict) -> tuple[int, ...]:
                      f'overflows 32-bit step counts); got {len(array)}')
   for position, d in enumerate(array):
     if not (isinstance(d, int) and not isinstance(d, bool) and 0 <= d <= 9):
-      raise ValueError(f'"array" entries must be digits 0-9; entry {position} is {_shown(d)}')
+      raise ValueError(f'"array" entries must be digits 0-9; entry {position} is {shown(d)}')
   return tuple(array)
 
-
-def _shown(value) -> str:
-  text = repr(value)
-  return text if len(text) <= 40 else f"{text[:32]}... ({len(text)} characters)"
 
 
 def outcome(problem: tuple[int, ...], final_state: bubblesort.State) -> tuple[dict, bool]:

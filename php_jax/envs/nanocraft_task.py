@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from php_jax.envs import nanocraft, nanocraft_oracle
+from php_jax.json_lines import shown
 from php_jax.task import Task, TrainingDefaults, check_keys
 
 Problem = tuple[int, int, int, int, list]
@@ -49,16 +50,12 @@ def parse_problem(obj: dict) -> Problem:
     raise ValueError('"preplaced" must be a list of [row, col] pairs')
   for cell in preplaced:
     if not (isinstance(cell, list) and len(cell) == 2 and all(_is_int(v) for v in cell)):
-      raise ValueError(f'"preplaced" entries must be [row, col] integer pairs; got {_shown(cell)}')
+      raise ValueError(f'"preplaced" entries must be [row, col] integer pairs; got {shown(cell)}')
   if len({tuple(c) for c in preplaced}) != len(preplaced):
     raise ValueError('"preplaced" lists a cell twice')
   nanocraft.make_problem(x, y, w, h, preplaced)  # raises if the building or a cell does not fit
   return x, y, w, h, preplaced
 
-
-def _shown(value) -> str:
-  text = repr(value)
-  return text if len(text) <= 40 else f"{text[:32]}... ({len(text)} characters)"
 
 
 def outcome(problem: Problem, final_state: nanocraft.State) -> tuple[dict, bool]:
