@@ -4,11 +4,13 @@ __version__ = "0.1.0"  # the one place the version is set (pyproject.toml reads 
 from php_jax.lattice import (NO_FRAME, LatticeInputs, LatticePath, LatticePosterior, annotate,
                              complete_log_likelihood, forward_backward, max_marginal_path, posterior_entropy,
                              sample_posterior, top_level, validate_inputs, viterbi)
-from php_jax.lattice_ops import (LatticeFilter, cross_entropy, differentiable_sample, forward_filter,
-                                 kl_divergence, top_k)
-from php_jax.stack_lattice import StackInputs, StackPath, StackPosterior  # functions: php_jax.stack_lattice.*
+from php_jax.lattice_ops import (LatticeFilter, TwoLevelLattice, cross_entropy, differentiable_sample,
+                                 forward_filter, kl_divergence, top_k)
+# The stack's functions share the two-level ones' names: php_jax.stack_lattice.*, or php_jax.StackLattice.
+from php_jax.stack_lattice import StackInputs, StackLattice, StackPath, StackPosterior
 
 __all__ = ["NO_FRAME", "LatticeFilter", "LatticeInputs", "LatticePath", "LatticePosterior", "StackInputs",
-           "StackPath", "StackPosterior", "annotate", "complete_log_likelihood", "cross_entropy",
-           "differentiable_sample", "forward_backward", "forward_filter", "kl_divergence", "max_marginal_path",
-           "posterior_entropy", "sample_posterior", "top_k", "top_level", "validate_inputs", "viterbi"]
+           "StackLattice", "StackPath", "StackPosterior", "TwoLevelLattice", "annotate", "complete_log_likelihood",
+           "cross_entropy", "differentiable_sample", "forward_backward", "forward_filter", "kl_divergence",
+           "max_marginal_path", "posterior_entropy", "sample_posterior", "top_k", "top_level", "validate_inputs",
+           "viterbi"]

@@ -21,13 +21,31 @@ transcendental functions, Viterbi needs one backpointer per step, and posterior 
 forward-filter backward-sample. The forward carry is renormalised every step, so float32 stays accurate on
 traces of 10,000 steps with large logits; −inf masks give exact zeros, never NaN.
 
-Dtypes: float32 and float64 inputs are computed in their own dtype. float16 and bfloat16 inputs are computed
-in float32 and the results are float32 (a long trace's log-likelihood is beyond float16's range, −65,504,
-and the recursions' sums need more than its 3 significant digits); gradients with respect to the inputs come
-back in the inputs' dtype.
+One dialect for both lattices (this one and php_jax.stack_lattice's whole call stack): every E-step function
+takes its lattice as one inputs object, LatticeInputs here (f(inputs, ...) is f(log_root, log_op, log_stop,
+log_cont, length, ...): the arguments after it fill the function's other parameters in order), and an
+annotation as `procedures`, `counters` (int, −1 = unknown; [T] here, [T, d] for the stack; pass them by
+keyword); results name the frame marginals `marginals`, a path's frames `procedures`, `counters` and its
+log P(ζ, ξ) `log_prob` (here aliases of v, procedure, counter). `php_jax.TwoLevelLattice(inputs, procedures,
+counters)` (php_jax.lattice_ops) answers the same queries as `php_jax.StackLattice`.
+
+Refused, with a ValueError naming the argument: shapes that do not match, a length that is not an integer
+in 1..T, a temperature that is not a finite number > 0, an annotation that is not an integer array of the
+right shape or, when concrete, has a value outside −1..K−1 / −1..C−1 on a step before length. Under jit or
+vmap only shapes and dtypes are checked: a traced length outside 1..T or a traced temperature ≤ 0 gives a
+meaningless result, and a traced annotation value out of range matches nothing (validate_inputs checks the
+lattice's values before you jit). Arrays of different float dtypes are not refused (Dtypes).
+
+Dtypes: float32 and float64 inputs are computed in their own dtype, arrays of different dtypes in the
+promoted one. float16 and bfloat16 inputs are computed in float32 and the results are float32 (a long
+trace's log-likelihood is beyond float16's range, −65,504, and the recursions' sums need more than its 3
+significant digits); gradients with respect to the inputs come back in the inputs' dtype.
 """
 from __future__ import annotations
 
+import dataclasses
+import functools
+import inspect
 from typing import Any, NamedTuple
 
 import jax
@@ -38,8 +56,8 @@ NO_FRAME = -1  # procedure / counter value of padding steps in a LatticePath.
 
 
 class LatticeInputs(NamedTuple):
-  """One demonstration's lattice, the five arguments of every E-step function in order, so that
-  `forward_backward(*inputs)`, `viterbi(*inputs)`, `sample_posterior(key, *inputs)` ... take it unpacked.
+  """One demonstration's lattice, the five arguments of every E-step function in order: pass it whole,
+  `forward_backward(inputs)`, or unpacked, `forward_backward(*inputs)`.
 
   Attributes:
     log_root: [T, K]. log_op, log_stop, log_cont: [T, K, C]. length: [] int or None (= T). (Module docstring.)
@@ -56,38 +74,182 @@ class LatticePosterior(NamedTuple):
 
   Attributes:
     log_likelihood: [] log P(ξ), up to the causal dynamics factor; −inf if no path is possible.
-    v: [T, K, C] P(h_t = h, τ_t = τ | ξ); zero on padding.
+    v: [T, K, C] P(h_t = h, τ_t = τ | ξ); zero on padding. Also `marginals`, the stack lattice's name.
     w: [T, K, C] P(h_t = h, τ_t = τ, τ_{t+1} = τ + 1 | ξ); zero on padding and at the last step.
   """
   log_likelihood: jax.Array
   v: jax.Array
   w: jax.Array
 
+  @property
+  def marginals(self) -> jax.Array:
+    """[T, K, C] v, the frame marginals."""
+    return self.v
+
 
 class LatticePath(NamedTuple):
   """One latent path through the lattice.
 
   Attributes:
-    procedure: [T] int32 h_t, NO_FRAME on padding.
-    counter: [T] int32 τ_t, NO_FRAME on padding.
+    procedure: [T] int32 h_t, NO_FRAME on padding. Also `procedures`, the stack lattice's name.
+    counter: [T] int32 τ_t, NO_FRAME on padding. Also `counters`.
     log_prob: [] log P(ζ, ξ) of the path (its complete-data log-likelihood).
   """
   procedure: jax.Array
   counter: jax.Array
   log_prob: jax.Array
 
+  @property
+  def procedures(self) -> jax.Array:
+    """[T] procedure, named as an annotation: `forward_backward(inputs, path.procedures, path.counters)`."""
+    return self.procedure
+
+  @property
+  def counters(self) -> jax.Array:
+    """[T] counter."""
+    return self.counter
+
+
+def accepts_inputs(fn):
+  """Lets fn, whose parameters include the five lattice arrays log_root .. length, take one LatticeInputs in
+  log_root's place: the positional arguments after it fill fn's other parameters in order, so that
+  complete_log_likelihood(inputs, procedure, counter) is complete_log_likelihood(*inputs[:4], procedure,
+  counter, inputs.length)."""
+  names = list(inspect.signature(fn).parameters)
+  first = names.index("log_root")
+  others = [name for name in names[first:] if name not in LatticeInputs._fields]
+
+  @functools.wraps(fn)
+  def wrapped(*args, **kwargs):
+    if len(args) <= first or not isinstance(args[first], LatticeInputs):
+      return fn(*args, **kwargs)
+    rest = args[first + 1:]
+    if len(rest) > len(others):
+      raise TypeError(f"{fn.__name__} takes at most {len(others)} positional arguments after a LatticeInputs "
+                      f"({', '.join(others)}); got {len(rest)}")
+    return fn(*args[:first], **args[first]._asdict(), **dict(zip(others, rest)), **kwargs)
+
+  return wrapped
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class LatticeStructure:
+  """Base of php_jax.TwoLevelLattice and php_jax.StackLattice: one demonstration's lattice and annotation, a
+  frozen pytree (it passes through jit and vmap; batch by building it inside vmap). Built once: construction
+  checks shapes and dtypes, and values when concrete (module docstring); jit and vmap rebuild it unchecked.
+
+  Attributes:
+    inputs: the lattice (LatticeInputs or StackInputs).
+    procedures, counters: the annotation, int, −1 = unknown, or None.
+  """
+  inputs: Any
+  procedures: Any = None
+  counters: Any = None
+
+  def __init_subclass__(cls, **kwargs):
+    super().__init_subclass__(**kwargs)
+    jax.tree_util.register_pytree_node_class(cls)
+
+  def __post_init__(self):
+    for name, value in zip(("inputs", "procedures", "counters"), self._checked()):
+      object.__setattr__(self, name, value)
+
+  def _checked(self):
+    """(inputs, procedures, counters) checked and as arrays; raises ValueError naming the argument."""
+    raise NotImplementedError
+
+  def _same_kind(self, other):
+    """other, refused unless it is a structure of this kind (for kl_divergence and cross_entropy)."""
+    if type(other) is not type(self):
+      raise ValueError(f"other must be a {type(self).__name__}; got a {type(other).__name__}")
+    return other
+
+  def tree_flatten(self):
+    return (self.inputs, self.procedures, self.counters), None
+
+  @classmethod
+  def tree_unflatten(cls, _, children):
+    structure = object.__new__(cls)
+    for name, value in zip(("inputs", "procedures", "counters"), children):
+      object.__setattr__(structure, name, value)
+    return structure
+
 
 _HALF_PRECISION = (jnp.dtype(jnp.float16), jnp.dtype(jnp.bfloat16))
 
 
-def _in_float32(*arrays):
-  """The arrays, float16 and bfloat16 ones cast to float32 (module docstring, Dtypes): the public E-step
-  functions compute in at least float32. The cast's gradient returns cotangents in the caller's dtype."""
-  return tuple(x.astype(jnp.float32) if getattr(x, "dtype", None) in _HALF_PRECISION else x for x in arrays)
+def _in_common_dtype(*arrays):
+  """The arrays cast to their common (promoted) dtype, float16 and bfloat16 to float32 (module docstring,
+  Dtypes): the public E-step functions compute in one dtype of at least float32. The cast's gradient returns
+  cotangents in the caller's dtype."""
+  typed = [x for x in arrays if hasattr(x, "dtype")]
+  if not typed:
+    return arrays
+  dtype = jnp.result_type(*typed)
+  dtype = jnp.dtype(jnp.float32) if dtype in _HALF_PRECISION else dtype
+  return tuple(x.astype(dtype) if hasattr(x, "dtype") and x.dtype != dtype else x for x in arrays)
+
+
+def check_length(length, num_steps: int):
+  """Refuses a length that is not an integer scalar (bool and float are not) or, when concrete, is outside
+  1..T, with a message naming it. Returns the length as an int32 array (T if None)."""
+  if length is None:
+    return jnp.asarray(num_steps, jnp.int32)
+  dtype = getattr(length, "dtype", None)
+  integer = (isinstance(length, int) and not isinstance(length, bool)) or (
+      dtype is not None and jnp.ndim(length) == 0 and jnp.issubdtype(dtype, jnp.integer))
+  if not integer:
+    shown = f"an array of shape {jnp.shape(length)}" if jnp.ndim(length) else repr(length)
+    raise ValueError(f"length must be an integer in 1..T = 1..{num_steps}; got {shown}")
+  if not isinstance(length, jax.core.Tracer) and not 1 <= int(length) <= num_steps:
+    raise ValueError(f"length must be in 1..T = 1..{num_steps}; got {int(length)}")
+  return jnp.asarray(length, jnp.int32)
+
+
+def check_temperature(temperature):
+  """Refuses a temperature that is not a scalar real number or, when concrete, not finite and > 0."""
+  dtype = jnp.result_type(temperature) if not isinstance(temperature, bool) else jnp.dtype(bool)
+  real = jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)
+  if not real or jnp.ndim(temperature) != 0 or (
+      not isinstance(temperature, jax.core.Tracer) and not (np.isfinite(temperature) and temperature > 0)):
+    shown = f"an array of shape {jnp.shape(temperature)}" if jnp.ndim(temperature) else repr(temperature)
+    raise ValueError(f"temperature must be a finite number > 0; got {shown}")
+
+
+def check_k(k) -> int:
+  """k as an int; refuses one that is not an integer ≥ 1 (bool is not)."""
+  if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+    raise ValueError(f"k must be an int ≥ 1; got {k!r}")
+  return int(k)
+
+
+def check_annotation(name: str, values, shape: tuple, bounds, length=None):
+  """Refuses an annotation that is not an integer array of `shape` or, when concrete, has a value outside
+  −1..size−1 on a step before `length` (every step if None), naming the entry.
+
+  Args:
+    values: [T] (bounds: one (letter, size) pair) or [T, d] (bounds: one pair per level), or a list.
+  Returns:
+    values as an array.
+  """
+  values = values if hasattr(values, "dtype") else np.asarray(values)
+  if not jnp.issubdtype(values.dtype, jnp.integer):
+    raise ValueError(f"{name} must be an integer array (−1 = unknown); got dtype {values.dtype}")
+  if jnp.shape(values) != shape:
+    raise ValueError(f"{name} must have shape {shape}; got {jnp.shape(values)}")
+  if isinstance(values, jax.core.Tracer) or isinstance(length, jax.core.Tracer):
+    return values
+  used = np.asarray(values)[:None if length is None else int(length)].reshape(-1, len(bounds))
+  for level, (letter, size) in enumerate(bounds):
+    bad = np.flatnonzero((used[:, level] < -1) | (used[:, level] >= size))
+    if bad.size:
+      entry = f"{bad[0]}" if len(shape) == 1 else f"{bad[0]}, {level}"
+      raise ValueError(f"{name}[{entry}] = {int(used[bad[0], level])} is outside −1..{letter}−1 = −1..{size - 1}")
+  return values
 
 
 def _check_inputs(log_root, log_op, log_stop, log_cont, length):
-  """Validates shapes (static) and returns (T, K, C, length as an int32 array)."""
+  """Validates shapes (static) and the length; returns (T, K, C, length as an int32 array)."""
   if jnp.ndim(log_op) != 3:
     raise ValueError(f"log_op must be [T, K, C]; got shape {jnp.shape(log_op)}")
   num_steps, num_procs, capacity = jnp.shape(log_op)
@@ -97,21 +259,34 @@ def _check_inputs(log_root, log_op, log_stop, log_cont, length):
                        f"got {jnp.shape(arr)}")
   if jnp.shape(log_root) != (num_steps, num_procs):
     raise ValueError(f"log_root must be [T, K] = {(num_steps, num_procs)}; got {jnp.shape(log_root)}")
-  if length is None:
-    length = num_steps
-  if isinstance(length, (int, np.integer)) and not 1 <= length <= num_steps:
-    raise ValueError(f"length must be in 1..T = 1..{num_steps}; got {length}")
-  return num_steps, num_procs, capacity, jnp.asarray(length, jnp.int32)
+  return num_steps, num_procs, capacity, check_length(length, num_steps)
 
 
+def _annotated(log_op, procedures, counters, length):
+  """log_op restricted to the annotation (procedures, counters [T] or None), checked on the steps before length."""
+  if procedures is None and counters is None:
+    return log_op
+  num_steps, num_procs, capacity = jnp.shape(log_op)
+  unknown = jnp.full(num_steps, -1, jnp.int32)
+  procedures = unknown if procedures is None else check_annotation(
+      "procedures", procedures, (num_steps,), [("K", num_procs)], length)
+  counters = unknown if counters is None else check_annotation(
+      "counters", counters, (num_steps,), [("C", capacity)], length)
+  return _mask(log_op, procedures, counters)
+
+
+@accepts_inputs
 def validate_inputs(log_root, log_op, log_stop, log_cont, length=None) -> LatticeInputs:
   """Checks one demonstration's lattice concretely (outside jit), with a message naming the argument.
 
   Checks: log_op, log_stop, log_cont are float arrays [T, K, C] and log_root [T, K] with T, K, C ≥ 1 (integer
   or boolean arrays and Python lists are refused: pass jnp.asarray(x, jnp.float32)); no NaN and no +inf
   (−inf is a legal zero probability); length, if given, an integer (Python, NumPy or a 0-d integer array)
-  in 1..T. forward_backward checks shapes and Python-int lengths only, and nothing under jit or vmap.
+  in 1..T. The E-step functions check shapes and a concrete length themselves (under jit or vmap, shapes
+  only), not the values.
 
+  Args:
+    log_root: [T, K]. log_op, log_stop, log_cont: [T, K, C]. length: [] int or None (= T). Or one LatticeInputs.
   Returns:
     LatticeInputs with length as a Python int.
   Raises:
@@ -126,7 +301,9 @@ def validate_inputs(log_root, log_op, log_stop, log_cont, length=None) -> Lattic
                        f"(pass jnp.asarray({name}, jnp.float32))")
     if not jnp.issubdtype(x.dtype, jnp.floating):
       raise ValueError(f"{name} must be a float array; got dtype {x.dtype}")
-  num_steps, num_procs, capacity, _ = _check_inputs(log_root, log_op, log_stop, log_cont, None)
+  if isinstance(length, jax.core.Tracer):
+    raise TypeError("validate_inputs needs concrete values; length is traced (call it outside jit/vmap)")
+  num_steps, num_procs, capacity, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
   if min(num_steps, num_procs, capacity) < 1:
     raise ValueError(f"T, K and C must be ≥ 1; log_op has shape {jnp.shape(log_op)}")
   for name, x in arrays.items():
@@ -134,17 +311,7 @@ def validate_inputs(log_root, log_op, log_stop, log_cont, length=None) -> Lattic
     for bad, what in ((np.isnan(values), "NaN"), (np.isposinf(values), "+inf")):
       if bad.any():
         raise ValueError(f"{name} contains {what} at index {tuple(int(i) for i in np.argwhere(bad)[0])}")
-  if length is None:
-    length = num_steps
-  else:
-    if isinstance(length, jax.core.Tracer):
-      raise TypeError("validate_inputs needs concrete values; length is traced (call it outside jit/vmap)")
-    if isinstance(length, bool) or np.ndim(length) != 0 or not np.issubdtype(np.asarray(length).dtype, np.integer):
-      raise ValueError(f"length must be an integer; got {length!r}")
-    length = int(length)
-    if not 1 <= length <= num_steps:
-      raise ValueError(f"length must be in 1..T = 1..{num_steps}; got {length}")
-  return LatticeInputs(log_root, log_op, log_stop, log_cont, length)
+  return LatticeInputs(log_root, log_op, log_stop, log_cont, int(length))
 
 
 def _finite_or_zero(x):
@@ -265,7 +432,9 @@ def _posterior_jvp(primals, tangents):
 _posterior_jit = jax.jit(_posterior)
 
 
-def forward_backward(log_root, log_op, log_stop, log_cont, length=None) -> LatticePosterior:
+@accepts_inputs
+def forward_backward(log_root, log_op, log_stop, log_cont, length=None, procedures=None,
+                     counters=None) -> LatticePosterior:
   """Exact log-likelihood and single-step posterior marginals of one demonstration.
 
   Gradients: ∂ log_likelihood / ∂ log_op = v, / ∂ log_cont = w, / ∂ log_stop = v − w,
@@ -276,10 +445,16 @@ def forward_backward(log_root, log_op, log_stop, log_cont, length=None) -> Latti
   recursions. Memory is linear in T. Batch with `jax.vmap`.
 
   Args:
-    log_root: [T, K]. log_op, log_stop, log_cont: [T, K, C]. length: [] int, default T. (Module docstring.)
-      float16 / bfloat16 inputs are computed in float32 (results float32, gradients in the inputs' dtype).
-      Shapes and a Python-int length are checked here; under jit or vmap a length outside 1..T is not
-      (the result is then meaningless): call validate_inputs first, or use jax.experimental.checkify.
+    log_root: [T, K] log η_⊥(h | o_t). Or one LatticeInputs in its place, for the first five arguments.
+    log_op: [T, K, C] log η_h^τ(a_t | o_t).
+    log_stop: [T, K, C] log ψ_h^τ(1 | o_{t+1}).
+    log_cont: [T, K, C] log ψ_h^τ(0 | o_{t+1}).
+    length: [] int in 1..T, default T. Under jit or vmap a length outside 1..T is not refused (the result
+      is then meaningless): call validate_inputs first, or use jax.experimental.checkify.
+    procedures, counters: [T] int annotation, the known h_t in 0..K−1 and τ_t in 0..C−1, −1 = unknown (either
+      may be None): only the paths that agree count, so a full annotation gives the complete-data
+      log-likelihood. The same as passing annotate(log_op, procedures, counters); padding is ignored.
+    float16 / bfloat16 inputs are computed in float32 (results float32, gradients in the inputs' dtype).
 
   Returns:
     LatticePosterior(log_likelihood [], v [T, K, C], w [T, K, C]).
@@ -287,15 +462,26 @@ def forward_backward(log_root, log_op, log_stop, log_cont, length=None) -> Latti
   Example:
     >>> post = forward_backward(log_root, log_op, log_stop, log_cont, length=5)
     >>> loss = -post.log_likelihood  # jax.grad(loss) flows into the networks that made the inputs
+    >>> forward_backward(LatticeInputs(log_root, log_op, log_stop, log_cont, 5), procedures=known_h)
   """
   _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
-  return LatticePosterior(*_posterior_jit(*_in_float32(log_root, log_op, log_stop, log_cont), length))
+  log_op = _annotated(log_op, procedures, counters, length)
+  return LatticePosterior(*_posterior_jit(*_in_common_dtype(log_root, log_op, log_stop, log_cont), length))
 
 
-def viterbi(log_root, log_op, log_stop, log_cont, length=None) -> LatticePath:
-  """Most likely latent path (max-product forward, one backpointer per step). Inputs as forward_backward."""
+@accepts_inputs
+def viterbi(log_root, log_op, log_stop, log_cont, length=None, procedures=None, counters=None) -> LatticePath:
+  """Most likely latent path (max-product forward, one backpointer per step).
+
+  Args:
+    log_root [T, K], log_op, log_stop, log_cont [T, K, C], length [], procedures, counters [T]: as
+      forward_backward (or one LatticeInputs for the first five).
+  Returns:
+    LatticePath(procedure [T], counter [T], log_prob []).
+  """
   _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
-  return _viterbi(*_in_float32(log_root, log_op, log_stop, log_cont), length)
+  log_op = _annotated(log_op, procedures, counters, length)
+  return _viterbi(*_in_common_dtype(log_root, log_op, log_stop, log_cont), length)
 
 
 @jax.jit
@@ -314,7 +500,9 @@ def _viterbi(log_root, log_op, log_stop, log_cont, length):
   return _path_from_states(states, capacity, jnp.sum(log_increments))
 
 
-def sample_posterior(key, log_root, log_op, log_stop, log_cont, length=None, temperature=1.0) -> LatticePath:
+@accepts_inputs
+def sample_posterior(key, log_root, log_op, log_stop, log_cont, length=None, temperature=1.0, procedures=None,
+                     counters=None) -> LatticePath:
   """One exact sample from P(ζ | ξ)^(1/temperature), renormalised (forward filter, backward sample).
 
   A path's log P(ζ, ξ) is a sum of one log_root / log_op / log_stop / log_cont term per step, so the tempered
@@ -322,13 +510,19 @@ def sample_posterior(key, log_root, log_op, log_stop, log_cont, length=None, tem
   posterior itself, → 0 approaches the Viterbi path, → ∞ the uniform distribution over possible paths.
   Vmap over keys for many samples.
 
+  Args:
+    key: a PRNG key. temperature: [] a finite number > 0.
+    log_root [T, K], log_op, log_stop, log_cont [T, K, C], length [], procedures, counters [T]: as
+      forward_backward (or one LatticeInputs for the five; pass temperature and the annotation by keyword).
   Returns:
     LatticePath(procedure [T], counter [T], log_prob []): log_prob is log P(ζ, ξ) under the untempered model.
   Example:
     >>> path = sample_posterior(jax.random.key(0), log_root, log_op, log_stop, log_cont, 5, temperature=0.5)
   """
   _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
-  return _sample_posterior(key, *_in_float32(log_root, log_op, log_stop, log_cont), length, temperature)
+  check_temperature(temperature)
+  log_op = _annotated(log_op, procedures, counters, length)
+  return _sample_posterior(key, *_in_common_dtype(log_root, log_op, log_stop, log_cont), length, temperature)
 
 
 @jax.jit
@@ -354,7 +548,13 @@ def _sample_posterior(key, log_root, log_op, log_stop, log_cont, length, tempera
 
 
 def max_marginal_path(posterior: LatticePosterior, length=None) -> LatticePath:
-  """Per step the most probable (h, τ) under v. Not always a valid path; log_prob is not computed (NaN)."""
+  """Per step the most probable (h, τ) under v. Not always a valid path; log_prob is not computed (NaN).
+
+  Args:
+    posterior: forward_backward's result (v [T, K, C]). length: [] int, default T.
+  Returns:
+    LatticePath(procedure [T], counter [T], log_prob [] NaN).
+  """
   num_steps, _, capacity = posterior.v.shape
   length = num_steps if length is None else length
   states = jnp.argmax(posterior.v.reshape(num_steps, -1), axis=1).astype(jnp.int32)
@@ -369,16 +569,22 @@ def _path_from_states(states, capacity, log_prob):
                      jnp.where(padding, NO_FRAME, tau).astype(jnp.int32), log_prob)
 
 
+@accepts_inputs
 def complete_log_likelihood(log_root, log_op, log_stop, log_cont, procedure, counter, length=None):
   """log P(ζ, ξ) of an annotated path, computed directly (−inf if the path breaks the semantics).
 
   Args:
-    procedure, counter: [T] int, the frame (h_t, τ_t) of each step; values on padding are ignored.
+    log_root [T, K], log_op, log_stop, log_cont [T, K, C], length []: as forward_backward (or one
+      LatticeInputs: complete_log_likelihood(inputs, procedure, counter)).
+    procedure, counter: [T] int, the frame (h_t, τ_t) of each step, in 0..K−1 and 0..C−1 (−1, no frame, gives
+      −inf); values on padding are ignored.
   Returns:
     [] the complete-data log-likelihood.
   """
-  _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
-  return _complete_log_likelihood(*_in_float32(log_root, log_op, log_stop, log_cont), procedure, counter, length)
+  num_steps, num_procs, capacity, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
+  procedure = check_annotation("procedure", procedure, (num_steps,), [("K", num_procs)], length)
+  counter = check_annotation("counter", counter, (num_steps,), [("C", capacity)], length)
+  return _complete_log_likelihood(*_in_common_dtype(log_root, log_op, log_stop, log_cont), procedure, counter, length)
 
 
 @jax.jit
@@ -417,33 +623,49 @@ def annotate(log_op, procedure, counter):
   Returns:
     [T, K, C] log_op with −inf outside the annotation.
   Raises:
-    ValueError, when procedure or counter is concrete (not traced), for a value out of range, naming the step.
+    ValueError for a float or misshapen annotation and, when procedure or counter is concrete (not traced),
+    for a value out of range at any step, naming the step.
   """
+  num_steps, num_procs, capacity = log_op.shape
+  procedure = check_annotation("procedure", procedure, (num_steps,), [("K", num_procs)])
+  counter = check_annotation("counter", counter, (num_steps,), [("C", capacity)])
+  return _mask(log_op, procedure, counter)
+
+
+def _mask(log_op, procedure, counter):
   _, num_procs, capacity = log_op.shape
-  for name, values, size, letter in (("procedure", procedure, num_procs, "K"), ("counter", counter, capacity, "C")):
-    if isinstance(values, jax.core.Tracer):
-      continue
-    values = np.asarray(values)
-    bad = np.flatnonzero((values < -1) | (values >= size))
-    if bad.size:
-      step = int(bad[0])
-      raise ValueError(f"annotate: {name}[{step}] = {int(values[step])} is outside −1..{letter}−1 = −1..{size - 1}")
   proc_ok = (procedure[:, None] < 0) | (procedure[:, None] == jnp.arange(num_procs)[None, :])
   tau_ok = (counter[:, None] < 0) | (counter[:, None] == jnp.arange(capacity)[None, :])
   return jnp.where(proc_ok[:, :, None] & tau_ok[:, None, :], log_op, -jnp.inf)
 
 
 def top_level(log_stop, length=None):
-  """The top level's lattice (K = 1, called once): no stop before the last step. [T, 1, C] → [T, 1, C]."""
+  """The top level's lattice (K = 1, called once): no stop before the last step.
+
+  Args:
+    log_stop: [T, 1, C]. length: [] int, default T.
+  Returns:
+    [T, 1, C] log_stop with −inf before step length − 1.
+  """
   num_steps = log_stop.shape[0]
   length = num_steps if length is None else length
   early = jnp.arange(num_steps) < length - 1
   return jnp.where(early[:, None, None], -jnp.inf, log_stop)
 
 
-def posterior_entropy(log_root, log_op, log_stop, log_cont, length=None):
-  """Entropy of P(ζ | ξ) in nats: log P(ξ) − E[log P(ζ, ξ)], from the marginals. Returns []."""
-  inputs = _in_float32(log_root, log_op, log_stop, log_cont)
+@accepts_inputs
+def posterior_entropy(log_root, log_op, log_stop, log_cont, length=None, procedures=None, counters=None):
+  """Entropy of P(ζ | ξ) in nats: log P(ξ) − E[log P(ζ, ξ)], from the marginals.
+
+  Args:
+    log_root [T, K], log_op, log_stop, log_cont [T, K, C], length [], procedures, counters [T]: as
+      forward_backward (or one LatticeInputs for the first five).
+  Returns:
+    [] nats.
+  """
+  _, _, _, checked_length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
+  log_op = _annotated(log_op, procedures, counters, checked_length)
+  inputs = _in_common_dtype(log_root, log_op, log_stop, log_cont)
   post = forward_backward(*inputs, length)
   return post.log_likelihood - _expected_log_joint(post, *inputs)
 

@@ -1,8 +1,10 @@
 """More operations on the E-step's lattice (inputs and path semantics as in php_jax.lattice): the k most
 likely paths, KL divergence and cross-entropy between two posteriors, a differentiable posterior sample and
-the online forward filter. Each is exact and checked against enumeration of every path in the tests.
-float16 and bfloat16 inputs are computed in float32, as in php_jax.lattice (results float32, gradients in
-the inputs' dtype)."""
+the online forward filter, and `TwoLevelLattice`, the lattice as one structure answering every query. Each is
+exact and checked against enumeration of every path in the tests. Argument conventions, refusals and dtypes
+as in php_jax.lattice: one LatticeInputs may stand for the five arrays, annotations are `procedures`,
+`counters` [T], float16 and bfloat16 inputs are computed in float32 (results float32, gradients in the
+inputs' dtype)."""
 from __future__ import annotations
 
 import functools
@@ -11,12 +13,14 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from php_jax.lattice import (NO_FRAME, LatticeInputs, LatticePath, _check_inputs, _expected_log_joint,
-                             _finite_or_zero, _in_float32, _is_push, _path_from_states, _shift, forward_backward,
-                             sample_posterior)
+from php_jax.lattice import (NO_FRAME, LatticeInputs, LatticePath, LatticePosterior, LatticeStructure,
+                             _annotated, _check_inputs, _expected_log_joint, _finite_or_zero, _in_common_dtype,
+                             _is_push, _path_from_states, _shift, accepts_inputs, check_annotation, check_k,
+                             check_temperature, forward_backward, posterior_entropy, sample_posterior, viterbi)
 
 
-def top_k(k: int, log_root, log_op, log_stop, log_cont, length=None) -> LatticePath:
+@accepts_inputs
+def top_k(k: int, log_root, log_op, log_stop, log_cont, length=None, procedures=None, counters=None) -> LatticePath:
   """The k most likely latent paths, best first (k-best max-product: each cell keeps its k best partial
   paths, and the push cells of step t the k best stops of step t−1, with one backpointer each).
 
@@ -24,17 +28,19 @@ def top_k(k: int, log_root, log_op, log_stop, log_cont, length=None) -> LatticeP
   NO_FRAME at every step. Ties are broken deterministically (by the order of the candidates' flat indices).
 
   Args:
-    k: int ≥ 1 (static). Other inputs as forward_backward.
+    k: int ≥ 1 (static).
+    log_root [T, K], log_op, log_stop, log_cont [T, K, C], length [], procedures, counters [T]: as
+      forward_backward (or one LatticeInputs for the five).
   Returns:
     LatticePath(procedure [k, T], counter [k, T], log_prob [k]), log_prob descending; entry 0 is viterbi's.
   Example:
     >>> best = top_k(3, log_root, log_op, log_stop, log_cont, length=5)
     >>> best.log_prob  # [3] log P(ζ, ξ) of the three most likely paths
   """
-  if not isinstance(k, int) or k < 1:
-    raise ValueError(f"k must be an int ≥ 1; got {k!r}")
+  k = check_k(k)
   _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
-  return _top_k(k, *_in_float32(log_root, log_op, log_stop, log_cont), length)
+  log_op = _annotated(log_op, procedures, counters, length)
+  return _top_k(k, *_in_common_dtype(log_root, log_op, log_stop, log_cont), length)
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -82,6 +88,7 @@ def cross_entropy(p: LatticeInputs, q: LatticeInputs):
 
   Args:
     p, q: LatticeInputs with the same [T, K] / [T, K, C] shapes and length (checked when concrete).
+      TwoLevelLattice(p, ...).cross_entropy(TwoLevelLattice(q, ...)) restricts either to an annotation.
   Returns:
     [] cross-entropy.
   Example:
@@ -118,6 +125,11 @@ def _cross_entropy(post_p, q: LatticeInputs):
 def _same_lattice(p: LatticeInputs, q: LatticeInputs):
   """Checks shapes and (concrete) lengths; returns both with the same explicit length."""
   p, q = LatticeInputs(*p), LatticeInputs(*q)
+  for name, x in (("p", p), ("q", q)):
+    try:
+      _check_inputs(*x)
+    except ValueError as error:
+      raise ValueError(f"{name}: {error}") from None
   for name, a, b in zip(LatticeInputs._fields[:4], p[:4], q[:4]):
     if jnp.shape(a) != jnp.shape(b):
       raise ValueError(f"p.{name} and q.{name} must have the same shape; got {jnp.shape(a)} and {jnp.shape(b)}")
@@ -129,9 +141,10 @@ def _same_lattice(p: LatticeInputs, q: LatticeInputs):
     differ = False
   if differ:
     raise ValueError(f"p and q must have the same length; got {lengths[0]} and {lengths[1]}")
-  return (LatticeInputs(*_in_float32(*p[:4]), lengths[0]), LatticeInputs(*_in_float32(*q[:4]), lengths[0]))
+  return tuple(LatticeInputs(*_in_common_dtype(*x[:4]), lengths[0]) for x in (p, q))
 
 
+@accepts_inputs
 def differentiable_sample(key, log_root, log_op, log_stop, log_cont, length=None, temperature=1.0,
                           method="straight-through"):
   """A posterior sample as frame indicators z [T, K, C] that gradients flow through.
@@ -147,7 +160,9 @@ def differentiable_sample(key, log_root, log_op, log_stop, log_cont, length=None
     (perturb-and-MAP), an approximate, not exact, posterior sample.
 
   Args:
-    key: a PRNG key. temperature: > 0. Other inputs as forward_backward.
+    key: a PRNG key. temperature: [] a finite number > 0. method: "straight-through" or "perturb-and-marginals".
+    log_root [T, K], log_op, log_stop, log_cont [T, K, C], length []: as forward_backward (or one
+      LatticeInputs for the five).
   Returns:
     [T, K, C] z (each valid step sums to 1; zero on padding).
   Example:
@@ -155,7 +170,8 @@ def differentiable_sample(key, log_root, log_op, log_stop, log_cont, length=None
     >>> jax.grad(lambda op: jnp.sum(weights * differentiable_sample(key, log_root, op, log_stop, log_cont, 5)))(log_op)
   """
   _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
-  inputs = _in_float32(log_root, log_op, log_stop, log_cont)
+  check_temperature(temperature)
+  inputs = _in_common_dtype(log_root, log_op, log_stop, log_cont)
   if method == "straight-through":
     path = sample_posterior(key, *inputs, length, temperature)
     v = forward_backward(*(x / temperature for x in inputs), length).v
@@ -168,13 +184,20 @@ def differentiable_sample(key, log_root, log_op, log_stop, log_cont, length=None
 
 def perturb(key, log_root, log_op, log_stop, log_cont):
   """The lattice with standard Gumbel noise added to every cell of log_op (−inf cells stay −inf): viterbi of
-  the result is a perturb-and-MAP sample. Returns the four log inputs."""
+  the result is a perturb-and-MAP sample.
+
+  Args:
+    key: a PRNG key. log_root: [T, K]. log_op, log_stop, log_cont: [T, K, C].
+  Returns:
+    (log_root, log_op + noise, log_stop, log_cont).
+  """
   noise = jax.random.gumbel(key, jnp.shape(log_op), jnp.result_type(log_op))
   return log_root, log_op + noise, log_stop, log_cont
 
 
 def frame_indicators(path: LatticePath, shape):
-  """[T, K, C] with 1 at each step's (h_t, τ_t) of `path` and zeros elsewhere and on padding."""
+  """[T, K, C] with 1 at each step's (h_t, τ_t) of `path` (procedure, counter [T]) and zeros elsewhere and on
+  padding; shape: (T, K, C)."""
   num_steps, num_procs, capacity = shape
   valid = path.procedure != NO_FRAME
   cells = jnp.where(valid, path.procedure * capacity + path.counter, 0)
@@ -196,6 +219,7 @@ class LatticeFilter(NamedTuple):
   filtered: jax.Array
 
 
+@accepts_inputs
 def forward_filter(log_root, log_op, log_stop, log_cont, length=None) -> LatticeFilter:
   """The online forward pass: per step, the likelihood of the prefix and the filter over frames.
 
@@ -206,7 +230,7 @@ def forward_filter(log_root, log_op, log_stop, log_cont, length=None) -> Lattice
   Differentiable by autodiff.
 
   Args:
-    Inputs as forward_backward.
+    log_root [T, K], log_op, log_stop, log_cont [T, K, C], length []: as forward_backward (or one LatticeInputs).
   Returns:
     LatticeFilter(log_likelihood [], log_prefix [T], filtered [T, K, C]).
   Example:
@@ -214,7 +238,7 @@ def forward_filter(log_root, log_op, log_stop, log_cont, length=None) -> Lattice
     >>> filt.filtered[2]  # [K, C] P(h_2, τ_2 | a_0, a_1, a_2)
   """
   _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
-  return _forward_filter_public(*_in_float32(log_root, log_op, log_stop, log_cont), length)
+  return _forward_filter_public(*_in_common_dtype(log_root, log_op, log_stop, log_cont), length)
 
 
 @jax.jit
@@ -246,3 +270,70 @@ def _forward_filter_public(log_root, log_op, log_stop, log_cont, length):
           jnp.zeros((), log_op.dtype))
   _, (log_prefix, filtered, log_final) = jax.lax.scan(step, init, jnp.arange(num_steps))
   return LatticeFilter(log_final[length - 1], log_prefix, filtered.reshape(log_op.shape))
+
+
+class TwoLevelLattice(LatticeStructure):
+  """The two-level lattice of one demonstration as a structure with queries (SynJax's distribution API; the
+  same methods as php_jax.StackLattice): the posterior over latent paths P(ζ | ξ), restricted to the paths
+  that agree with the annotation. A frozen pytree: pass it through jit and vmap.
+
+  Args:
+    inputs: LatticeInputs (log_root [T, K], log_op, log_stop, log_cont [T, K, C], length []).
+    procedures, counters: [T] int annotation, −1 = unknown, or None (as forward_backward's).
+  Raises:
+    ValueError on construction, naming the argument (php_jax.lattice's module docstring says what is checked).
+  Example:
+    >>> lattice = TwoLevelLattice(LatticeInputs(log_root, log_op, log_stop, log_cont, 5))
+    >>> lattice.log_partition(), lattice.top_k(3).log_prob, lattice.kl_divergence(other)
+  """
+
+  def _checked(self):
+    inputs = LatticeInputs(*self.inputs)
+    num_steps, num_procs, capacity, length = _check_inputs(*inputs)
+    procedures, counters = (None if x is None else check_annotation(name, x, (num_steps,), [(letter, size)], length)
+                            for name, x, letter, size in (("procedures", self.procedures, "K", num_procs),
+                                                          ("counters", self.counters, "C", capacity)))
+    return inputs, procedures, counters
+
+  def _annotated_inputs(self) -> LatticeInputs:
+    """inputs with log_op restricted to the annotation."""
+    return self.inputs._replace(log_op=_annotated(self.inputs.log_op, self.procedures, self.counters,
+                                                  _check_inputs(*self.inputs)[3]))
+
+  def log_partition(self) -> jax.Array:
+    """[] log P(ξ) (of the agreeing paths)."""
+    return self.posterior().log_likelihood
+
+  def posterior(self) -> LatticePosterior:
+    """forward_backward: LatticePosterior(log_likelihood [], v = marginals [T, K, C], w [T, K, C])."""
+    return forward_backward(self.inputs, procedures=self.procedures, counters=self.counters)
+
+  def marginals(self) -> jax.Array:
+    """[T, K, C] P(h_t = h, τ_t = τ | ξ)."""
+    return self.posterior().v
+
+  def argmax(self) -> LatticePath:
+    """The most likely path (viterbi): procedure, counter [T], log_prob []."""
+    return viterbi(self.inputs, procedures=self.procedures, counters=self.counters)
+
+  def top_k(self, k: int) -> LatticePath:
+    """The k most likely paths, best first: procedure, counter [k, T], log_prob [k]."""
+    return top_k(k, self.inputs, procedures=self.procedures, counters=self.counters)
+
+  def sample(self, key, temperature=1.0) -> LatticePath:
+    """One exact draw from P(ζ | ξ)^(1/temperature), renormalised; log_prob [] untempered log P(ζ, ξ)."""
+    return sample_posterior(key, self.inputs, temperature=temperature, procedures=self.procedures,
+                            counters=self.counters)
+
+  def entropy(self) -> jax.Array:
+    """[] H(P(ζ | ξ)) in nats."""
+    return posterior_entropy(self.inputs, procedures=self.procedures, counters=self.counters)
+
+  def cross_entropy(self, other: TwoLevelLattice) -> jax.Array:
+    """[] H(self, other) in nats between the posteriors over paths (same shapes and length); +inf where
+    other rules out a path self allows."""
+    return cross_entropy(self._annotated_inputs(), self._same_kind(other)._annotated_inputs())
+
+  def kl_divergence(self, other: TwoLevelLattice) -> jax.Array:
+    """[] KL(self ‖ other) in nats between the posteriors over paths (same shapes and length)."""
+    return kl_divergence(self._annotated_inputs(), self._same_kind(other)._annotated_inputs())

@@ -34,16 +34,27 @@ reverse pass gives every level's marginals, and jax.grad of log P(ξ) with respe
 posterior of each event (the EG gradient). The carry is renormalised every step by its maximum (a constant to
 autodiff, which keeps the gradient exact), so float32 stays finite on long traces with large logits, and
 logsumexp is guarded so −inf masks give exact zeros and zero gradients, never NaN.
+
+The same dialect as php_jax.lattice: every function takes one StackInputs, an annotation as `procedures`,
+`counters` [T, d] int (root first, −1 = unknown), and returns `log_likelihood`, `marginals`, and paths with
+`procedures`, `counters`, `log_prob`; top_k, the entropy and KL divergence / cross-entropy come from the same
+recursions (k-best lists per state; the event posteriors above times the log-factors). `StackLattice` is the
+structure answering every query, like php_jax.TwoLevelLattice. Refused with a ValueError naming the argument,
+as in php_jax.lattice: shapes that do not match, a length that is not an integer in 1..T, a temperature that
+is not a finite number > 0, an annotation that is not an integer array [T, d] or, when concrete, has a value
+outside −1..K_i−1 / −1..C_i−1 on a step before length. Under jit or vmap only shapes and dtypes are checked
+(a traced annotation value out of range matches nothing). Arrays of different dtypes are computed in the
+promoted one; unlike the two-level lattice, float16 and bfloat16 inputs are computed in their own dtype.
 """
 from __future__ import annotations
 
+import functools
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from php_jax.lattice import NO_FRAME
+from php_jax.lattice import NO_FRAME, LatticeStructure, check_annotation, check_k, check_length, check_temperature
 
 
 class StackInputs(NamedTuple):
@@ -85,7 +96,7 @@ class StackPath(NamedTuple):
 
 
 def _check_inputs(inputs: StackInputs):
-  """Validates shapes (static) and a Python-int length; returns the length as an int32 array."""
+  """Validates shapes (static) and the length (concrete); returns the length as an int32 array."""
   log_call, log_act, log_stop, log_cont, length = inputs
   depth = len(log_stop)
   if depth < 2 or len(log_cont) != depth or len(log_call) != depth - 1:
@@ -104,11 +115,35 @@ def _check_inputs(inputs: StackInputs):
       raise ValueError(f"{name} must have shape {shape}; got {jnp.shape(x)}")
   if sizes[0] != 1:
     raise ValueError(f"the root level has one procedure: log_stop[0] must be [T, 1, C_0]; got {jnp.shape(log_stop[0])}")
-  if length is None:
-    length = num_steps
-  if isinstance(length, (int, np.integer)) and not 1 <= length <= num_steps:
-    raise ValueError(f"length must be in 1..T = 1..{num_steps}; got {length}")
-  return jnp.asarray(length, jnp.int32)
+  return check_length(length, num_steps)
+
+
+def _check_annotation(inputs: StackInputs, procedures, counters, length):
+  """The annotation checked (integer [T, d]; when concrete, values in range on the steps before length)."""
+  num_steps, depth = jnp.shape(inputs.log_act)[0], len(inputs.log_stop)
+  checked = []
+  for name, values, axis, letter in (("procedures", procedures, 1, "K"), ("counters", counters, 2, "C")):
+    bounds = [(f"{letter}_{i}", jnp.shape(x)[axis]) for i, x in enumerate(inputs.log_stop)]
+    checked.append(None if values is None else check_annotation(name, values, (num_steps, depth), bounds, length))
+  return checked
+
+
+def _prepared(inputs: StackInputs, procedures=None, counters=None):
+  """The public functions' checks (module docstring): (inputs with length None, every array in the promoted
+  dtype; procedures; counters; length [] int32)."""
+  length = _check_inputs(inputs)
+  procedures, counters = _check_annotation(inputs, procedures, counters, length)
+  fields = tuple(inputs[:4])
+  dtype = jnp.result_type(*jax.tree.leaves(fields))
+  fields = jax.tree.map(lambda x: x if x.dtype == dtype else x.astype(dtype), fields)
+  return StackInputs(*fields), procedures, counters, length
+
+
+def _unknown_as_arrays(inputs: StackInputs, procedures, counters):
+  """None annotations as −1 arrays [T, d] (all unknown), so that the free and the annotated lattice share one
+  compiled program."""
+  shape = (jnp.shape(inputs.log_act)[0], len(inputs.log_stop))
+  return tuple(jnp.full(shape, -1, jnp.int32) if x is None else x for x in (procedures, counters))
 
 
 def _potentials(inputs: StackInputs, procedures, counters):
@@ -213,9 +248,14 @@ def _annotated_log_likelihood(inputs: StackInputs, procedures, counters, length)
 
 def log_likelihood(inputs: StackInputs, procedures=None, counters=None) -> jax.Array:
   """forward_backward's log_likelihood [] alone (the forward pass only): for a loss, whose jax.grad gives the
-  same posteriors, or for scoring. Arguments as forward_backward's."""
-  length = _check_inputs(inputs)
-  return _annotated_log_likelihood(inputs._replace(length=None), procedures, counters, length)
+  same posteriors, or for scoring.
+
+  Args:
+    inputs: StackInputs. procedures, counters: [T, d] int annotation or None. (As forward_backward's.)
+  Returns:
+    [] log P(ξ) (of the paths that agree with the annotation).
+  """
+  return _annotated_log_likelihood(*_prepared(inputs, procedures, counters))
 
 
 def forward_backward(inputs: StackInputs, procedures=None, counters=None) -> StackPosterior:
@@ -226,23 +266,24 @@ def forward_backward(inputs: StackInputs, procedures=None, counters=None) -> Sta
   Memory is linear in T (O(T·S)). Batch with jax.vmap.
 
   Args:
-    inputs: StackInputs (module docstring). Shapes and a Python-int length are checked here.
-    procedures, counters: [T, d] int annotation, −1 = unknown (either may be None); paths must agree with every
-      known entry (a value out of range matches nothing). Fully annotated, log_likelihood is the complete-data
-      log-likelihood of that path; ignored on padding.
+    inputs: StackInputs: log_call d−1 arrays [T, K_i, C_i, K_{i+1}], log_act [T, K_{d-1}, C_{d-1}], log_stop
+      and log_cont d arrays [T, K_i, C_i], length [] int in 1..T or None (= T). (Module docstring.)
+    procedures, counters: [T, d] int annotation, root first, −1 = unknown (either may be None); paths must
+      agree with every known entry. Fully annotated, log_likelihood is the complete-data log-likelihood of
+      that path; ignored on padding.
   Returns:
     StackPosterior(log_likelihood [], marginals: d arrays [T, K_i, C_i]).
   """
-  length = _check_inputs(inputs)
-  return StackPosterior(*_posterior(inputs._replace(length=None), procedures, counters, length))
+  return StackPosterior(*_posterior(*_prepared(inputs, procedures, counters)))
 
 
-def _backtrack(stops, length, capacities, choose, dtype):
+def _backtrack(stops, length, capacities, choose, dtype, rank=0):
   """Reverse scan from the last step: the frames of step t given step t+1's and step t's stop tables.
 
   Levels 0..j (j the deepest level with τ > 0 at t+1, −1 after the last step) are kept, τ_j one less; the
-  stopped levels j+1..d-1 are chosen top-down by choose(level, table at the chosen prefix, t) → (flat h·C + τ,
-  log-probability of that choice, of the given dtype).
+  stopped levels j+1..d-1 are chosen top-down by choose(level, table at the chosen prefix, rank, t) → (flat
+  h·C + τ, log-probability of that choice, of the given dtype, rank). The rank (top_k's: which of a prefix's
+  k best partial paths) starts at `rank` after the last step and passes from each choice to the next.
   Returns (procedures [T, d], counters [T, d]) with NO_FRAME on padding, and [] the sum of the choices'
   log-probabilities.
   """
@@ -250,24 +291,29 @@ def _backtrack(stops, length, capacities, choose, dtype):
 
   def step(state_next, xs):
     t, tables = xs
-    procs_next, taus_next, log_prob = state_next
+    procs_next, taus_next, rank_next, log_prob = state_next
     used = t < length
     resumed = taus_next > 0
     deepest = jnp.where((t < length - 1) & jnp.any(resumed), depth - 1 - jnp.argmax(resumed[::-1]), -1)
-    procs, taus = [], []
+    procs, taus, rank = [], [], rank_next
     for i in range(depth):
-      index, log_choice = choose(i, tables[i][tuple(x for frame in zip(procs, taus) for x in frame)], t)
+      index, log_choice, chosen_rank = choose(i, tables[i][tuple(x for frame in zip(procs, taus) for x in frame)],
+                                              rank, t)
       h, tau = jnp.divmod(index, capacities[i])
       procs.append(jnp.where(i <= deepest, procs_next[i], h))
       taus.append(jnp.where(i <= deepest, taus_next[i] - (i == deepest), tau))
+      rank = jnp.where(i <= deepest, rank, chosen_rank)
       log_prob = log_prob + jnp.where(used & (i > deepest), log_choice, 0.0)
     procs, taus = (jnp.where(used, jnp.stack(x).astype(jnp.int32), x_next)
                    for x, x_next in ((procs, procs_next), (taus, taus_next)))
-    return (procs, taus, log_prob), (jnp.where(used, procs, NO_FRAME), jnp.where(used, taus, NO_FRAME))
+    rank = jnp.where(used, rank, rank_next)
+    return (procs, taus, rank, log_prob), (jnp.where(used, procs, NO_FRAME), jnp.where(used, taus, NO_FRAME))
 
-  init = (jnp.zeros(depth, jnp.int32), jnp.zeros(depth, jnp.int32), jnp.zeros((), dtype))
+  init = (jnp.zeros(depth, jnp.int32), jnp.zeros(depth, jnp.int32), jnp.asarray(rank, jnp.int32),
+          jnp.zeros((), dtype))
   num_steps = jax.tree.leaves(stops)[0].shape[0]
-  (_, _, log_prob), (procedures, counters) = jax.lax.scan(step, init, (jnp.arange(num_steps), stops), reverse=True)
+  (_, _, _, log_prob), (procedures, counters) = jax.lax.scan(step, init, (jnp.arange(num_steps), stops),
+                                                             reverse=True)
   return procedures, counters, log_prob
 
 
@@ -277,45 +323,294 @@ def _viterbi(inputs: StackInputs, procedures, counters, length):
   log_increments, backpointers = _forward(inputs, potentials, length, semiring_max=True)
   capacities = tuple(x.shape[2] for x in inputs.log_stop)
   path_procedures, path_counters, _ = _backtrack(backpointers, length, capacities,
-                                                 lambda level, pointer, t: (pointer, 0.0), inputs.log_act.dtype)
+                                                 lambda level, pointer, rank, t: (pointer, 0.0, rank),
+                                                 inputs.log_act.dtype)
   return StackPath(path_procedures, path_counters, jnp.sum(log_increments))
 
 
 def viterbi(inputs: StackInputs, procedures=None, counters=None) -> StackPath:
   """The most likely whole-stack path (max-product forward, per-level backpointers, backtrack).
 
-  Inputs and annotation as forward_backward. Memory O(T · S / (K_{d-1} C_{d-1})) for the backpointers.
-  Returns StackPath(procedures [T, d], counters [T, d], log_prob []); meaningless if log_prob is −inf.
+  Memory O(T · S / (K_{d-1} C_{d-1})) for the backpointers.
+
+  Args:
+    inputs: StackInputs. procedures, counters: [T, d] int annotation or None. (As forward_backward's.)
+  Returns:
+    StackPath(procedures [T, d], counters [T, d], log_prob []); meaningless if log_prob is −inf.
   """
-  length = _check_inputs(inputs)
-  return _viterbi(inputs._replace(length=None), procedures, counters, length)
+  return _viterbi(*_prepared(inputs, procedures, counters))
 
 
 @jax.jit
-def _sample_posterior(key, inputs: StackInputs, procedures, counters, length):
-  """Backward sampling from the forward pass's stop scores; log P(ζ, ξ) = log P(ξ) + Σ log P(choice | ·)."""
+def _sample_posterior(key, inputs: StackInputs, procedures, counters, length, temperature):
+  """Backward sampling from the forward pass's stop scores of the lattice divided by temperature;
+  log P(ζ, ξ) = temperature · (log P'(ξ) + Σ log P'(choice | ·)) with P' the tempered lattice's."""
+  inputs = jax.tree.map(lambda x: x / temperature, inputs)
   potentials = _potentials(inputs, procedures, counters)
   log_increments, stop_scores = _forward(inputs, potentials, length, keep_stops=True)
   capacities = tuple(x.shape[2] for x in inputs.log_stop)
 
-  def choose(level, scores, t):
+  def choose(level, scores, rank, t):
     scores = scores.reshape(-1)
     index = jax.random.categorical(jax.random.fold_in(jax.random.fold_in(key, t), level), scores)
-    return index, scores[index] - _logsumexp(scores)
+    return index, scores[index] - _logsumexp(scores), rank
 
   path_procedures, path_counters, log_posterior = _backtrack(stop_scores, length, capacities, choose,
                                                              inputs.log_act.dtype)
   log_likelihood = jnp.sum(log_increments)
   log_prob = jnp.where(jnp.isfinite(log_likelihood), log_likelihood + log_posterior, -jnp.inf)
-  return StackPath(path_procedures, path_counters, log_prob)
+  return StackPath(path_procedures, path_counters, log_prob * temperature)
 
 
-def sample_posterior(key, inputs: StackInputs, procedures=None, counters=None) -> StackPath:
-  """One whole-stack path drawn exactly from P(ζ | ξ) (forward filter, backward sample).
+def sample_posterior(key, inputs: StackInputs, procedures=None, counters=None, temperature=1.0) -> StackPath:
+  """One whole-stack path drawn exactly from P(ζ | ξ)^(1/temperature), renormalised (forward filter, backward
+  sample): the posterior of the lattice with every input divided by temperature, as php_jax.sample_posterior.
 
-  Step t draws with jax.random.fold_in(key, t). Vmap over keys for many samples. Inputs and annotation as
-  forward_backward; meaningless if log P(ξ) is −inf.
-  Returns StackPath(procedures [T, d], counters [T, d], log_prob [] = log P(ζ, ξ) of the drawn path).
+  Step t draws with jax.random.fold_in(key, t). Vmap over keys for many samples.
+
+  Args:
+    key: a PRNG key. inputs: StackInputs. procedures, counters: [T, d] int annotation or None (as
+      forward_backward's). temperature: [] a finite number > 0; 1 is the posterior itself.
+  Returns:
+    StackPath(procedures [T, d], counters [T, d], log_prob [] = log P(ζ, ξ) of the drawn path, untempered);
+    meaningless if log P(ξ) is −inf.
   """
-  length = _check_inputs(inputs)
-  return _sample_posterior(key, inputs._replace(length=None), procedures, counters, length)
+  prepared = _prepared(inputs, procedures, counters)
+  check_temperature(temperature)
+  return _sample_posterior(key, *prepared, temperature)
+
+
+def _forward_top_k(k: int, inputs: StackInputs, potentials, length):
+  """_forward's max-product recursion with the k best partial paths of every prefix (a leading axis k, each
+  list descending): a merge over stopped frames keeps the k best of (frame, rank) candidates; every other step
+  adds log-factors and keeps the ranks.
+
+  Returns:
+    log_prob: [k] of the k best paths, descending.
+    pointers: per level i, [T, K_0, C_0, ..., K_{i-1}, C_{i-1}, k] int32 the flat (h·C_i + τ)·k + rank of the
+      stopped level-i frame and its rank behind each of the prefix's k best.
+  """
+  log_call, log_act, log_stop, log_cont, _ = inputs
+  depth, dtype = len(log_stop), log_act.dtype
+  first = jnp.full(k, -jnp.inf, dtype).at[0].set(0.0)
+
+  def step(carry, t):
+    carry, scale = carry
+    alpha = jnp.concatenate([jnp.where(t == 0, first, -jnp.inf)[:, None, None], carry[0] - scale], axis=-1)
+    potential = potentials[0][t]
+    for i in range(depth - 1):
+      pushed = alpha[..., None] + log_call[i][t]
+      alpha = jnp.concatenate([pushed[..., None], carry[i + 1] - scale], axis=-1)
+      if i + 1 < depth - 1:
+        potential = potential[..., None, None] + potentials[i + 1][t]
+    mass = alpha + potential[..., None, None] + (log_act[t] + potentials[-1][t])
+    conts, pointers = [], []
+    for i in reversed(range(depth)):
+      conts.insert(0, mass[..., :-1] + log_cont[i][t, :, :-1])
+      candidates = jnp.moveaxis(mass + log_stop[i][t], 0, -1)  # [..., K_i, C_i, k]
+      best, pointer = jax.lax.top_k(candidates.reshape(candidates.shape[:-3] + (-1,)), k)
+      pointers.insert(0, pointer.astype(jnp.int32))
+      mass = jnp.moveaxis(best, -1, 0)
+    peaks = [jnp.max(c) for c in conts if c.size]
+    scale = _finite_or_zero(jnp.max(jnp.stack(peaks)) if peaks else jnp.zeros((), dtype))
+    increment = jnp.where(t == length - 1, mass, jnp.where(t < length - 1, scale, 0.0))
+    return (tuple(conts), scale), (increment, tuple(pointers))
+
+  init = tuple(jnp.full((k,) + _prefix_shape(log_stop, i)[:-1] + (log_stop[i].shape[2] - 1,), -jnp.inf, dtype)
+               for i in range(depth))
+  _, (log_increments, pointers) = jax.lax.scan(step, (init, jnp.zeros((), dtype)), jnp.arange(log_act.shape[0]))
+  return jnp.sum(log_increments, axis=0), pointers
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _top_k(k: int, inputs: StackInputs, procedures, counters, length):
+  log_prob, pointers = _forward_top_k(k, inputs, _potentials(inputs, procedures, counters), length)
+  capacities = tuple(x.shape[2] for x in inputs.log_stop)
+
+  def choose(level, pointer, rank, t):
+    return pointer[rank] // k, 0.0, pointer[rank] % k
+
+  path_procedures, path_counters, _ = jax.vmap(
+      lambda rank: _backtrack(pointers, length, capacities, choose, inputs.log_act.dtype, rank))(jnp.arange(k))
+  impossible = jnp.isneginf(log_prob)[:, None, None]
+  return StackPath(jnp.where(impossible, NO_FRAME, path_procedures), jnp.where(impossible, NO_FRAME, path_counters),
+                   log_prob)
+
+
+def top_k(k: int, inputs: StackInputs, procedures=None, counters=None) -> StackPath:
+  """The k most likely whole-stack paths, best first (k-best max-product; memory k times Viterbi's).
+
+  If fewer than k paths are possible, the remaining entries have log_prob −inf and procedures = counters =
+  NO_FRAME. Ties are broken deterministically.
+
+  Args:
+    k: int ≥ 1 (static). inputs: StackInputs. procedures, counters: [T, d] int annotation or None (as
+      forward_backward's).
+  Returns:
+    StackPath(procedures [k, T, d], counters [k, T, d], log_prob [k]) descending; entry 0 is viterbi's.
+  """
+  k = check_k(k)
+  return _top_k(k, *_prepared(inputs, *_unknown_as_arrays(inputs, procedures, counters)))
+
+
+def _expected_log_joint(events, log_factors):
+  """Σ P(event) · log-factor over matching leaves: E[log P'(ζ, ξ)] of the lattice of log_factors under the
+  posterior whose event probabilities are `events` (log P(ζ, ξ) is a sum of one input entry per event).
+  Events of probability zero count 0 even where the log-factor is −inf. Returns []."""
+  total = 0.0
+  for prob, log_factor in zip(jax.tree.leaves(events), jax.tree.leaves(log_factors)):
+    used = prob > 0
+    total = total + jnp.sum(jnp.where(used, prob * jnp.where(used, log_factor, 0.0), 0.0))
+  return total
+
+
+def _entropy_and_events(p: StackInputs, potentials, length):
+  """(H(p), the posterior of every event: jax.grad of log P(ξ) w.r.t. the inputs and potentials)."""
+  log_z, events = jax.value_and_grad(_log_likelihood, argnums=(0, 1))(p, potentials, length)
+  return log_z - _expected_log_joint(events, (p, potentials)), events
+
+
+@jax.jit
+def _entropy(p: StackInputs, procedures, counters, length):
+  return _entropy_and_events(p, _potentials(p, procedures, counters), length)[0]
+
+
+@jax.jit
+def _entropies(p: StackInputs, p_annotation, q: StackInputs, q_annotation, length):
+  """(H(p), H(p, q)) between the posteriors over paths; annotations are (procedures, counters) pairs.
+  H(p, q) = log P_q(ξ) − E_p[log P_q(ζ, ξ)], the expectation from p's event posteriors: +inf where q rules
+  out a path p allows."""
+  q_potentials = _potentials(q, *q_annotation)
+  entropy, events = _entropy_and_events(p, _potentials(p, *p_annotation), length)
+  expected = _expected_log_joint(events, (q, q_potentials))
+  cross = jnp.where(jnp.isneginf(expected), jnp.inf, _log_likelihood(q, q_potentials, length) - expected)
+  return entropy, cross
+
+
+def _named_arrays(inputs: StackInputs):
+  """(name, array) of every array of inputs: log_call[0], ..., log_act, log_stop[0], ..., log_cont[d-1]."""
+  for field in StackInputs._fields[:4]:
+    value = getattr(inputs, field)
+    yield from [(field, value)] if field == "log_act" else ((f"{field}[{i}]", x) for i, x in enumerate(value))
+
+
+def _pair(p, q, p_annotation=(None, None), q_annotation=(None, None)):
+  """Checks two lattices of the same shapes and length, and their annotations; returns _entropies' arguments."""
+  checked = []
+  for name, x, annotation in (("p", p, p_annotation), ("q", q, q_annotation)):
+    try:
+      x, *annotation, length = _prepared(x, *_unknown_as_arrays(x, *annotation))
+    except ValueError as error:
+      raise ValueError(f"{name}: {error}") from None
+    checked.append((x, tuple(annotation), length))
+  if len(p.log_stop) != len(q.log_stop):
+    raise ValueError(f"p and q must have the same number of levels; got {len(p.log_stop)} and {len(q.log_stop)}")
+  for (name, a), (_, b) in zip(_named_arrays(p), _named_arrays(q)):
+    if jnp.shape(a) != jnp.shape(b):
+      raise ValueError(f"p.{name} and q.{name} must have the same shape; got {jnp.shape(a)} and {jnp.shape(b)}")
+  (p, p_annotation, length), (q, q_annotation, q_length) = checked
+  if not any(isinstance(x, jax.core.Tracer) for x in (length, q_length)) and int(length) != int(q_length):
+    raise ValueError(f"p and q must have the same length; got {int(length)} and {int(q_length)}")
+  return p, p_annotation, q, q_annotation, length
+
+
+def posterior_entropy(inputs: StackInputs, procedures=None, counters=None) -> jax.Array:
+  """Entropy of P(ζ | ξ) over whole-stack paths in nats: log P(ξ) − E[log P(ζ, ξ)], from the event posteriors.
+
+  Args:
+    inputs: StackInputs. procedures, counters: [T, d] int annotation or None (as forward_backward's).
+  Returns:
+    [] nats.
+  """
+  return _entropy(*_prepared(inputs, *_unknown_as_arrays(inputs, procedures, counters)))
+
+
+def cross_entropy(p: StackInputs, q: StackInputs) -> jax.Array:
+  """H(p, q) = −Σ_ζ p(ζ | ξ) log q(ζ | ξ) in nats between the posteriors over whole-stack paths of two lattices
+  of the same shapes and length: +inf where q rules out a path p allows. Differentiable w.r.t. both.
+
+  Args:
+    p, q: StackInputs with the same shapes and length (checked when concrete). StackLattice(p,
+      ...).cross_entropy(StackLattice(q, ...)) restricts either to an annotation.
+  Returns:
+    [] nats.
+  """
+  return _entropies(*_pair(p, q))[1]
+
+
+def kl_divergence(p: StackInputs, q: StackInputs) -> jax.Array:
+  """KL(p ‖ q) = H(p, q) − H(p) in nats between the posteriors over whole-stack paths: ≥ 0, 0 iff they agree,
+  +inf where q rules out a path p allows. Differentiable w.r.t. both.
+
+  Args:
+    p, q: StackInputs with the same shapes and length (checked when concrete).
+  Returns:
+    [] nats.
+  """
+  entropy, cross = _entropies(*_pair(p, q))
+  return cross - entropy
+
+
+class StackLattice(LatticeStructure):
+  """The whole-stack lattice of one demonstration as a structure with queries (SynJax's distribution API;
+  the same methods as php_jax.TwoLevelLattice): the posterior over whole-stack paths P(ζ | ξ), restricted to
+  the paths that agree with the annotation. A frozen pytree: pass it through jit and vmap.
+
+  Args:
+    inputs: StackInputs (module docstring).
+    procedures, counters: [T, d] int annotation, root first, −1 = unknown, or None (as forward_backward's).
+  Raises:
+    ValueError on construction, naming the argument (module docstring).
+  Example:
+    >>> lattice = StackLattice(inputs, procedures=known)
+    >>> lattice.log_partition(), lattice.top_k(3).log_prob, lattice.kl_divergence(StackLattice(other))
+  """
+
+  def _checked(self):
+    inputs = StackInputs(*self.inputs)
+    return inputs, *_check_annotation(inputs, self.procedures, self.counters, _check_inputs(inputs))
+
+  def _annotation(self):
+    return {"procedures": self.procedures, "counters": self.counters}
+
+  def log_partition(self) -> jax.Array:
+    """[] log P(ξ) (of the agreeing paths): the forward pass only."""
+    return log_likelihood(self.inputs, **self._annotation())
+
+  def posterior(self) -> StackPosterior:
+    """forward_backward: StackPosterior(log_likelihood [], marginals: d arrays [T, K_i, C_i])."""
+    return forward_backward(self.inputs, **self._annotation())
+
+  def marginals(self) -> tuple:
+    """d arrays [T, K_i, C_i] P(h_{i,t} = h, τ_{i,t} = τ | ξ)."""
+    return self.posterior().marginals
+
+  def argmax(self) -> StackPath:
+    """The most likely path (viterbi): procedures, counters [T, d], log_prob []."""
+    return viterbi(self.inputs, **self._annotation())
+
+  def top_k(self, k: int) -> StackPath:
+    """The k most likely paths, best first: procedures, counters [k, T, d], log_prob [k]."""
+    return top_k(k, self.inputs, **self._annotation())
+
+  def sample(self, key, temperature=1.0) -> StackPath:
+    """One exact draw from P(ζ | ξ)^(1/temperature), renormalised; log_prob [] untempered log P(ζ, ξ)."""
+    return sample_posterior(key, self.inputs, temperature=temperature, **self._annotation())
+
+  def entropy(self) -> jax.Array:
+    """[] H(P(ζ | ξ)) in nats."""
+    return posterior_entropy(self.inputs, **self._annotation())
+
+  def cross_entropy(self, other: StackLattice) -> jax.Array:
+    """[] H(self, other) in nats between the posteriors over paths (same shapes and length); +inf where
+    other rules out a path self allows."""
+    other = self._same_kind(other)
+    return _entropies(*_pair(self.inputs, other.inputs, (self.procedures, self.counters),
+                             (other.procedures, other.counters)))[1]
+
+  def kl_divergence(self, other: StackLattice) -> jax.Array:
+    """[] KL(self ‖ other) in nats between the posteriors over paths (same shapes and length)."""
+    other = self._same_kind(other)
+    entropy, cross = _entropies(*_pair(self.inputs, other.inputs, (self.procedures, self.counters),
+                                       (other.procedures, other.counters)))
+    return cross - entropy
