@@ -1,4 +1,5 @@
-"""Reference E-step by enumerating every latent path, in float64 numpy, independent of php_jax.lattice."""
+"""Reference E-step by enumerating every latent path, of the two-level lattice and of the whole call stack, in
+float64 numpy, independent of php_jax.lattice and php_jax.stack_lattice."""
 import numpy as np
 
 
@@ -77,6 +78,15 @@ def entropy(log_probs, log_z):
   return float(-(p[nz] * (log_probs[nz] - log_z)).sum())
 
 
+def cross_entropy(log_probs_p, log_probs_q):
+  """H(p, q) = −Σ_ζ p(ζ | ξ) log q(ζ | ξ) from every path's log P(ζ, ξ) under p and q, in the same order:
+  +inf where q rules out a path p allows."""
+  p = np.exp(log_probs_p - np.logaddexp.reduce(log_probs_p))
+  with np.errstate(invalid="ignore"):
+    log_q = log_probs_q - np.logaddexp.reduce(log_probs_q)
+  nz = p > 0
+  return float(-(p[nz] * log_q[nz]).sum())
+
 
 def prefix_log_prob(inputs, path):
   """log-probability of a path prefix (h_0, τ_0) .. (h_t, τ_t) emitting a_0 .. a_t: path_log_prob without
@@ -105,3 +115,60 @@ def path_features(paths, shape, length):
       else:
         cont[i, t, h, tau] = 1
   return root, op, stop, cont
+
+
+def stack_paths(inputs, length):
+  """Every stack trajectory of `length` steps, following the executor's semantics step by step.
+
+  Returns a list of (stacks, log_prob): stacks[t] is the tuple of (h_i, τ_i) for levels 0..d-1 at step t.
+  """
+  log_call, log_act, log_stop, log_cont = (inputs.log_call, np.asarray(inputs.log_act), inputs.log_stop,
+                                           inputs.log_cont)
+  depth = len(log_stop)
+  sizes = [x.shape[1] for x in log_stop]
+  capacities = [x.shape[2] for x in log_stop]
+  paths = []
+
+  def push(t, frames, log_prob):
+    """Completes frames (levels 0..j) down to level d-1 with fresh frames: yields (frames, log_prob)."""
+    if len(frames) == depth:
+      yield frames, log_prob
+      return
+    level = len(frames) - 1
+    h, tau = frames[-1]
+    for callee in range(sizes[level + 1]):
+      yield from push(t, frames + [(callee, 0)], log_prob + log_call[level][t, h, tau, callee])
+
+  def walk(t, frames, stacks, log_prob):
+    stacks = stacks + [tuple(frames)]
+    log_prob += log_act[(t,) + frames[-1]]
+    if t == length - 1:
+      paths.append((stacks, log_prob + sum(log_stop[i][(t,) + frames[i]] for i in range(depth))))
+      return
+    stopped = 0.0
+    for j in reversed(range(depth)):  # j: the first level from the bottom that continues
+      h, tau = frames[j]
+      if tau + 1 < capacities[j]:
+        resumed = log_prob + stopped + log_cont[j][t, h, tau]
+        for new_frames, new_log_prob in push(t + 1, frames[:j] + [(h, tau + 1)], resumed):
+          walk(t + 1, new_frames, stacks, new_log_prob)
+      stopped += log_stop[j][t, h, tau]
+
+  for frames, log_prob in push(0, [(0, 0)], 0.0):
+    walk(0, frames, [], log_prob)
+  return paths
+
+
+def _logsumexp(x):
+  x = np.asarray(x, float)
+  peak = x.max()
+  return peak + np.log(np.exp(x - peak).sum()) if np.isfinite(peak) else -np.inf
+
+
+def stack_posterior(inputs, length, agrees=lambda stacks: True):
+  """Brute force over the paths that agree: (log_likelihood, probabilities [P], stacks list, log_probs)."""
+  paths = [(s, lp) for s, lp in stack_paths(inputs, length) if agrees(s)]
+  log_probs = np.array([lp for _, lp in paths])
+  log_z = _logsumexp(log_probs)
+  probs = np.exp(log_probs - log_z) if np.isfinite(log_z) else np.zeros_like(log_probs)
+  return log_z, probs, [s for s, _ in paths], log_probs

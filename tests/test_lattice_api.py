@@ -398,3 +398,151 @@ def test_half_precision_inputs_are_computed_in_float32(dtype):
                  php_jax.sample_posterior(jax.random.key(0), *half, length=length).log_prob,
                  php_jax.kl_divergence(php_jax.LatticeInputs(*half, length), php_jax.LatticeInputs(*full, length))):
     assert result.dtype == jnp.float32 and np.all(np.isfinite(result)), result
+
+
+def test_every_function_takes_one_lattice_inputs_in_place_of_the_five_arrays():
+  """The arguments after a LatticeInputs fill the function's other parameters in order; bit for bit."""
+  inputs = php_jax.LatticeInputs(*_jnp(_lattice(0, (5, 2, 3, 4))), length=4)
+  key, procedure, counter = jax.random.key(1), np.array([0, 0, 1, 1, -1]), np.array([0, 1, 0, 1, -1])
+  pairs = [(php_jax.forward_backward(inputs), php_jax.forward_backward(*inputs)),
+           (php_jax.viterbi(inputs), php_jax.viterbi(*inputs)),
+           (php_jax.sample_posterior(key, inputs, 0.5), php_jax.sample_posterior(key, *inputs, 0.5)),
+           (php_jax.top_k(3, inputs), php_jax.top_k(3, *inputs)),
+           (php_jax.complete_log_likelihood(inputs, procedure, counter),
+            php_jax.complete_log_likelihood(*inputs[:4], procedure, counter, 4)),
+           (php_jax.posterior_entropy(inputs), php_jax.posterior_entropy(*inputs)),
+           (php_jax.forward_filter(inputs), php_jax.forward_filter(*inputs)),
+           (php_jax.differentiable_sample(key, inputs), php_jax.differentiable_sample(key, *inputs)),
+           (php_jax.validate_inputs(inputs), php_jax.validate_inputs(*inputs))]
+  for got, want in pairs:
+    assert type(got) is type(want)
+    for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+      np.testing.assert_array_equal(g, w)
+  with pytest.raises(TypeError, match="length"):
+    php_jax.forward_backward(inputs, length=4)
+  with pytest.raises(TypeError, match=r"at most 2 positional arguments after a LatticeInputs \(procedures, counters\)"):
+    php_jax.forward_backward(inputs, procedure, counter, 1)
+
+
+def test_annotation_arguments_are_annotate_and_results_speak_the_stack_names():
+  """procedures=, counters= are annotate's mask (padding ignored); v is `marginals`, a path's procedure and
+  counter are `procedures`, `counters`, and feeding them back gives the path's complete-data likelihood."""
+  inputs = php_jax.LatticeInputs(*_jnp(_lattice(1, (5, 2, 3, 4))), length=4)
+  procedures, counters = np.array([1, -1, -1, 0, 7]), np.array([0, -1, 2, -1, 9])  # step 4 is padding
+  used = np.arange(5) < 4
+  masked = inputs._replace(log_op=php_jax.annotate(inputs.log_op, np.where(used, procedures, -1),
+                                                   np.where(used, counters, -1)))
+  only_counters = inputs._replace(log_op=php_jax.annotate(inputs.log_op, -np.ones(5, int),
+                                                          np.where(used, counters, -1)))
+  key = jax.random.key(2)
+  pairs = [(php_jax.forward_backward(inputs, procedures, counters), php_jax.forward_backward(masked)),
+           (php_jax.viterbi(inputs, procedures=procedures, counters=counters), php_jax.viterbi(masked)),
+           (php_jax.top_k(2, inputs, procedures, counters), php_jax.top_k(2, masked)),
+           (php_jax.sample_posterior(key, inputs, procedures=procedures, counters=counters),
+            php_jax.sample_posterior(key, masked)),
+           (php_jax.posterior_entropy(inputs, counters=counters), php_jax.posterior_entropy(only_counters))]
+  for got, want in pairs:
+    for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+      np.testing.assert_array_equal(g, w)
+  assert np.isfinite(pairs[0][0].log_likelihood)
+  post, path = php_jax.forward_backward(inputs), php_jax.viterbi(inputs)
+  assert post.marginals is post.v and path.procedures is path.procedure and path.counters is path.counter
+  np.testing.assert_allclose(php_jax.forward_backward(inputs, path.procedures, path.counters).log_likelihood,
+                             path.log_prob, atol=1e-12)
+
+
+def test_two_level_lattice_structure_matches_enumeration_and_passes_through_jit_and_vmap():
+  shape, length = (5, 2, 3, 4), 4
+  p_arrays, q_arrays = _lattice(4, shape, mask_prob=0.2), _lattice(3, shape)
+  log_z, v, _, paths, log_probs = bf.enumerate_posterior(p_arrays, length)
+  q_log_probs = bf.enumerate_posterior(q_arrays, length)[4]
+  p_inputs, q_inputs = (php_jax.LatticeInputs(*_jnp(x), length) for x in (p_arrays, q_arrays))
+  p, q = php_jax.TwoLevelLattice(p_inputs), php_jax.TwoLevelLattice(q_inputs)
+  order = np.argsort(-log_probs, kind="stable")
+  entropy, cross = bf.entropy(log_probs, log_z), bf.cross_entropy(log_probs, q_log_probs)
+  np.testing.assert_allclose(p.log_partition(), log_z, atol=1e-9)
+  np.testing.assert_allclose(p.marginals(), v, atol=1e-9)
+  np.testing.assert_allclose(p.posterior().v, v, atol=1e-9)
+  assert _as_paths(jax.tree.map(lambda x: x[None], p.argmax()), length) == [tuple(paths[order[0]])]
+  np.testing.assert_allclose(p.top_k(3).log_prob, log_probs[order[:3]], atol=1e-9)
+  np.testing.assert_allclose([p.entropy(), p.cross_entropy(q), p.kl_divergence(q)],
+                             [entropy, cross, cross - entropy], atol=1e-9)
+  key = jax.random.key(4)
+  for got, want in zip(p.sample(key, 0.5), php_jax.sample_posterior(key, p_inputs, temperature=0.5)):
+    np.testing.assert_array_equal(got, want)
+  # Restricted to an annotation (the most likely path's procedure at step 1): the agreeing paths only; +inf
+  # where q rules out a path p allows.
+  known = paths[order[0]][1][0]
+  procedures = np.array([-1, known, -1, -1, -1])
+  agree = np.array([path[1][0] == known for path in paths])
+  p_known, q_known = (php_jax.TwoLevelLattice(x, procedures=procedures) for x in (p_inputs, q_inputs))
+  sub, sub_q = log_probs[agree], q_log_probs[agree]
+  assert 1 < np.isfinite(sub).sum() < np.isfinite(log_probs).sum()
+  entropy, cross = bf.entropy(sub, np.logaddexp.reduce(sub)), bf.cross_entropy(sub, sub_q)
+  np.testing.assert_allclose([p_known.log_partition(), p_known.entropy(), p_known.kl_divergence(q_known)],
+                             [np.logaddexp.reduce(sub), entropy, cross - entropy], atol=1e-9)
+  assert p.kl_divergence(q_known) == np.inf
+  # A pytree: built inside vmap, queried under jit and vmap.
+  lattices = jax.vmap(php_jax.TwoLevelLattice)(jax.tree.map(lambda *x: jnp.stack(x), p_inputs, q_inputs))
+  entropies = jax.jit(jax.vmap(lambda s: s.entropy()))(lattices)
+  assert isinstance(lattices, php_jax.TwoLevelLattice)
+  np.testing.assert_allclose(entropies, [p.entropy(), q.entropy()], atol=1e-9)
+
+
+def _zeros_lattice():
+  return (jnp.zeros((4, 2)), jnp.zeros((4, 2, 3)), jnp.full((4, 2, 3), -0.5), jnp.full((4, 2, 3), -1.0))
+
+
+_KEY = jax.random.key(0)
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda x: php_jax.forward_backward(*x, length=2.5), r"length must be an integer in 1..T = 1..4; got 2.5"),
+    (lambda x: php_jax.viterbi(*x, length=True), r"length must be an integer in 1..T = 1..4; got True"),
+    (lambda x: php_jax.top_k(2, *x, np.float32(3)), "length must be an integer in 1..T = 1..4"),
+    (lambda x: php_jax.forward_filter(*x, jnp.array([2, 3])),
+     r"length must be an integer .*got an array of shape \(2,\)"),
+    (lambda x: php_jax.posterior_entropy(*x, 5), r"length must be in 1..T = 1..4; got 5"),
+    (lambda x: php_jax.forward_backward(*x, length=jnp.array(0)), r"length must be in 1..T = 1..4; got 0"),
+    (lambda x: php_jax.sample_posterior(_KEY, *x, temperature=0), "temperature must be a finite number > 0; got 0"),
+    (lambda x: php_jax.sample_posterior(_KEY, *x, temperature=-1.0), "temperature must be a finite number > 0"),
+    (lambda x: php_jax.sample_posterior(_KEY, *x, temperature=np.inf), "temperature must be a finite number > 0"),
+    (lambda x: php_jax.sample_posterior(_KEY, *x, temperature=np.nan), "temperature must be a finite number > 0"),
+    (lambda x: php_jax.sample_posterior(_KEY, *x, temperature=True), "temperature must be a finite number > 0"),
+    (lambda x: php_jax.differentiable_sample(_KEY, *x, temperature=jnp.ones(2)), r"temperature .*shape \(2,\)"),
+    (lambda x: php_jax.annotate(x[1], np.array([0.0, 1.0, 1.0, 0.0]), np.zeros(4, int)),
+     "procedure must be an integer array"),
+    (lambda x: php_jax.annotate(x[1], np.zeros((4, 2), int), np.zeros(4, int)),
+     r"procedure must have shape \(4,\); got \(4, 2\)"),
+    (lambda x: php_jax.complete_log_likelihood(*x, np.array([2, 0, 0, 0]), np.array([0, 1, 2, 0])),
+     r"procedure\[0\] = 2 is outside −1..K−1 = −1..1"),
+    (lambda x: php_jax.complete_log_likelihood(*x, np.zeros(4, int), np.array([0, 1, 2, 3])),
+     r"counter\[3\] = 3 is outside −1..C−1 = −1..2"),
+    (lambda x: php_jax.forward_backward(*x, procedures=np.array([0, 0, 0, 2])), r"procedures\[3\] = 2"),
+    (lambda x: php_jax.viterbi(*x, counters=np.zeros(5, np.int32)), r"counters must have shape \(4,\); got \(5,\)"),
+    (lambda x: php_jax.top_k(True, *x), "k must be an int ≥ 1; got True"),
+    (lambda x: php_jax.kl_divergence(php_jax.LatticeInputs(*x, 3), php_jax.LatticeInputs(*x, 2.5)),
+     "q: length must be an integer"),
+    (lambda x: php_jax.TwoLevelLattice(php_jax.LatticeInputs(*x), procedures=np.ones(4)),
+     "procedures must be an integer array"),
+    (lambda x: php_jax.TwoLevelLattice(php_jax.LatticeInputs(*x, 0)), r"length must be in 1..T"),
+    (lambda x: php_jax.TwoLevelLattice(php_jax.LatticeInputs(*x)).sample(_KEY, 0.0), "temperature"),
+    (lambda x: php_jax.TwoLevelLattice(php_jax.LatticeInputs(*x)).kl_divergence(php_jax.LatticeInputs(*x)),
+     "other must be a TwoLevelLattice; got a LatticeInputs"),
+])
+def test_refusals_name_the_argument(call, message):
+  with pytest.raises(ValueError, match=message):
+    call(_zeros_lattice())
+
+
+def test_what_is_not_refused():
+  """Annotation values on padding are ignored; traced ones are not range-checked (out of range matches
+  nothing); arrays of different float dtypes are computed in the promoted one."""
+  x = _zeros_lattice()
+  np.testing.assert_array_equal(php_jax.forward_backward(*x, 2, procedures=np.array([0, 0, 7, 7])).log_likelihood,
+                                php_jax.forward_backward(*x, 2, procedures=np.array([0, 0, -1, -1])).log_likelihood)
+  traced = jax.jit(lambda p: php_jax.forward_backward(*x, procedures=p).log_likelihood)(np.array([0, 0, 0, 2]))
+  assert traced == -np.inf
+  mixed = php_jax.forward_backward(x[0].astype(jnp.float32), *(a.astype(jnp.float64) for a in x[1:]))
+  assert mixed.v.dtype == jnp.float64
+  np.testing.assert_array_equal(mixed.v, php_jax.forward_backward(*(a.astype(jnp.float64) for a in x)).v)

@@ -10,6 +10,7 @@ import pytest
 
 import php_jax
 from php_jax import stack_lattice as sl
+from tests import lattice_brute_force as bf
 
 # (K, C, T): three levels with padding room, and four levels.
 THREE = ((1, 2, 2), (3, 3, 2), 6)
@@ -39,63 +40,6 @@ def random_stack(rng, sizes, capacities, num_steps, scale=1.0, mask_prob=0.0, le
     fields = jax.tree.map(lambda x: np.where(np.arange(num_steps).reshape((-1,) + (1,) * (x.ndim - 1)) < length, x,
                                              rng.choice([-np.inf, 30.0, -5.0], x.shape)), fields)
   return sl.StackInputs(*fields, length=length)
-
-
-def enumerate_paths(inputs, length):
-  """Every stack trajectory of `length` steps, following the executor's semantics step by step.
-
-  Returns a list of (stacks, log_prob): stacks[t] is the tuple of (h_i, τ_i) for levels 0..d-1 at step t.
-  """
-  log_call, log_act, log_stop, log_cont = (inputs.log_call, np.asarray(inputs.log_act), inputs.log_stop,
-                                           inputs.log_cont)
-  depth = len(log_stop)
-  sizes = [x.shape[1] for x in log_stop]
-  capacities = [x.shape[2] for x in log_stop]
-  paths = []
-
-  def push(t, frames, log_prob):
-    """Completes frames (levels 0..j) down to level d-1 with fresh frames: yields (frames, log_prob)."""
-    if len(frames) == depth:
-      yield frames, log_prob
-      return
-    level = len(frames) - 1
-    h, tau = frames[-1]
-    for callee in range(sizes[level + 1]):
-      yield from push(t, frames + [(callee, 0)], log_prob + log_call[level][t, h, tau, callee])
-
-  def walk(t, frames, stacks, log_prob):
-    stacks = stacks + [tuple(frames)]
-    log_prob += log_act[(t,) + frames[-1]]
-    if t == length - 1:
-      paths.append((stacks, log_prob + sum(log_stop[i][(t,) + frames[i]] for i in range(depth))))
-      return
-    stopped = 0.0
-    for j in reversed(range(depth)):  # j: the first level from the bottom that continues
-      h, tau = frames[j]
-      if tau + 1 < capacities[j]:
-        resumed = log_prob + stopped + log_cont[j][t, h, tau]
-        for new_frames, new_log_prob in push(t + 1, frames[:j] + [(h, tau + 1)], resumed):
-          walk(t + 1, new_frames, stacks, new_log_prob)
-      stopped += log_stop[j][t, h, tau]
-
-  for frames, log_prob in push(0, [(0, 0)], 0.0):
-    walk(0, frames, [], log_prob)
-  return paths
-
-
-def _logsumexp(x):
-  x = np.asarray(x, float)
-  peak = x.max()
-  return peak + np.log(np.exp(x - peak).sum()) if np.isfinite(peak) else -np.inf
-
-
-def posterior(inputs, length, agrees=lambda stacks: True):
-  """Brute force over the paths that agree: (log_likelihood, probabilities [P], stacks list, log_probs)."""
-  paths = [(s, lp) for s, lp in enumerate_paths(inputs, length) if agrees(s)]
-  log_probs = np.array([lp for _, lp in paths])
-  log_z = _logsumexp(log_probs)
-  probs = np.exp(log_probs - log_z) if np.isfinite(log_z) else np.zeros_like(log_probs)
-  return log_z, probs, [s for s, _ in paths], log_probs
 
 
 def event_posteriors(inputs, length, probs, stacks):
@@ -149,14 +93,14 @@ def posterior_and_grads(inputs, procedures=None, counters=None):
 
 
 KEYS = jax.random.split(jax.random.key(0), 4000)
-_sample_many = jax.jit(jax.vmap(sl.sample_posterior, (0, None, None, None)))
+_sample_many = jax.jit(jax.vmap(sl.sample_posterior, (0, None, None, None, None)))
 
 
-def sample_many(inputs, procedures=None, counters=None):
+def sample_many(inputs, procedures=None, counters=None, temperature=1.0):
   """sample_posterior for each of KEYS, compiled once per shape like posterior_and_grads; numpy out."""
   unknown = np.full((inputs.log_act.shape[0], len(inputs.log_stop)), -1, np.int32)
   return jax.device_get(_sample_many(KEYS, inputs, unknown if procedures is None else procedures,
-                                     unknown if counters is None else counters))
+                                     unknown if counters is None else counters, temperature))
 
 
 def _annotation(stack, num_steps):
@@ -171,11 +115,11 @@ def _annotation(stack, num_steps):
 
 def _case(case, seed, scale=1.0):
   """A CASES entry drawn with the first seed from `seed` on whose demonstration has a possible path:
-  (inputs as float64 numpy, the same as jax arrays, T, d, posterior(inputs, length))."""
+  (inputs as float64 numpy, the same as jax arrays, T, d, bf.stack_posterior(inputs, length))."""
   (sizes, capacities, num_steps), length, mask_prob = case
   while True:
     inputs = random_stack(np.random.default_rng(seed), sizes, capacities, num_steps, scale, mask_prob, length)
-    enumerated = posterior(inputs, length)
+    enumerated = bf.stack_posterior(inputs, length)
     if np.isfinite(enumerated[0]):
       return inputs, _jnp(inputs, jnp.float64), num_steps, len(sizes), enumerated
     seed += 1000
@@ -236,7 +180,7 @@ def test_annotation_full_and_partial():
       return all((procedures[t, i] < 0 or procedures[t, i] == h) and (counters[t, i] < 0 or counters[t, i] == tau)
                  for t, frames in enumerate(stack) for i, (h, tau) in enumerate(frames))
 
-    log_z, sub_probs, sub_stacks, sub_log_probs = posterior(inputs, length, agrees)
+    log_z, sub_probs, sub_stacks, sub_log_probs = bf.stack_posterior(inputs, length, agrees)
     assert 1 < len(sub_stacks) < len(stacks)
     post, _ = posterior_and_grads(args, procedures, counters)
     np.testing.assert_allclose(post.log_likelihood, log_z, atol=1e-6)
@@ -257,7 +201,7 @@ def test_annotation_full_and_partial():
     assert post.log_likelihood == -np.inf
     assert all((x == 0).all() for x in post.marginals + tuple(jax.tree.leaves(grads)))
     # Counters unknown (None): only procedures constrain the paths.
-    log_z, _, _, _ = posterior(inputs, length, functools.partial(agrees, counters=np.full_like(counters, -1)))
+    log_z, _, _, _ = bf.stack_posterior(inputs, length, functools.partial(agrees, counters=np.full_like(counters, -1)))
     np.testing.assert_allclose(posterior_and_grads(args, procedures)[0].log_likelihood, log_z, atol=1e-6)
 
 
@@ -359,3 +303,149 @@ def test_padding_is_a_no_op_and_batching_works():
       for got, marginal in zip(posts.marginals, want.marginals):
         np.testing.assert_allclose(got[b], marginal, atol=1e-9)
       np.testing.assert_array_equal(paths.procedures[b], sl.viterbi(one).procedures)
+
+
+@pytest.mark.parametrize("case", [(THREE, 4, 0.15), (THREE, 1, 0.0), (FOUR, 3, 0.0)])
+def test_top_k_matches_enumeration(case):
+  """The k most likely stack trajectories in order; past the possible ones (a single step has six), −inf and
+  NO_FRAME."""
+  k = 8
+  with jax.enable_x64(True):
+    _, args, num_steps, depth, (_, _, stacks, log_probs) = _case(case, seed=7)
+    best, path = sl.top_k(k, args), sl.viterbi(args)
+  order = np.argsort(-log_probs, kind="stable")
+  possible = min(k, int(np.isfinite(log_probs).sum()))
+  assert best.procedures.shape == best.counters.shape == (k, num_steps, depth) and best.log_prob.shape == (k,)
+  np.testing.assert_allclose(best.log_prob[:possible], log_probs[order[:possible]], atol=1e-6)
+  for i in range(possible):
+    want_procedures, want_counters = _annotation(stacks[order[i]], num_steps)
+    np.testing.assert_array_equal(best.procedures[i], want_procedures)
+    np.testing.assert_array_equal(best.counters[i], want_counters)
+  assert np.isneginf(best.log_prob[possible:]).all() and (best.procedures[possible:] == php_jax.NO_FRAME).all()
+  np.testing.assert_array_equal(best.procedures[0], path.procedures)
+  assert (possible < k) == (case[1] == 1)
+
+
+def test_entropy_kl_and_cross_entropy_match_enumeration():
+  """Against every trajectory's probability under p and q (three levels, padding, −inf masks), also restricted
+  to an annotation (the agreeing trajectories only), and +inf where q rules out a trajectory p allows."""
+  (shape, length, _) = case = (THREE, 4, 0.15)
+  with jax.enable_x64(True):
+    _, p, num_steps, depth, (log_z, _, stacks, log_probs) = _case(case, seed=2)
+    q_numpy, q, _, _, _ = _case((shape, length, 0.0), seed=12)
+    q_log_probs = bf.stack_posterior(q_numpy, length)[3]  # the same trajectories in the same order
+    free = sl.posterior_entropy(p), sl.cross_entropy(p, q), sl.kl_divergence(p, q)
+    # Restricted: level 1's procedure at step 1 is the most likely trajectory's.
+    known = stacks[int(np.argmax(log_probs))][1][1][0]
+    procedures = np.full((num_steps, depth), -1, np.int32)
+    procedures[1, 1] = known
+    p_known, q_known = php_jax.StackLattice(p, procedures), php_jax.StackLattice(q, procedures)
+    unknown = php_jax.StackLattice(p, np.full_like(procedures, -1))
+    restricted = jax.device_get((p_known.entropy(), p_known.cross_entropy(q_known), p_known.kl_divergence(q_known),
+                                 unknown.kl_divergence(q_known)))
+  want_entropy, want_cross = bf.entropy(log_probs, log_z), bf.cross_entropy(log_probs, q_log_probs)
+  np.testing.assert_allclose(free, [want_entropy, want_cross, want_cross - want_entropy], atol=1e-6)
+  agree = np.array([stack[1][1][0] == known for stack in stacks])
+  assert want_cross > want_entropy and 1 < np.isfinite(log_probs[agree]).sum() < np.isfinite(log_probs).sum()
+  sub, sub_q = log_probs[agree], q_log_probs[agree]
+  want_entropy, want_cross = bf.entropy(sub, np.logaddexp.reduce(sub)), bf.cross_entropy(sub, sub_q)
+  np.testing.assert_allclose(restricted[:3], [want_entropy, want_cross, want_cross - want_entropy], atol=1e-6)
+  assert restricted[3] == np.inf
+
+
+def test_tempered_samples_match_enumeration():
+  """Frequencies of P(ζ | ξ)^(1/temperature), renormalised: the samples of the lattice divided by temperature,
+  key for key; log_prob stays the untempered log P(ζ, ξ)."""
+  temperature = 2.5
+  with jax.enable_x64(True):
+    _, args, num_steps, _, (_, _, stacks, log_probs) = _case((THREE, 4, 0.0), seed=5, scale=2.0)
+    divided = sl.StackInputs(*jax.tree.map(lambda x: x / temperature, tuple(args[:4])), length=args.length)
+    paths, want = sample_many(args, temperature=temperature), sample_many(divided)
+  np.testing.assert_array_equal(paths.procedures, want.procedures)
+  np.testing.assert_array_equal(paths.counters, want.counters)
+  index = _path_index(stacks, num_steps)
+  drawn = [index[np.stack([p, c], -1).tobytes()] for p, c in zip(paths.procedures, paths.counters)]
+  np.testing.assert_allclose(paths.log_prob, log_probs[drawn], atol=1e-6)
+  probs = np.exp(log_probs / temperature - np.logaddexp.reduce(log_probs / temperature))
+  counts, n = collections.Counter(drawn), len(KEYS)
+  for k, p in enumerate(probs):
+    assert abs(counts[k] / n - p) <= 5 * np.sqrt(p * (1 - p) / n) + 2 / n, (k, counts[k] / n, p)
+
+
+def test_stack_lattice_structure_answers_every_query_and_passes_through_jit_and_vmap():
+  with jax.enable_x64(True):
+    _, args, _, _, (log_z, _, _, _) = _case((THREE, 4, 0.0), seed=4)
+    _, other, _, _, (other_log_z, _, _, _) = _case((THREE, 3, 0.0), seed=6)
+    lattice, key = php_jax.StackLattice(args), jax.random.key(1)
+    post = sl.forward_backward(args)
+    pairs = [(lattice.posterior(), post), (lattice.marginals(), post.marginals), (lattice.argmax(), sl.viterbi(args)),
+             (lattice.top_k(8), sl.top_k(8, args)),
+             (lattice.sample(key, 0.5), sl.sample_posterior(key, args, temperature=0.5)),
+             (lattice.entropy(), sl.posterior_entropy(args))]
+    lattices = jax.vmap(php_jax.StackLattice)(jax.tree.map(lambda *x: jnp.stack(x), args, other))
+    log_partitions = jax.jit(jax.vmap(lambda s: s.log_partition()))(lattices)
+  for got, want in pairs:
+    for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+      np.testing.assert_array_equal(g, w)
+  assert isinstance(lattices, php_jax.StackLattice) and lattices.inputs.log_act.shape[0] == 2
+  np.testing.assert_allclose(log_partitions, [log_z, other_log_z], atol=1e-9)
+
+
+def _small_stack(length=None):
+  (sizes, capacities, num_steps) = THREE
+  return _jnp(random_stack(np.random.default_rng(0), sizes, capacities, num_steps, length=length), jnp.float32)
+
+
+def _annotated(entry, value, name="procedures"):
+  values = np.full((6, 3), -1, np.int32)
+  values[entry] = value
+  return {name: values}
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda x: sl.log_likelihood(x, np.zeros((6, 2), np.int32)), r"procedures must have shape \(6, 3\); got \(6, 2\)"),
+    (lambda x: sl.forward_backward(x, counters=np.zeros((6, 3))), "counters must be an integer array"),
+    (lambda x: sl.viterbi(x, **_annotated((2, 1), 3)), r"procedures\[2, 1\] = 3 is outside −1..K_1−1 = −1..1"),
+    (lambda x: sl.top_k(2, x, **_annotated((0, 2), 2, "counters")),
+     r"counters\[0, 2\] = 2 is outside −1..C_2−1 = −1..1"),
+    (lambda x: sl.posterior_entropy(x, **_annotated((4, 0), -2, "counters")), r"counters\[4, 0\] = -2"),
+    (lambda x: sl.forward_backward(x._replace(length=2.5)), r"length must be an integer in 1..T = 1..6; got 2.5"),
+    (lambda x: sl.viterbi(x._replace(length=True)), r"length must be an integer in 1..T = 1..6; got True"),
+    (lambda x: sl.log_likelihood(x._replace(length=np.array([2, 3]))), r"got an array of shape \(2,\)"),
+    (lambda x: sl.log_likelihood(x._replace(length=7)), r"length must be in 1..T = 1..6; got 7"),
+    (lambda x: sl.sample_posterior(jax.random.key(0), x, temperature=0.0), "temperature must be a finite number > 0"),
+    (lambda x: sl.sample_posterior(jax.random.key(0), x, temperature=-1), "temperature must be a finite number > 0"),
+    (lambda x: sl.sample_posterior(jax.random.key(0), x, temperature=np.inf), "temperature"),
+    (lambda x: sl.sample_posterior(jax.random.key(0), x, temperature=True), "temperature"),
+    (lambda x: sl.top_k(0, x), "k must be an int ≥ 1; got 0"),
+    (lambda x: sl.kl_divergence(x, x._replace(log_act=x.log_act[:, :1])), "q: log_act must have shape"),
+    (lambda x: sl.cross_entropy(x._replace(length=3), x._replace(length=4)), "p and q must have the same length"),
+    (lambda x: sl.kl_divergence(x, _jnp(random_stack(np.random.default_rng(0), *FOUR), jnp.float32)),
+     "the same number of levels"),
+    (lambda x: php_jax.StackLattice(x, counters=np.zeros((6, 2), np.int32)), r"counters must have shape \(6, 3\)"),
+    (lambda x: php_jax.StackLattice(x).kl_divergence(x), "other must be a StackLattice; got a StackInputs"),
+])
+def test_refusals_name_the_argument(call, message):
+  with pytest.raises(ValueError, match=message):
+    call(_small_stack())
+
+
+def test_what_is_not_refused():
+  """Annotation values on padding are ignored; traced ones out of range match nothing (under jit only shapes
+  and dtypes are checked); arrays of different dtypes are computed in the promoted one. And one dialect: a
+  path is an annotation, the whole path gives its complete-data likelihood."""
+  with jax.enable_x64(True):
+    inputs = _case((THREE, 4, 0.0), seed=3)[1]
+    unknown, padded = np.full((6, 3), -1, np.int32), np.full((6, 3), -1, np.int32)
+    padded[4:] = 9
+    free, with_padding = sl.log_likelihood(inputs, unknown), sl.log_likelihood(inputs, padded)
+    traced = jax.jit(sl.log_likelihood)(inputs, _annotated((2, 1), 3)["procedures"])
+    mixed = sl.log_likelihood(inputs._replace(log_act=inputs.log_act.astype(jnp.float32)), unknown)
+    rounded = sl.log_likelihood(inputs._replace(log_act=inputs.log_act.astype(jnp.float32).astype(jnp.float64)),
+                                unknown)
+    path = sl.viterbi(inputs)
+    complete = sl.log_likelihood(inputs, path.procedures, path.counters)
+  np.testing.assert_array_equal(with_padding, free)
+  assert np.isneginf(traced)
+  np.testing.assert_array_equal(mixed, rounded)
+  np.testing.assert_allclose(complete, path.log_prob, atol=1e-9)
