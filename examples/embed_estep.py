@@ -144,6 +144,15 @@ def main(steps: int = 300, seed: int = 0, call_penalty: float = 0.5, restarts: i
   print(f"calls: {calls} decoded, {true_calls} planted ({n} steps in demonstration 0)")
   print(f"segmentation agreement with the planted one (every step of every demonstration, procedures up to "
         f"renaming): {score:.3f}")
+
+  # The same lattice as one structure answering every query (php_jax.StackLattice is the whole-stack one):
+  # how certain is demonstration 0's decoded segmentation?
+  posterior = php_jax.TwoLevelLattice(php_jax.LatticeInputs(
+      *lattice_inputs(params, data[0][0], data[1][0], call_penalty), n))
+  two_best = posterior.top_k(2).log_prob
+  print(f"demonstration 0: P(decoded segmentation | actions) = "
+        f"{float(jnp.exp(two_best[0] - posterior.log_partition())):.3f}, {float(two_best[0] - two_best[1]):.2f} "
+        f"nats above the next; posterior entropy {float(posterior.entropy()):.3f} nats")
   return float(first[best]), float(last[best]), score
 
 
