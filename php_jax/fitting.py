@@ -135,9 +135,11 @@ def _iterate(loop: _Loop, state: tuple, progress: list[Progress], schedule: Sche
   model to its kept snapshot."""
   (params, opt_state), models, part = state, loop.models, loop.part
   on_eval, log, save = hooks
-  last_save = time.monotonic()
+  last_save, wait = time.monotonic(), sharding.one_program_at_a_time(loop.mesh)
   for iteration in range(progress[0].iteration + 1, schedule.iterations + 1):
     params, opt_state, losses = loop.update(params, opt_state)
+    if wait:
+      jax.block_until_ready(losses)
     evaluate = iteration % schedule.eval_every == 0 or iteration == schedule.iterations
     if save and not evaluate and time.monotonic() - last_save >= schedule.save_seconds:
       save([p._replace(iteration=iteration, params=part(params, s), opt_state=part(opt_state, s))

@@ -28,6 +28,15 @@ def data_mesh() -> Mesh | None:
   return Mesh(np.asarray(devices), (AXIS,)) if len(devices) > 1 else None
 
 
+def one_program_at_a_time(mesh: Mesh | None) -> bool:
+  """Whether a loop over programs that run on mesh must wait for each before dispatching the next: on CPU
+  devices (XLA_FLAGS=--xla_force_host_platform_device_count=N), whose collectives meet in XLA's in-process
+  rendezvous. With several such programs in flight on a loaded machine, one device can fall behind by over
+  that rendezvous' 40-second limit, and XLA aborts the process; one program at a time, every device joins
+  each all-reduce together."""
+  return mesh is not None and mesh.devices.flat[0].platform == "cpu"
+
+
 def pad(batch: Batch, mesh: Mesh | None) -> tuple[Batch, np.ndarray]:
   """batch (a pytree of host arrays [B, ...]) with copies of its first entry appended up to a multiple of mesh's
   device count (none without a mesh), and real [B'] bool: False on the copies."""

@@ -1,9 +1,10 @@
 """Settings for a pytest run: a persistent compilation cache in a fresh temporary directory, so that the many
 identical computations the training tests compile again (each training run jits its own closures) are
-compiled by XLA once per run. Also puts the checkout on the PYTHONPATH of the commands the tests run:
+compiled by XLA once per run, and removed at the end of the run. Also puts the checkout on the PYTHONPATH of the commands the tests run:
 experiments/ is not installed, and `python -m experiments.X` must find it whatever the working directory."""
 import os
 import pathlib
+import shutil
 import tempfile
 
 import jax
@@ -18,3 +19,8 @@ jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 # The commands the tests run share the cache: each compiles the same programs as the others.
 os.environ.update(JAX_COMPILATION_CACHE_DIR=CACHE, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
                   JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
+
+
+def pytest_sessionfinish(session, exitstatus):
+  """Leaves nothing behind in the temporary directory: the cache goes with the run."""
+  shutil.rmtree(CACHE, ignore_errors=True)
