@@ -36,6 +36,8 @@ def exit_on_interrupt(message: str) -> None:
   def watch():
     os.read(read, 1)
     with checkpoint.WRITING:
+      if sys.stdout.isatty():  # a live progress display hid the cursor
+        print("\x1b[?25h", flush=True)
       print(f"interrupted: {message}", file=sys.stderr, flush=True)
       os._exit(130)
 

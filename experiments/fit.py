@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from absl import app, flags
 
-from experiments import cli, config_flags, training
+from experiments import cli, config_flags, progress, training
 from php_jax import call_graph, demo_files, replay
 from php_jax.run import Experiment, train_and_evaluate
 from php_jax.demos import Demonstration
@@ -96,8 +96,9 @@ def run() -> dict:
       extra={"demos": _DEMOS.value, "hierarchy": _HIERARCHY.value, "validation": _VALIDATION.value,
              "num_demos": len(demos.length), "num_annotated": int(np.sum(demos.strong)),
              "num_held_out": len(held_out.length)})
-  return train_and_evaluate(experiment, config, training.WORKDIR.value, training.OVERWRITE.value,
-                            wait=training.WAIT.value)
+  with progress.shown(config, spec.num_levels, training.WORKDIR.value) as echo:
+    return train_and_evaluate(experiment, config, training.WORKDIR.value, training.OVERWRITE.value,
+                              wait=training.WAIT.value, echo=echo)
 
 
 def main(argv):

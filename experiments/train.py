@@ -19,7 +19,7 @@ import dataclasses
 
 from absl import app, flags
 
-from experiments import cli, config_flags, training
+from experiments import cli, config_flags, progress, training
 from php_jax import datasets, evaluation, tasks, train
 from php_jax.run import Experiment, train_and_evaluate, train_and_evaluate_seeds
 
@@ -79,17 +79,20 @@ def run(task_name: str) -> dict:
   if LSTM_HIDDEN.value < 1:
     raise config_flags.UsageError(f"--lstm_hidden must be a positive integer; got {LSTM_HIDDEN.value}")
   workdir, overwrite, wait = training.WORKDIR.value, training.OVERWRITE.value, training.WAIT.value
+  flat = LSTM_HIDDEN.value if MODEL.value == "flat_lstm" else None
   if SEEDS.value is None:
-    return train_and_evaluate(_experiment(task_name, task, config.seed, num_demos, num_test, lengths), config,
-                              workdir, overwrite, LSTM_HIDDEN.value if MODEL.value == "flat_lstm" else None, wait)
+    experiment = _experiment(task_name, task, config.seed, num_demos, num_test, lengths)
+    with progress.shown(config, None if flat else task.spec.num_levels, workdir) as echo:
+      return train_and_evaluate(experiment, config, workdir, overwrite, flat, wait, echo)
   seeds = _seeds(config)
   experiments = [_experiment(task_name, task, s, num_demos, num_test, lengths) for s in seeds]
   try:
     train.common_call_graph(task.spec, [e.demos for e in experiments], [config] * len(seeds))
   except ValueError as e:
     raise config_flags.UsageError(f"--seeds: {e}") from None
-  return train_and_evaluate_seeds(experiments, [dataclasses.replace(config, seed=s) for s in seeds], workdir,
-                                  overwrite, wait)
+  with progress.shown(config, task.spec.num_levels, workdir) as echo:
+    return train_and_evaluate_seeds(experiments, [dataclasses.replace(config, seed=s) for s in seeds], workdir,
+                                    overwrite, wait, echo)
 
 
 def _seeds(config: train.TrainConfig) -> list[int]:

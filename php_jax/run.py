@@ -58,19 +58,26 @@ class Experiment:
   extra: dict
 
 
+def print_row(row: dict) -> None:
+  """A logged row (or the final test results) as one JSON line on stdout: what a run shows by default."""
+  print(json.dumps(row), flush=True)
+
+
 def train_and_evaluate(experiment: Experiment, config: TrainConfig, workdir: str, overwrite: bool = False,
-                       flat_lstm_hidden: int | None = None, wait: bool = False) -> dict:
+                       flat_lstm_hidden: int | None = None, wait: bool = False,
+                       echo: Callable[[dict], None] = print_row) -> dict:
   """Trains a PHP hierarchy by config.training (resuming the workdir's checkpoint if an earlier run was
   interrupted), or with flat_lstm_hidden the flat LSTM baseline of that many units; saves it, tests it,
   writes results.json; returns the results. overwrite: delete an earlier run's files first (else it is
   resumed, or refused with CheckpointError if its settings differ). The run holds the workdir's lock
-  throughout (`workdir_lock`; wait: for another run holding it to end)."""
+  throughout (`workdir_lock`; wait: for another run holding it to end). echo(row) shows each logged row and
+  last the test results."""
   config = train.with_strong_weight(config, experiment.demos)  # resolved here so that results.json records it
   commit = provenance.code_version()  # the code as it was when the run started
   spec = experiment.spec
   with workdir_lock(workdir, wait):
     clear_workdir(workdir, RUN_FILES, overwrite)
-    with MetricsLog(workdir) as log:
+    with MetricsLog(workdir, echo=echo) as log:
       if flat_lstm_hidden:
         model, trained = _train_flat_lstm(experiment, config, flat_lstm_hidden, log)
         checkpoint.save_flat_lstm(workdir, experiment.name, model, spec)
@@ -80,11 +87,12 @@ def train_and_evaluate(experiment: Experiment, config: TrainConfig, workdir: str
         checkpoint.save_hierarchy(workdir, experiment.name, model, config.hidden, capacity)
     results = {"task": experiment.name, "model": "flat_lstm" if flat_lstm_hidden else "php",
                "config": dataclasses.asdict(config), **experiment.extra, **trained}
-    return _write_results(workdir, results, experiment.test(model), log.start, commit)
+    return _write_results(workdir, results, experiment.test(model), log, commit)
 
 
 def train_and_evaluate_seeds(experiments: list[Experiment], configs: list[TrainConfig], workdir: str,
-                             overwrite: bool = False, wait: bool = False) -> list[dict]:
+                             overwrite: bool = False, wait: bool = False,
+                             echo: Callable[[dict], None] = print_row) -> list[dict]:
   """train_and_evaluate for several seeds' PHP hierarchies (experiments[s] with configs[s]), trained
   level-wise as one program (`train.train_seeds`): seed s's run goes to workdir/seed=S with the files its
   separate run would write, its results.json also naming the seeds trained with it ("trained_with_seeds":
@@ -100,7 +108,7 @@ def train_and_evaluate_seeds(experiments: list[Experiment], configs: list[TrainC
     clear_workdir(workdir, (SEEDS_CHECKPOINT,), overwrite)
     for run_dir in workdirs:
       clear_workdir(run_dir, RUN_FILES, overwrite)
-    logs = [stack.enter_context(MetricsLog(run_dir, {"seed": c.seed})) for run_dir, c in zip(workdirs, configs)]
+    logs = [stack.enter_context(MetricsLog(run_dir, {"seed": c.seed}, echo)) for run_dir, c in zip(workdirs, configs)]
     trained = train.train_seeds(spec, [e.demos for e in experiments], configs, [e.validate for e in experiments],
                                 log=lambda s, row: logs[s](row),
                                 checkpoint_path=os.path.join(workdir, SEEDS_CHECKPOINT),
@@ -112,8 +120,7 @@ def train_and_evaluate_seeds(experiments: list[Experiment], configs: list[TrainC
       log.close()
     together = {"trained_with_seeds": [c.seed for c in configs]}  # its times are the shared program's
     return [_write_results(run_dir, {"task": e.name, "model": "php", "config": dataclasses.asdict(c), **e.extra,
-                                     **together, **_levels(report)}, e.test(hierarchy), log.start, commit,
-                           {"seed": c.seed})
+                                     **together, **_levels(report)}, e.test(hierarchy), log, commit)
             for run_dir, c, e, (hierarchy, report), log in zip(workdirs, configs, experiments, trained, logs)]
 
 
@@ -165,14 +172,14 @@ def clear_workdir(workdir: str, files: tuple[str, ...], overwrite: bool = False)
 
 class MetricsLog:
   """A run's metrics.jsonl (process 0's) and clock: each row logged gets "seconds" since the run started, is
-  appended and printed (with `label` added to the printed copy). A {"resumed": True, "logged": n} row keeps
+  appended and shown by echo (with `label` added to the shown copy). A {"resumed": True, "logged": n} row keeps
   the file's first n rows, and the clock goes on from the last of them; a run whose first row is another
   (it resumes nothing) starts the file afresh, so that rows of an attempt killed before its first checkpoint
   are not kept twice."""
 
-  def __init__(self, workdir: str, label: dict | None = None):
+  def __init__(self, workdir: str, label: dict | None = None, echo: Callable[[dict], None] = print_row):
     self.path, self.label, self.start = os.path.join(workdir, METRICS_FILE), label or {}, time.time()
-    self.file, self.first = None, True
+    self.file, self.first, self.echo = None, True, echo
 
   def __enter__(self):
     if jax.process_index() == 0:
@@ -198,7 +205,7 @@ class MetricsLog:
         self.file.write(json.dumps(row) + "\n")
         self.file.flush()
     self.first = False
-    print(json.dumps({**self.label, **row}), flush=True)
+    self.echo({**self.label, **row})
 
 
 def _keep_rows(metrics, path: str, count: int) -> float:
@@ -211,14 +218,13 @@ def _keep_rows(metrics, path: str, count: int) -> float:
   return json.loads(rows[-1])["seconds"] if rows else 0.0
 
 
-def _write_results(workdir: str, results: dict, test_results: dict, start: float, commit,
-                   label: dict | None = None) -> dict:
-  """results.json: `results` with the test results, wall time, commit and versions; returns it. Prints the
-  test results and wall time (with `label`)."""
-  results = {**results, "test": test_results, "wall_seconds": round(time.time() - start, 1), "commit": commit,
+def _write_results(workdir: str, results: dict, test_results: dict, log: MetricsLog, commit) -> dict:
+  """results.json: `results` with the test results, wall time (on log's clock), commit and versions; returns
+  it. Shows the test results and wall time through log's echo (with its label)."""
+  results = {**results, "test": test_results, "wall_seconds": round(time.time() - log.start, 1), "commit": commit,
              "versions": provenance.environment_versions()}
   checkpoint.write_atomically(os.path.join(workdir, RESULTS_FILE), json.dumps(results, indent=1).encode())
-  print(json.dumps({**(label or {}), "test": test_results, "wall_seconds": results["wall_seconds"]}), flush=True)
+  log.echo({**log.label, "test": test_results, "wall_seconds": results["wall_seconds"]})
   return results
 
 

@@ -1,0 +1,98 @@
+"""What a person at a terminal sees while a command trains: a live display (rich) of each phase (level k of n,
+lowest first, or every level at once), its iterations done of total, the last loss and best validation,
+elapsed time and time left; then a table of the test results and where the model is. Away from a terminal
+the commands print the logged rows as JSON lines instead (`php_jax.run.print_row`)."""
+from __future__ import annotations
+
+import contextlib
+import sys
+from typing import Callable, Iterator
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+
+from php_jax import run
+from php_jax.config import TrainConfig
+
+
+@contextlib.contextmanager
+def shown(config: TrainConfig, num_levels: int | None, workdir: str) -> Iterator[Callable[[dict], None]]:
+  """The echo a training command gives `php_jax.run`: a TrainingProgress on a terminal (ended when the block
+  ends, however it ends), else JSON lines."""
+  if not sys.stdout.isatty():
+    yield run.print_row
+    return
+  progress = TrainingProgress(config, num_levels, workdir)
+  try:
+    yield progress
+  finally:
+    progress.close()
+
+
+class TrainingProgress:
+  """echo for `php_jax.run`: fed each logged row (and last the test results), it draws the run's progress.
+
+  num_levels: the hierarchy's levels (None for the flat LSTM); with several seeds trained together, the
+  first seed's rows stand for all."""
+
+  def __init__(self, config: TrainConfig, num_levels: int | None, workdir: str, console: Console | None = None):
+    self.config, self.num_levels, self.workdir = config, num_levels, workdir
+    self.console = console or Console()
+    self.progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                             TextColumn("{task.fields[status]}"), TimeElapsedColumn(), TextColumn("left"),
+                             TimeRemainingColumn(), console=self.console)
+    self.tasks, self.seed = {}, None
+    self.progress.start()
+    self.starting = self.progress.add_task("building the data and compiling", total=None, status="")
+
+  def __call__(self, row: dict) -> None:
+    if "test" in row:
+      self._finish(row)
+      return
+    if self.seed is None and "seed" in row:
+      self.seed = row["seed"]
+    if row.get("seed", self.seed) != self.seed:
+      return
+    if row.get("resumed"):
+      self.console.print(f"resumed from the checkpoint: level {row['level']}, iteration {row['iteration']}")
+    elif "capacity" in row:
+      self._phase(row.get("level", "joint"))
+    elif "iteration" in row:
+      phase = row.get("level", "joint" if self.num_levels else "flat")
+      task = self.tasks.get(phase) or self._phase(phase)
+      validation = f"  best validation {row['validation']:.3f}" if "validation" in row else ""
+      self.progress.update(task, completed=row["iteration"], status=f"loss {row['loss']:.4g}{validation}")
+
+  def _phase(self, phase) -> int:
+    """The display's line for a phase: a level (an int), "joint" or "flat"."""
+    self.progress.update(self.starting, visible=False)
+    if phase in self.tasks:
+      return self.tasks[phase]
+    if phase == "joint":
+      description, total = "every level at once", self.config.iterations
+    elif phase == "flat":
+      description, total = "flat LSTM", self.config.iterations
+    else:
+      warmup = self.config.strong_warmup if phase > 0 else 0
+      done = self.num_levels - phase
+      description, total = f"level {phase} ({done} of {self.num_levels})", warmup + self.config.iterations
+    self.tasks[phase] = self.progress.add_task(description, total=total, status="compiling")
+    return self.tasks[phase]
+
+  def _finish(self, row: dict) -> None:
+    self.progress.stop()
+    seed = f"seed {row['seed']}: " if "seed" in row else ""
+    workdir = f"{self.workdir}/seed={row['seed']}" if "seed" in row else self.workdir
+    table = Table(title=f"{seed}test results")
+    table.add_column("test set")
+    table.add_column("result", justify="right")
+    for name, value in row["test"].items():
+      table.add_row(name, f"{value:.3f}" if isinstance(value, float) else str(value))
+    self.console.print(table)
+    self.console.print(f"{row['wall_seconds']:.0f} s in all; the model, results.json and metrics.jsonl are in "
+                       f"{workdir}")
+
+  def close(self) -> None:
+    """Ends the live display (if the run ended before its results)."""
+    self.progress.stop()
