@@ -225,6 +225,11 @@ def test_sweep_command_refuses_bad_flags_and_writes_nothing(tmp_path):
     assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, (
         flags, proc.stderr)
   assert not workdir.exists()
+
+
+@pytest.mark.slow
+def test_a_sweep_run_refused_before_any_work_leaves_no_workdir(tmp_path):
+  workdir = tmp_path / "sweep"
   proc = subprocess.run([sys.executable, "-m", "experiments.sweep", "--task=nanocraft", f"--workdir={workdir}",
                          "--grid=seed=1", "--", "--hidden="], capture_output=True, text=True, timeout=300)
   assert proc.returncode == 1 and "seed=1: error: --hidden must list integers" in proc.stdout, proc.stdout

@@ -22,7 +22,7 @@ SPEC = HierarchySpec("t", (("r",), ("a", "b"), ("x", "y", "z")), (3, 2), 0)
 GOOD_STACK = [[[0, 0], [0, 0], [1, 0]], [[0, 0], [0, 1], [2, 0]]]
 GOOD = {"observations": [[0.0], [1.0], [2.0]], "actions": [[1, 0], [2, 1]], "stack": GOOD_STACK}
 DEEP = "[" * 200_000 + "]" * 200_000
-EXAMPLES = settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+EXAMPLES = settings(max_examples=50, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 HUGE = st.sampled_from([10**400, -10**400, 2**31, 2**40, 2**63, 2**64, -2**63 - 1, 4 * 10**38, 1e39, -1e39])
 SCALARS = st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=6) | HUGE
