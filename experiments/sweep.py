@@ -162,10 +162,8 @@ def main(argv):
                                                gpus, _PARALLEL.value):
     print(f"{'done' if code == 0 else f'FAILED (exit {code})'}: {workdir}" + (f": {refusal}" if refusal else ""),
           flush=True)
-    if code and not refusal:
-      failed.append(workdir)
-    elif refusal:
-      failed.append(f"{workdir} (refused, nothing written)")
+    if code:
+      failed.append(f"{workdir} (refused, nothing written)" if refusal else workdir)
   if failed:
     print(f"{len(failed)} runs failed; see stdout.log in: {', '.join(failed)}", file=sys.stderr)
     sys.exit(1)

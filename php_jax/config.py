@@ -94,22 +94,14 @@ class TrainConfig:
         raise ConfigError(name, f"must be a positive finite number; got {value!r}")
     if not (isinstance(self.hidden, tuple) and self.hidden and all(_is_int(h) and h >= 1 for h in self.hidden)):
       raise ConfigError("hidden", f"must list positive layer sizes; got {self.hidden!r}")
-    per_level = {"tau_in_termination": lambda v: isinstance(v, bool),
-                 "tau_limit": lambda v: v is None or (_is_int(v) and v >= 0),
-                 "min_capacity": lambda v: _is_int(v) and v >= 0,
-                 "call_penalty": lambda v: _is_number(v) and v >= 0}
-    for name, allowed in per_level.items():
+    for name, (allowed, what) in _PER_LEVEL.items():
       values = getattr(self, name)
       if values is not None and not (isinstance(values, tuple) and values and all(map(allowed, values))):
-        raise ConfigError(name, f"must list one {_LEVEL_VALUES[name]} per level, root first; got {values!r}")
+        raise ConfigError(name, f"must list one {what} per level, root first; got {values!r}")
     for field in dataclasses.fields(self):
       choices = field.metadata["choices"]
       if choices and getattr(self, field.name) not in choices:
         raise ConfigError(field.name, f"must be one of {', '.join(choices)}; got {getattr(self, field.name)!r}")
-
-
-_LEVEL_VALUES = {"tau_in_termination": "boolean", "tau_limit": "non-negative integer or None",
-                 "min_capacity": "non-negative integer", "call_penalty": "finite non-negative number"}
 
 
 def _is_int(x) -> bool:
@@ -118,6 +110,13 @@ def _is_int(x) -> bool:
 
 def _is_number(x) -> bool:
   return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+_PER_LEVEL = {  # the per-level settings: each value's check, and its words in a refusal
+    "tau_in_termination": (lambda v: isinstance(v, bool), "boolean"),
+    "tau_limit": (lambda v: v is None or (_is_int(v) and v >= 0), "non-negative integer or None"),
+    "min_capacity": (lambda v: _is_int(v) and v >= 0, "non-negative integer"),
+    "call_penalty": (lambda v: _is_number(v) and v >= 0, "finite non-negative number")}
 
 
 def fields() -> tuple[dataclasses.Field, ...]:

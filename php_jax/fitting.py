@@ -50,6 +50,18 @@ class Hooks(NamedTuple):
   log: Callable = print
   save: Callable | None = None
 
+  def for_models(self) -> Hooks:
+    """`fit`'s hooks in `fit_seeds`' form, for one model."""
+    on_eval, log, save = self
+    return Hooks((lambda iteration, losses: [on_eval(iteration, losses[0])]) if on_eval else None,
+                 lambda s, row: log(row), (lambda progresses: save(progresses[0])) if save else None)
+
+  def of_first_model(self) -> Hooks:
+    """`fit_seeds`' hooks in `fit`'s form, for its first model alone."""
+    on_eval, log, save = self
+    return Hooks((lambda iteration, loss: on_eval(iteration, [loss])[0]) if on_eval else None,
+                 lambda row: log(0, row), (lambda progress: save([progress])) if save else None)
+
 
 def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array], schedule: Schedule, hooks: Hooks = Hooks(),
         resume: Progress | None = None, args: tuple = (), mesh: Mesh | None = None) -> Progress:
@@ -74,11 +86,9 @@ def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array], schedule: Schedule
   else:  # as arguments: a constant would sit whole on one device
     update = functools.partial(jax.jit(lambda params, opt_state, args: step(params, opt_state, rest, args)),
                                args=args)
-  on_eval, log, save = hooks
-  many = Hooks((lambda iteration, losses: [on_eval(iteration, losses[0])]) if on_eval else None,
-               lambda s, row: log(row), (lambda progresses: save(progresses[0])) if save else None)
   [progress] = _iterate(_Loop(update, [model], mesh, lambda tree, s: tree),
-                        sharding.replicate((progress.params, progress.opt_state), mesh), [progress], schedule, many)
+                        sharding.replicate((progress.params, progress.opt_state), mesh), [progress], schedule,
+                        hooks.for_models())
   return progress
 
 

@@ -157,13 +157,13 @@ def workdir_lock(workdir: str, wait: bool = False):
 
 
 def clear_workdir(workdir: str, files: tuple[str, ...], overwrite: bool = False) -> None:
-  """Makes workdir; with overwrite, deletes `files` there first; removes temporary files a SIGKILL left."""
+  """In a workdir `workdir_lock` holds: with overwrite, deletes `files` there first; removes temporary files
+  a SIGKILL left."""
   if jax.process_index() == 0:  # of several processes (jax.distributed), the one that writes files
     if overwrite:
       for name in files:
         if os.path.exists(os.path.join(workdir, name)):
           os.remove(os.path.join(workdir, name))
-    os.makedirs(workdir, exist_ok=True)
     for leftover in glob.glob(os.path.join(workdir, ".*.tmp")):  # a write cut off by SIGKILL
       os.remove(leftover)
   if jax.process_count() > 1:  # the others read the workdir (to resume) once process 0 has cleared it

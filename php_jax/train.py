@@ -39,11 +39,8 @@ def train_level(model: LevelModel, view: views.LevelView, capacity: int, config:
   τ = step), so it has no warm-up.
 
   With more than one device, each length bucket is split over all of them (`sharding.data_mesh`)."""
-  on_eval, log, save = hooks
-  many = fitting.Hooks((lambda it, losses: [on_eval(it, losses[0])]) if on_eval else None,
-                       lambda s, row: log(row), (lambda progress: save(progress[0])) if save else None)
   [progress] = LevelFit([model], [view], [capacity], [config], batched=False).fit(
-      many, None if resume is None else [resume])
+      hooks.for_models(), None if resume is None else [resume])
   return progress
 
 
@@ -79,11 +76,9 @@ class LevelFit:
     schedule = fitting.Schedule(iterations, config.learning_rate, config.eval_every, config.snapshot)
     if not self.batched:
       buckets = [views.device_view(b, mesh) for b in views.length_buckets(parts[0], config.length_buckets)]
-      capacity, (on_eval, log, save) = self.capacities[0], hooks
-      one = fitting.Hooks((lambda it, loss: on_eval(it, [loss])[0]) if on_eval else None, lambda row: log(0, row),
-                          (lambda progress: save([progress])) if save else None)
+      capacity = self.capacities[0]
       return [fitting.fit(self.models[0], lambda m, buckets: level_loss(m, buckets, capacity, weights[0]), schedule,
-                          one, resume and resume[0], args=(buckets,), mesh=mesh)]
+                          hooks.of_first_model(), resume and resume[0], args=(buckets,), mesh=mesh)]
     buckets = views.stack_seeds([views.length_buckets(p, config.length_buckets) for p in parts], mesh)
     weights, used = sharding.replicate((np.asarray(weights, np.float32), np.asarray(self.capacities, np.int32)),
                                        mesh)

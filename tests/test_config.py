@@ -56,6 +56,9 @@ def test_flags_override_the_task_which_overrides_the_defaults():
     (["--iterations=0"], "--iterations: must be a positive integer; got 0"),
     (["--learning_rate=inf"], "--learning_rate: must be a positive finite number"),
     (["--eval_every=0"], "--eval_every: must be a positive integer"),
+    (["--capacity=0"], "--capacity: must be a positive integer"),
+    (["--length_buckets=-1"], "--length_buckets: must be a positive integer"),
+    (["--root_hidden=0"], "--root_hidden: must be a positive integer"),
     (["--strong_weight=-2"], "--strong_weight: must be a positive finite number"),
     (["--training=joint", "--root=mlp"], "--root: applies to level-wise training only; this run trains jointly "
                                           "(--training=joint): add --training=levelwise or drop --root"),
