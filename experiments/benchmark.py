@@ -5,6 +5,7 @@ r"""Benchmarks as commands: ratios against baselines measured in the same proces
   python -m experiments.benchmark rollout --task=NAME --size=1000  # oracle rollouts: steps per second
   python -m experiments.benchmark train_step --task=NAME --hidden=64  # one EG iteration, split
   python -m experiments.benchmark scaling --task=NAME --hidden=32  # one EG step on 1 vs all devices; seeds vmapped
+  python -m experiments.benchmark act --policy=RUN --env=ENV --num_envs=64  # a policy in a Gymnasium env vs the env
 
 estep times values + marginals for B demonstrations of T steps (vmapped, jitted) at the paper's sizes and beyond,
 checks that the three agree on log P(ξ), and prints lattice cells (B·T·K·C) per second and ratios.
@@ -43,6 +44,10 @@ _NUM_STRONG = flags.DEFINE_integer("num_strong", 3, "train_step, scaling: annota
                                    "set.")
 _NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "scaling: demonstrations of the training set (default: the "
                                   "task's).")
+_POLICY = flags.DEFINE_string("policy", None, "act: a workdir of experiments.fit.")
+_ENV = flags.DEFINE_string("env", None, "act: the Gymnasium environment (what experiments.act --env takes).")
+_NUM_ENVS = flags.DEFINE_integer("num_envs", 64, "act: copies of the environment stepped together.")
+_EPISODES = flags.DEFINE_integer("episodes", 1000, "act: episodes timed.")
 _SEEDS = flags.DEFINE_integer("seeds", 5, "scaling: parameter sets whose gradients are taken as one vmapped program "
                               "and one after another.")
 
@@ -309,6 +314,38 @@ def bench_scaling():
   return rows
 
 
+def bench_act():
+  """Steps per second of `gym.act` (compiled beforehand) against the same vector environment stepped alone
+  with actions drawn in advance, in the same process."""
+  from php_jax import checkpoint, gym  # gymnasium is an optional extra
+  if not (_POLICY.value and _ENV.value):
+    raise app.UsageError("--policy and --env are required for act")
+  _, policy = checkpoint.load_policy(_POLICY.value)
+  envs = gym.vector_env(gym.env_maker(_ENV.value), _NUM_ENVS.value)
+  gym.act(policy, envs, _NUM_ENVS.value, seed=0)  # compiles the decisions
+  start = time.perf_counter()
+  episodes = gym.act(policy, envs, _EPISODES.value, seed=1)
+  act_seconds = time.perf_counter() - start
+  steps = sum(e["steps"] for e in episodes)
+  envs.action_space.seed(0)
+  actions = [envs.action_space.sample() for _ in range(steps // _NUM_ENVS.value)]
+  envs.reset(seed=0)
+  start = time.perf_counter()
+  for action in actions:
+    _, _, terminated, truncated, _ = envs.step(action)
+    if (done := terminated | truncated).any():
+      envs.reset(options={"reset_mask": done})
+  env_seconds = time.perf_counter() - start
+  row = {"env": _ENV.value, "num_envs": _NUM_ENVS.value, "act_steps_per_s": steps / act_seconds,
+         "env_steps_per_s": len(actions) * _NUM_ENVS.value / env_seconds,
+         "success": float(np.mean([e["success"] for e in episodes]))}
+  print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}); {_ENV.value} x{_NUM_ENVS.value}")
+  print(f"act: {steps} steps of {len(episodes)} episodes in {act_seconds:.2f} s = {row['act_steps_per_s']:,.0f} "
+        f"steps/s; the environment alone: {row['env_steps_per_s']:,.0f} steps/s; ratio "
+        f"{row['act_steps_per_s'] / row['env_steps_per_s']:.2f}")
+  return [row]
+
+
 def _task():
   if not _TASK.value:
     raise app.UsageError("--task is required for rollout, train_step and scaling")
@@ -317,7 +354,7 @@ def _task():
 
 def main(argv):
   commands = {"estep": bench_estep, "estep_grad": bench_estep_grad, "rollout": bench_rollout,
-              "train_step": bench_train_step, "scaling": bench_scaling}
+              "train_step": bench_train_step, "scaling": bench_scaling, "act": bench_act}
   if len(argv) != 2 or argv[1] not in commands:
     raise app.UsageError(f"usage: python -m experiments.benchmark {{{'|'.join(commands)}}} [--flags]")
   rows = commands[argv[1]]()

@@ -24,9 +24,6 @@ from php_jax import datasets, evaluation, tasks, train
 from php_jax.run import Experiment, train_and_evaluate, train_and_evaluate_seeds
 
 NUM_STRONG = flags.DEFINE_integer("num_strong", 1, "Strongly supervised (call-stack annotated) demonstrations.")
-MODEL = flags.DEFINE_enum("model", "php", ["php", "flat_lstm"],
-                          "php: the hierarchy by level-wise EG; flat_lstm: the behaviour-cloning baseline.")
-LSTM_HIDDEN = flags.DEFINE_integer("lstm_hidden", 128, "Hidden units of the flat LSTM baseline.")
 NUM_VALIDATION = flags.DEFINE_integer("num_validation", 50, "Validation problems (training distribution).")
 SEEDS = flags.DEFINE_list("seeds", None, "Several seeds (e.g. 1,2,3,4,5) trained as one program, level-wise: "
                           "each seed's run, the same as with --seed, goes to WORKDIR/seed=S.")
@@ -76,10 +73,8 @@ def run(task_name: str) -> dict:
     raise config_flags.UsageError(f"--num_test and --test_lengths must be positive; got {num_test}, {list(lengths)}")
   if NUM_VALIDATION.value < 1:
     raise config_flags.UsageError(f"--num_validation must be a positive integer; got {NUM_VALIDATION.value}")
-  if LSTM_HIDDEN.value < 1:
-    raise config_flags.UsageError(f"--lstm_hidden must be a positive integer; got {LSTM_HIDDEN.value}")
   workdir, overwrite, wait = training.WORKDIR.value, training.OVERWRITE.value, training.WAIT.value
-  flat = LSTM_HIDDEN.value if MODEL.value == "flat_lstm" else None
+  flat = training.flat_lstm_hidden()
   if SEEDS.value is None:
     experiment = _experiment(task_name, task, config.seed, num_demos, num_test, lengths)
     with progress.shown(config, None if flat else task.spec.num_levels, workdir) as echo:
@@ -99,7 +94,7 @@ def _seeds(config: train.TrainConfig) -> list[int]:
   """--seeds' values, checked against the other flags."""
   if flags.FLAGS["seed"].present:
     raise config_flags.UsageError("--seeds and --seed: give one of them")
-  if MODEL.value != "php":
+  if training.MODEL.value != "php":
     raise config_flags.UsageError("--seeds trains PHP hierarchies (not --model=flat_lstm)")
   if config.training != "levelwise":
     raise config_flags.UsageError(config_flags.joint_refusal("--seeds trains level-wise only"))

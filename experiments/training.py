@@ -1,4 +1,4 @@
-"""What the training commands share: the workdir flags and a run's start and end in one line (their training
+"""What the training commands share: the workdir and model flags, and a run's start and end in one line (their training
 settings' flags: `config_flags`)."""
 from __future__ import annotations
 
@@ -22,6 +22,17 @@ WAIT = flags.DEFINE_bool("wait", False, "If another run holds the workdir, wait 
 OVERWRITE = flags.DEFINE_bool("overwrite", False, "Start afresh in a workdir that holds another run (its "
                               "checkpoint, model, metrics and results are deleted); without it such a run is "
                               "resumed if its settings match, and refused if they do not.")
+MODEL = flags.DEFINE_enum("model", "php", ["php", "flat_lstm"],
+                          "php: the hierarchy (--training says how); flat_lstm: the behaviour-cloning baseline, "
+                          "an LSTM over observations and previous actions.")
+LSTM_HIDDEN = flags.DEFINE_integer("lstm_hidden", 128, "Hidden units of the flat LSTM baseline.")
+
+
+def flat_lstm_hidden() -> int | None:
+  """--lstm_hidden where --model=flat_lstm, else None; UsageError if it is not positive."""
+  if LSTM_HIDDEN.value < 1:
+    raise UsageError(f"--lstm_hidden must be a positive integer; got {LSTM_HIDDEN.value}")
+  return LSTM_HIDDEN.value if MODEL.value == "flat_lstm" else None
 
 
 def run_resumable(body: Callable[[], object]) -> None:

@@ -59,11 +59,35 @@ class _Machine(NamedTuple):
   key: jax.Array
 
 
+def start_stack(policy: Policy, spec: HierarchySpec, obs: jax.Array, key: jax.Array):
+  """The stack [d] procedures and counters that pushes (root, 0) and descends on o_0 (obs [D])."""
+  zeros = jnp.zeros(spec.num_levels, jnp.int32)
+  return _descend(policy, spec.num_levels, zeros, zeros, 0, obs, key)
+
+
+def elementary_action(policy: Policy, spec: HierarchySpec, procs, taus, obs, key) -> jax.Array:
+  """The action [F] int32 that the stack's last frame takes on obs."""
+  return policy.operation(spec.num_levels - 1, procs[-1], taus[-1], obs, key)
+
+
+def next_stack(policy: Policy, spec: HierarchySpec, procs, taus, obs, key):
+  """After an action, on the new observation obs: pops the frames that stop, resumes and descends.
+
+  Returns (procedures [d], counters [d], root returned []); the stack is meaningless when the root returned.
+  """
+  depth = spec.num_levels
+  stop_key, descend_key = jax.random.split(key)
+  stops = jnp.stack([policy.terminates(level, procs[level], taus[level], obs,
+                                       jax.random.fold_in(stop_key, level)) for level in range(depth)])
+  resume = depth - 1 - jnp.argmin(stops[::-1])  # the deepest frame that does not stop
+  new_procs, new_taus = _descend(policy, depth, procs, taus.at[resume].add(1), resume, obs, descend_key)
+  return new_procs, new_taus, jnp.all(stops)
+
+
 def _start(policy: Policy, spec: HierarchySpec, env, state, key) -> _Machine:
   """Pushes (root, 0) and descends on o_0."""
   key, descend_key = jax.random.split(key)
-  zeros = jnp.zeros(spec.num_levels, jnp.int32)
-  procs, taus = _descend(policy, spec.num_levels, zeros, zeros, 0, env.observe(state), descend_key)
+  procs, taus = start_stack(policy, spec, env.observe(state), descend_key)
   return _Machine(state, procs, taus, key)
 
 
@@ -72,18 +96,13 @@ def _advance(policy: Policy, spec: HierarchySpec, env, machine: _Machine):
 
   Returns (machine, (new observation, action, stack procedures, stack counters), root returned).
   """
-  depth = spec.num_levels
   state, procs, taus, key = machine
-  key, act_key, stop_key, descend_key = jax.random.split(key, 4)
-  action = policy.operation(depth - 1, procs[-1], taus[-1], env.observe(state), act_key)
+  key, act_key, stack_key = jax.random.split(key, 3)
+  action = elementary_action(policy, spec, procs, taus, env.observe(state), act_key)
   state = env.step(state, action)
   obs = env.observe(state)
-  stops = jnp.stack([policy.terminates(level, procs[level], taus[level], obs,
-                                       jax.random.fold_in(stop_key, level)) for level in range(depth)])
-  resume = depth - 1 - jnp.argmin(stops[::-1])  # the deepest frame that does not stop
-  new_taus = taus.at[resume].add(1)
-  new_procs, new_taus = _descend(policy, depth, procs, new_taus, resume, obs, descend_key)
-  return _Machine(state, new_procs, new_taus, key), (obs, action, procs, taus), jnp.all(stops)
+  new_procs, new_taus, returned = next_stack(policy, spec, procs, taus, obs, stack_key)
+  return _Machine(state, new_procs, new_taus, key), (obs, action, procs, taus), returned
 
 
 @functools.partial(jax.jit, static_argnames=("spec", "env", "max_steps", "record"))

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from php_jax import executor
+from php_jax import executor, flat_lstm
 from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
 
@@ -52,13 +52,17 @@ class Replay(NamedTuple):
 
 
 def replay(policy, spec: HierarchySpec, batch: Demonstration, key: jax.Array | None = None) -> Replay:
-  """Runs policy (an argmax hierarchy) on each demonstration of batch [B, ...]; see the module docstring."""
+  """Runs policy (an argmax hierarchy, or a flat LSTM, whose root returning is its stopping) on each
+  demonstration of batch [B, ...]; see the module docstring."""
   num = batch.length.shape[0]
   states = RecordingState(jnp.asarray(batch.observations), jnp.asarray(batch.actions), jnp.asarray(batch.length),
                           jnp.zeros(num, jnp.int32), jnp.zeros(num, bool))
   keys = jax.random.split(jax.random.key(0) if key is None else key, num)
-  rollout = executor.rollout_batch(policy, spec, RECORDING, states, keys, int(batch.actions.shape[1]) + 1,
-                                   record=False)
+  max_steps = int(batch.actions.shape[1]) + 1
+  if isinstance(policy, flat_lstm.FlatLSTMPolicy):
+    rollout = flat_lstm.rollout_batch(policy, RECORDING, states, max_steps)
+  else:
+    rollout = executor.rollout_batch(policy, spec, RECORDING, states, keys, max_steps, record=False)
   steps, length = np.asarray(rollout.length), np.asarray(batch.length)
   replayed = np.asarray(rollout.terminated) & (steps == length)
   # A failed step is the episode's last; a root returning early ends the episode at `steps` < length.

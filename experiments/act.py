@@ -1,0 +1,79 @@
+r"""Runs a fitted policy in a Gymnasium environment: one JSON line per episode, then its success rate.
+
+  python -m experiments.act --policy=RUN --env=ENV --episodes=N --seed=S [--num_envs=M] --out=FILE.jsonl
+
+--policy is a workdir of `experiments.fit` (a PHP hierarchy or a flat LSTM); ENV as in `experiments.record`.
+Episode i is reset with seed S + i. A hierarchy acts by the executor's semantics (greedy, or with --sample
+drawing its operations and terminations): it pushes its root,
+descends on the first observation, and after every action pops the procedures that terminate and resumes
+the one below them; the episode ends when the environment ends it, or when the root returns. With
+--num_envs, M copies of the environment run side by side (a gymnasium.vector environment) and each step's
+decisions for all of them are one compiled call. Each line, in episode order:
+
+  {"return": float, "steps": int,
+   "success": bool,                     info["is_success"] at the end where the environment gives it,
+                                        else terminated and not truncated
+   "terminated": bool, "truncated": bool,
+   "stack": [[[h, tau], ...], ...]}     per step, root first: the call stack that chose the action (null
+                                        for a flat LSTM)
+
+A policy whose observation or action sizes are not the environment's, a bad flag or an unknown environment
+ends in one line with exit status 2 before anything runs; the output is written atomically.
+"""
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+from absl import app, flags
+
+from experiments import cli
+from php_jax import checkpoint, gym
+from php_jax.model import PHPHierarchy
+
+_POLICY = flags.DEFINE_string("policy", None, "Workdir of experiments.fit holding the policy.")
+_ENV = flags.DEFINE_string("env", None, "A registered Gymnasium id, or module:attribute of a callable "
+                           "returning a gymnasium.Env.")
+_EPISODES = flags.DEFINE_integer("episodes", 100, "Episodes to run.", lower_bound=1)
+_SEED = flags.DEFINE_integer("seed", 0, "Episode i is reset with seed + i.", lower_bound=0)
+_NUM_ENVS = flags.DEFINE_integer("num_envs", 1, "Copies of the environment stepped together.", lower_bound=1)
+_OUT = flags.DEFINE_string("out", None, "Output JSON-lines file, one line per episode.")
+_SAMPLE = flags.DEFINE_bool("sample", False, "A hierarchy samples its operations and terminations instead of "
+                            "taking the most likely (the key of episode i's step t folds in i and t).")
+_MAX_STEPS = flags.DEFINE_integer("max_steps", None, "Step limit per episode. Default: the environment's "
+                                  f"time limit, else {gym.DEFAULT_MAX_STEPS}.", lower_bound=1)
+
+
+def main(argv):
+  if argv[1:]:
+    cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
+  cli.exit_on_interrupt(f"--out={_OUT.value} not written")
+  try:
+    cli.check_outputs({"out": _OUT.value}, {})
+    _, policy = checkpoint.load_policy(_POLICY.value)
+    if _SAMPLE.value:
+      if not isinstance(policy, PHPHierarchy):
+        raise ValueError(f"--sample: --policy={_POLICY.value} is a flat LSTM, which acts greedily")
+      policy.sample = True
+    envs = gym.vector_env(gym.env_maker(_ENV.value), _NUM_ENVS.value)
+    try:
+      gym.check_policy(policy, envs.single_observation_space, envs.single_action_space)
+    except gym.GymError as e:
+      raise ValueError(f"--policy={_POLICY.value} does not fit --env={_ENV.value}: {e}") from None
+  except (OSError, ValueError) as e:  # GymError and CheckpointError are ValueErrors
+    cli.fail(str(e))
+  start = time.perf_counter()
+  episodes = gym.act(policy, envs, _EPISODES.value, _SEED.value, _MAX_STEPS.value)
+  seconds = time.perf_counter() - start
+  with cli.output_errors("out", _OUT.value):
+    checkpoint.write_atomically(_OUT.value, "".join(json.dumps(e) + "\n" for e in episodes).encode())
+  steps = sum(e["steps"] for e in episodes)
+  print(f"{len(episodes)} episodes, {steps} steps in {seconds:.1f} s -> {_OUT.value}")
+  print(f"success {np.mean([e['success'] for e in episodes]):.3f}, "
+        f"mean return {np.mean([e['return'] for e in episodes]):.2f}")
+
+
+if __name__ == "__main__":
+  flags.mark_flags_as_required(["policy", "env", "out"])
+  app.run(main, flags_parser=cli.parse_flags)

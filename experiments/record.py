@@ -1,0 +1,63 @@
+r"""Records an expert's episodes in a Gymnasium environment as a demonstration file for `experiments.fit`.
+
+  python -m experiments.record --env=ENV --expert=MODULE:ATTR --episodes=N --annotated=K --seed=S \
+      --out=FILE.jsonl [--hierarchy=H.json]
+
+ENV is a registered Gymnasium id (`Taxi-v4`) or MODULE:ATTR, a callable returning a gymnasium.Env. The
+expert's MODULE:ATTR is a callable that takes the environment and returns an object with
+`act(observation, info)` (an action, or `(action, stack)` with the call stack that chose it) and optionally
+`reset(observation, info)`; see php_jax.gym. Episode i is reset with seed S + i; the first K episodes keep
+their call stacks, the others are actions only. A stack that breaks the call-stack rules (or, with
+--hierarchy, names a procedure the hierarchy does not have) is refused naming the episode and step; every
+refusal is one line with exit status 2 and nothing written.
+"""
+from __future__ import annotations
+
+import json
+
+from absl import app, flags
+
+from experiments import cli
+from php_jax import checkpoint, demo_files, gym
+
+_ENV = flags.DEFINE_string("env", None, "A registered Gymnasium id, or module:attribute of a callable "
+                           "returning a gymnasium.Env.")
+_EXPERT = flags.DEFINE_string("expert", None, "module:attribute of a callable that takes the environment and "
+                              "returns the expert.")
+_EPISODES = flags.DEFINE_integer("episodes", None, "Episodes to record.", lower_bound=1)
+_ANNOTATED = flags.DEFINE_integer("annotated", 0, "How many of the first episodes keep the expert's call "
+                                  "stacks.", lower_bound=0)
+_SEED = flags.DEFINE_integer("seed", 0, "Episode i is reset with seed + i.", lower_bound=0)
+_OUT = flags.DEFINE_string("out", None, "Output demonstration file (JSON lines).")
+_HIERARCHY = flags.DEFINE_string("hierarchy", None, "Optional hierarchy file: stacks are also checked "
+                                 "against its procedures.")
+_MAX_STEPS = flags.DEFINE_integer("max_steps", None, "Step limit per episode. Default: the environment's "
+                                  f"time limit, else {gym.DEFAULT_MAX_STEPS}.", lower_bound=1)
+
+
+def main(argv):
+  if argv[1:]:
+    cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
+  cli.exit_on_interrupt(f"--out={_OUT.value} not written")
+  try:
+    cli.check_outputs({"out": _OUT.value}, {"hierarchy": _HIERARCHY.value})
+    if _ANNOTATED.value > _EPISODES.value:
+      raise ValueError(f"--annotated={_ANNOTATED.value} is more than --episodes={_EPISODES.value}")
+    spec = demo_files.read_hierarchy(_HIERARCHY.value).spec if _HIERARCHY.value else None
+    env = gym.env_maker(_ENV.value)()
+    expert = gym.expert_maker(_EXPERT.value)(env)
+    if spec is not None and spec.action_sizes != gym.action_sizes(env.action_space):
+      raise ValueError(f"--hierarchy={_HIERARCHY.value} has action factor sizes {list(spec.action_sizes)}; "
+                       f"--env={_ENV.value}'s {env.action_space} has {list(gym.action_sizes(env.action_space))}")
+    lines = gym.record(env, expert, _EPISODES.value, _SEED.value, _ANNOTATED.value, spec, _MAX_STEPS.value)
+  except (OSError, ValueError) as e:  # GymError and DemoFileError are ValueErrors
+    cli.fail(str(e))
+  with cli.output_errors("out", _OUT.value):
+    checkpoint.write_atomically(_OUT.value, "".join(json.dumps(line) + "\n" for line in lines).encode())
+  steps = sum(len(line["actions"]) for line in lines)
+  print(f"{len(lines)} episodes ({_ANNOTATED.value} annotated), {steps} steps -> {_OUT.value}")
+
+
+if __name__ == "__main__":
+  flags.mark_flags_as_required(["env", "expert", "episodes", "out"])
+  app.run(main, flags_parser=cli.parse_flags)
