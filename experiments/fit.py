@@ -47,10 +47,14 @@ def fit_overrides(hierarchy: demo_files.Hierarchy) -> dict:
 
 
 def split(batch: Demonstration, fraction: float, seed: int) -> tuple[Demonstration, Demonstration]:
-  """(training, held out): round(fraction × B) demonstrations (at least 1) held out at random by seed."""
+  """(training, held out): round(fraction × B) demonstrations (at least 1) held out at random by seed, the
+  weak ones first: an annotated demonstration is held out only where too few are weak, so that the few
+  annotations a user has stay in training."""
   num = len(batch.length)
+  order = np.random.default_rng(seed).permutation(num)
+  order = np.concatenate([order[~batch.strong[order]], order[batch.strong[order]]])
   held = np.zeros(num, bool)
-  held[np.random.default_rng(seed).permutation(num)[:held_out_count(num, fraction)]] = True
+  held[order[:held_out_count(num, fraction)]] = True
   return tuple(Demonstration(*(np.asarray(x)[mask] for x in batch)) for mask in (~held, held))
 
 
@@ -95,10 +99,11 @@ def run() -> dict:
       spec.name, spec, demos, validate=rate, test=lambda model: {"held_out_replayed": rate(model)},
       extra={"demos": _DEMOS.value, "hierarchy": _HIERARCHY.value, "validation": _VALIDATION.value,
              "num_demos": len(demos.length), "num_annotated": int(np.sum(demos.strong)),
-             "num_held_out": len(held_out.length)})
-  with progress.shown(config, spec.num_levels, training.WORKDIR.value) as echo:
-    return train_and_evaluate(experiment, config, training.WORKDIR.value, training.OVERWRITE.value,
-                              wait=training.WAIT.value, echo=echo)
+             "num_held_out": len(held_out.length), "num_held_out_annotated": int(np.sum(held_out.strong))})
+  flat = training.flat_lstm_hidden()
+  with progress.shown(config, None if flat else spec.num_levels, training.WORKDIR.value) as echo:
+    return train_and_evaluate(experiment, config, training.WORKDIR.value, training.OVERWRITE.value, flat,
+                              training.WAIT.value, echo)
 
 
 def main(argv):

@@ -1,4 +1,5 @@
-"""Which operations each procedure may take: any, or those the annotated demonstrations show it taking.
+"""Which operations each procedure may take: any, those the hierarchy declares, or those the annotated
+demonstrations show it taking.
 
 A call graph is a tuple with one entry per level, root first: [K_i][Σ op_sizes(i)] bools, per procedure the
 values of each operation factor it may take (for a level that calls procedures, its callees; for the lowest
@@ -64,15 +65,23 @@ def check(demos: Demonstration, spec: HierarchySpec, graph: tuple) -> None:
     stuck = np.argwhere(~reachable.any(axis=-1) & ~padding)
     if stuck.size:
       n, t = stuck[0]
-      raise ValueError(f"demonstration {n}, step {t}: no chain of calls that the annotated call graph allows fits "
-                       f"its annotation and elementary action (at level {level}); allow every operation "
-                       "(call_graph=all)")
+      raise ValueError(f"demonstration {n}, step {t}: no chain of calls that the call graph allows fits its "
+                       f"annotation and elementary action (at level {level}); allow more operations (the "
+                       "hierarchy's \"calls\", or call_graph=all)")
+
+
+def intersect(a: tuple, b: tuple) -> tuple:
+  """The call graph allowing what both a and b allow (per level; None allows everything)."""
+  return tuple(y if x is None else x if y is None else tuple(tuple(p and q for p, q in zip(u, v))
+                                                             for u, v in zip(x, y)) for x, y in zip(a, b))
 
 
 def resolve(name: str, demos: Demonstration, spec: HierarchySpec) -> tuple:
-  """The call graph `name` (one of CALL_GRAPHS) asks for, for training on demos; ValueError as `check`."""
-  if name == "all":
-    return (None,) * spec.num_levels
-  graph = from_annotation(demos, spec, actions=name == "operations")
-  check(demos, spec, graph)
+  """The call graph `name` (one of CALL_GRAPHS) asks for, for training on demos, within the one spec declares
+  (`spec.allowed_ops`); ValueError as `check`."""
+  graph = spec.allowed_ops or (None,) * spec.num_levels
+  if name != "all":
+    graph = intersect(graph, from_annotation(demos, spec, actions=name == "operations"))
+  if any(g is not None for g in graph):
+    check(demos, spec, graph)
   return graph

@@ -16,7 +16,11 @@ one JSON object:
    "name": "mytask",                          optional (default: the file name without .json)
    "capacity": [null, 8, 3],                  optional: per level, root first, the least counter capacity
                                               below the root (`experiments.fit`'s default: 8)
-   "hidden": [64]}                            optional: hidden layer sizes of every network
+   "hidden": [64],                            optional: hidden layer sizes of every network
+   "calls": [null, {"p1": ["q1", "q2"]},      optional: per level, root first, null or which operations
+             {"q1": [0, 1]}]}                 procedures may take: callees by name, or at the lowest level
+                                              each action factor's values (ints where there is one factor);
+                                              a procedure not named may take any
 
 A hierarchy file holds at most MAX_COUNT levels, action factors and hidden layers, and at most MAX_SIZE
 procedures per level, values per action factor, units per layer and counters per level. Lines and files are
@@ -39,7 +43,7 @@ from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.hierarchy import HierarchySpec
 from php_jax.task import check_keys
 
-HIERARCHY_KEYS = ("levels", "action_sizes", "name", "capacity", "hidden")
+HIERARCHY_KEYS = ("levels", "action_sizes", "name", "capacity", "hidden", "calls")
 DEMONSTRATION_KEYS = ("observations", "actions", "stack")
 MAX_COUNT = 64
 MAX_SIZE = 4096
@@ -116,7 +120,48 @@ def _hierarchy(obj, default_name: str) -> Hierarchy:
     raise ValueError(f'"hidden" must list positive layer sizes (at most {MAX_SIZE}, at most {MAX_COUNT} layers); '
                      f'got {json_lines.shown(hidden)}')
   spec = HierarchySpec(name, tuple(tuple(level) for level in levels), tuple(sizes), 0)
+  if obj.get("calls") is not None:
+    spec = dataclasses.replace(spec, allowed_ops=_declared_calls(obj["calls"], spec))
   return Hierarchy(spec, tuple(capacity) if capacity else None, tuple(hidden) if hidden else None)
+
+
+def _declared_calls(calls, spec: HierarchySpec) -> tuple:
+  """A hierarchy file's "calls" as a call graph (`HierarchySpec.allowed_ops`); ValueError saying what is wrong."""
+  depth = spec.num_levels
+  if not (isinstance(calls, list) and len(calls) == depth and all(c is None or isinstance(c, dict) for c in calls)):
+    raise ValueError(f'"calls" must give one object or null per level, root first ({depth}); got '
+                     f'{json_lines.shown(calls)}')
+  graph = []
+  for level, named in enumerate(calls):
+    if not named:
+      graph.append(None)
+      continue
+    sizes, names = spec.op_sizes(level), spec.levels[level]
+    allowed = np.ones((len(names), sum(sizes)), bool)
+    for procedure, ops in named.items():
+      if procedure not in names:
+        raise ValueError(f'"calls": level {level} has no procedure {procedure!r}')
+      allowed[names.index(procedure)] = _allowed_row(ops, level, spec, f'"calls": {procedure!r}')
+    graph.append(tuple(map(tuple, allowed.tolist())))
+  return tuple(graph)
+
+
+def _allowed_row(ops, level: int, spec: HierarchySpec, where: str) -> np.ndarray:
+  """[Σ op_sizes] bools from a procedure's entry in "calls": the callees' names, or at the lowest level the
+  allowed values of each action factor (a list of ints where there is one factor)."""
+  sizes = spec.op_sizes(level)
+  if level < spec.num_levels - 1:
+    callees = spec.levels[level + 1]
+    if not (isinstance(ops, list) and ops and all(isinstance(c, str) and c in callees for c in ops)):
+      raise ValueError(f"{where} must list procedures of level {level + 1} ({', '.join(callees)}); got "
+                       f"{json_lines.shown(ops)}")
+    return np.isin(np.arange(len(callees)), [callees.index(c) for c in ops])
+  values = [ops] if len(sizes) == 1 and isinstance(ops, list) and all(map(_is_int, ops)) else ops
+  if not (isinstance(values, list) and len(values) == len(sizes) and all(
+      isinstance(v, list) and v and all(_is_int(a) and 0 <= a < n for a in v) for v, n in zip(values, sizes))):
+    raise ValueError(f"{where} must list, per action factor, the values it may take (0..size-1; one list of "
+                     f"ints where there is one factor); got {json_lines.shown(ops)}")
+  return np.concatenate([np.isin(np.arange(n), v) for v, n in zip(values, sizes)])
 
 
 def write_hierarchy(path: str, spec: HierarchySpec) -> None:
@@ -125,8 +170,10 @@ def write_hierarchy(path: str, spec: HierarchySpec) -> None:
   write_atomically(path, (json.dumps(obj, indent=1) + "\n").encode())
 
 
-def _parse_line(obj, spec: HierarchySpec) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
-  """One line's (observations [T+1, D], actions [T, F], procedures, counters [T, d] or None). ValueError."""
+def parse_demonstration(obj, spec: HierarchySpec) -> tuple[np.ndarray, np.ndarray, np.ndarray | None,
+                                                            np.ndarray | None]:
+  """One line's JSON value as (observations [T+1, D], actions [T, F], procedures, counters [T, d] or None):
+  actions in spec's sizes, the stack by the call-stack rules. Raises ValueError saying what is wrong."""
   if not isinstance(obj, dict):
     raise ValueError("a demonstration must be a JSON object")
   check_keys(obj, DEMONSTRATION_KEYS, "demonstration")
@@ -224,7 +271,7 @@ def read_demonstrations(path: str, spec: HierarchySpec) -> tuple[Demonstration, 
   with f:
     for number, raw in json_lines.lines(f):
       try:
-        one = _parse_line(json_lines.loads(raw), spec)
+        one = parse_demonstration(json_lines.loads(raw), spec)
         if obs_dim and one[0].shape[1] != obs_dim:
           raise ValueError(f"observations have {one[0].shape[1]} numbers; expected {obs_dim}"
                            + ("" if parsed else " (the model's observation size)"))
@@ -236,7 +283,7 @@ def read_demonstrations(path: str, spec: HierarchySpec) -> tuple[Demonstration, 
         raise DemoFileError(f"{path}:{number}: malformed demonstration: {e}") from None
   if not parsed:
     raise DemoFileError(f"{path}: no demonstrations")
-  return _batch(parsed, spec.num_levels), HierarchySpec(spec.name, spec.levels, spec.action_sizes, obs_dim)
+  return _batch(parsed, spec.num_levels), dataclasses.replace(spec, obs_dim=obs_dim)
 
 
 def _batch(parsed: list, depth: int) -> Demonstration:

@@ -18,11 +18,15 @@ class HierarchySpec:
     levels: procedure names per level; level 0 has the single root procedure.
     action_sizes: elementary action factor sizes, e.g. (2, 4, 10): three factors.
     obs_dim: observation size.
+    allowed_ops: the call graph the hierarchy declares (a hierarchy file's "calls"): per level, root first,
+      None or [K_i][Σ op_sizes(i)] bools, which operations each procedure may take (`php_jax.call_graph`);
+      None: any, at every level.
   """
   name: str
   levels: tuple[tuple[str, ...], ...]
   action_sizes: tuple[int, ...]
   obs_dim: int
+  allowed_ops: tuple | None = None
 
   @property
   def num_levels(self) -> int:

@@ -1,5 +1,6 @@
 """Call graphs: read from the annotation, checked against every demonstration, enforced by the networks (an
 operation outside the graph has probability 0 and the others renormalise), and saved with the model."""
+import dataclasses
 import json
 
 import jax
@@ -8,7 +9,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from php_jax import call_graph, checkpoint, datasets, objective, stack_lattice, tasks, train
+from php_jax import call_graph, checkpoint, datasets, demo_files, objective, stack_lattice, tasks, train
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy, PHPLevel
@@ -130,3 +131,40 @@ def test_the_call_graph_is_saved_with_the_model(tmp_path):
   path.write_text(json.dumps({**architecture, "sha256": checkpoint._model_digest(params, architecture)}))
   with pytest.raises(checkpoint.CheckpointError, match="malformed allowed_ops"):
     checkpoint.load_policy(str(tmp_path))
+
+
+def _hierarchy_file(tmp_path, calls) -> str:
+  path = tmp_path / "tiny.json"
+  path.write_text(json.dumps({"levels": [list(level) for level in SPEC.levels], "action_sizes": [2, 3],
+                              "calls": calls}))
+  return str(path)
+
+
+def test_a_declared_call_graph_is_read_from_the_hierarchy_file_and_bounds_the_annotated_one(tmp_path):
+  path = _hierarchy_file(tmp_path, [None, {"a": ["x"], "b": ["y", "z"]}, {"z": [[1], [0, 2]]}])
+  spec = dataclasses.replace(demo_files.read_hierarchy(path).spec, obs_dim=3)
+  declared = (None, ((True, False, False), (False, True, True)),
+              ((True,) * 5, (True,) * 5, (False, True, True, False, True)))
+  assert spec.allowed_ops == declared
+  demos = _demos([[[0, 0, 0], [0, 1, 2]]], [[[0, 0], [1, 2]]], strong=[True])  # a calls x; b calls z
+  assert call_graph.resolve("all", demos, spec) == declared
+  # The annotation shows z taking (1, 2), and no procedure taking value 1 of the second factor (left free):
+  # within the declared graph, z may take (1, 2) alone; x (declared free) what the annotation leaves it.
+  assert call_graph.resolve("operations", demos, spec)[2] == (
+      (True, False, True, True, False), (True,) * 5, (False, True, False, False, True))
+  outside = _demos([[[0, 0, 1]]], [[[0, 0]]], strong=[True])  # a calls y, which the file forbids
+  with pytest.raises(ValueError, match="demonstration 0, step 0: no chain of calls that the call graph allows"):
+    call_graph.resolve("all", outside, spec)
+
+
+@pytest.mark.parametrize("calls, message", [
+    ([None, None], r'"calls" must give one object or null per level, root first \(3\)'),
+    ([None, {"c": ["x"]}, None], "level 1 has no procedure 'c'"),
+    ([None, {"a": ["w"]}, None], r"""'a' must list procedures of level 2 \(x, y, z\)"""),
+    ([None, None, {"x": [[0], [3]]}], "'x' must list, per action factor, the values it may take"),
+    ([None, None, {"x": [0, 1]}], "'x' must list, per action factor"),  # two factors: a list per factor
+])
+def test_bad_declared_call_graphs_are_refused_naming_the_file(tmp_path, calls, message):
+  path = _hierarchy_file(tmp_path, calls)
+  with pytest.raises(demo_files.DemoFileError, match=f"^{path}: " + r'"calls"' + f".*{message}|^{path}: {message}"):
+    demo_files.read_hierarchy(path)
