@@ -3,7 +3,7 @@ r"""Records an expert's episodes in a Gymnasium environment as a demonstration f
   python -m experiments.record --env=ENV --expert=MODULE:ATTR --episodes=N --annotated=K --seed=S \
       --out=FILE.jsonl [--hierarchy=H.json]
 
-ENV is a registered Gymnasium id (`Taxi-v4`) or MODULE:ATTR, a callable returning a gymnasium.Env. The
+ENV is a registered Gymnasium id (`Taxi-v3`) or MODULE:ATTR, a callable returning a gymnasium.Env. The
 expert's MODULE:ATTR is a callable that takes the environment and returns an object with
 `act(observation, info)` (an action, or `(action, stack)` with the call stack that chose it) and optionally
 `reset(observation, info)`; see php_jax.gym. Episode i is reset with seed S + i; the first K episodes keep

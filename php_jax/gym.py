@@ -97,7 +97,7 @@ def _attribute(path: str, what: str):
 
 
 def env_maker(name: str) -> Callable[[], gymnasium.Env]:
-  """A function making the environment `name`: a registered Gymnasium id ("Taxi-v4") or "module:attribute",
+  """A function making the environment `name`: a registered Gymnasium id ("Taxi-v3") or "module:attribute",
   a callable returning a gymnasium.Env. Raises GymError for an unknown id or an unloadable callable."""
   if ":" not in name:
     try:

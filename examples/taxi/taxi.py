@@ -1,4 +1,4 @@
-"""Taxi (Gymnasium's `Taxi-v4`, Dietterich 2000) as a user brings it to php_jax: the environment with its
+"""Taxi (Gymnasium's `Taxi-v3`, Dietterich 2000) as a user brings it to php_jax: the environment with its
 state number decoded into factors, and an expert that follows the MAXQ hierarchy and says so.
 
   Root -> Get, Put;  Get -> Navigate(passenger), Pickup;  Put -> Navigate(destination), Putdown;
@@ -36,8 +36,8 @@ class TaxiFactors(gymnasium.ObservationWrapper):
 
 
 def make_env() -> gymnasium.Env:
-  """Taxi-v4 with factored observations (the `--env` of record and act)."""
-  return TaxiFactors(gymnasium.make("Taxi-v4"))
+  """Taxi-v3 with factored observations (the `--env` of record and act)."""
+  return TaxiFactors(gymnasium.make("Taxi-v3"))
 
 
 def _moves(desc: np.ndarray, row: int, col: int):

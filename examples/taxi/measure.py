@@ -1,0 +1,95 @@
+r"""Measures Taxi through the documented commands: per seed, record the expert's episodes, fit, act in 1,000
+fresh episodes and decode 200 held-out annotated episodes against the expert's stacks.
+
+  python examples/taxi/measure.py --workdir=runs/taxi_measure --demos=100 --annotated=1,3,10 --seeds=1,2,3,4,5
+
+Seed s records its training episodes from seed 10000·s (each configuration's own demonstrations) and fits
+with --seed=s; every run acts in the same 1,000 episodes (seeds 100000..100999) and decodes the same 200
+(seeds 500000..500199), none of which any training set holds. --model=flat_lstm fits the flat LSTM on the
+same demonstrations instead. Finished runs are kept, so a rerun resumes; each row goes to
+WORKDIR/rows.jsonl and the table is printed at the end.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+
+ENV, EXPERT = "--env=examples.taxi.taxi:make_env", "--expert=examples.taxi.taxi:MaxqExpert"
+HIERARCHY = "examples/taxi/taxi.json"
+
+
+def _run(*args: str) -> str:
+  proc = subprocess.run([sys.executable, "-m", *args], capture_output=True, text=True)
+  if proc.returncode:
+    raise SystemExit(f"{' '.join(args)} failed:\n{proc.stderr[-2000:]}")
+  return proc.stdout
+
+
+def _record(path: str, episodes: int, annotated: int, seed: int) -> None:
+  if not os.path.exists(path):
+    _run("experiments.record", ENV, EXPERT, f"--episodes={episodes}", f"--annotated={annotated}",
+         f"--seed={seed}", f"--out={path}", f"--hierarchy={HIERARCHY}")
+
+
+def measure(workdir: str, demos: int, annotated: int, seed: int, model: str, fit_flags: list[str]) -> dict:
+  """One configuration and seed, run through record, fit, act and decode; returns its row."""
+  name = f"{model}_d{demos}_a{annotated}_s{seed}"
+  run, done = os.path.join(workdir, name), os.path.join(workdir, name, "row.json")
+  if os.path.exists(done):
+    with open(done) as f:
+      return json.load(f)
+  train, held = os.path.join(workdir, f"train_d{demos}_a{annotated}_s{seed}.jsonl"), os.path.join(workdir, "held.jsonl")
+  _record(train, demos, annotated, 10000 * seed)
+  _record(held, 200, 200, 500000)
+  _run("experiments.fit", f"--demos={train}", f"--hierarchy={HIERARCHY}", f"--workdir={run}", f"--seed={seed}",
+       f"--model={model}", *fit_flags)
+  acted = _run("experiments.act", f"--policy={run}", ENV, "--episodes=1000", "--seed=100000", "--num_envs=64",
+               f"--out={os.path.join(run, 'episodes.jsonl')}")
+  success = float(re.search(r"success ([0-9.]+)", acted).group(1))
+  row = {"model": model, "demos": demos, "annotated": annotated, "seed": seed, "success": success}
+  if model == "php":
+    decoded = _run("experiments.decode", f"--policy={run}", f"--demos={held}",
+                   f"--out={os.path.join(run, 'decoded.jsonl')}")
+    for level, exact, renamed in re.findall(r"level (\d+): .* on ([0-9.]+) of annotated steps \(([0-9.]+)", decoded):
+      row[f"level{level}"], row[f"level{level}_renamed"] = float(exact), float(renamed)
+  with open(done, "w") as f:
+    json.dump(row, f)
+  return row
+
+
+def main() -> None:
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--workdir", required=True)
+  parser.add_argument("--demos", default="100", help="comma-separated numbers of demonstrations")
+  parser.add_argument("--annotated", default="3", help="comma-separated numbers annotated")
+  parser.add_argument("--seeds", default="1,2,3,4,5")
+  parser.add_argument("--model", default="php", choices=["php", "flat_lstm"])
+  parser.add_argument("fit_flags", nargs="*", help="further experiments.fit flags, after --")
+  args = parser.parse_args()
+  os.makedirs(args.workdir, exist_ok=True)
+  rows = []
+  for demos in map(int, args.demos.split(",")):
+    for annotated in map(int, args.annotated.split(",")):
+      for seed in map(int, args.seeds.split(",")):
+        row = measure(args.workdir, demos, annotated, seed, args.model, args.fit_flags)
+        print(json.dumps(row), flush=True)
+        rows.append(row)
+  with open(os.path.join(args.workdir, "rows.jsonl"), "w") as f:
+    f.writelines(json.dumps(row) + "\n" for row in rows)
+  print("| model | demos | annotated | success per seed | seeds ≥ 0.99 | level 1, 2 agreement (renamed), mean |")
+  print("|---|---|---|---|---|---|")
+  for key in sorted({(r["model"], r["demos"], r["annotated"]) for r in rows}):
+    group = [r for r in rows if (r["model"], r["demos"], r["annotated"]) == key]
+    agreement = ", ".join(f"{sum(r[f'level{k}_renamed'] for r in group) / len(group):.3f}"
+                          for k in (1, 2) if f"level{k}_renamed" in group[0]) or "–"
+    successes = " ".join(f"{r['success']:.3f}" for r in group)
+    print(f"| {key[0]} | {key[1]} | {key[2]} | {successes} | "
+          f"{sum(r['success'] >= 0.99 for r in group)}/{len(group)} | {agreement} |")
+
+
+if __name__ == "__main__":
+  main()
