@@ -190,6 +190,14 @@ def test_act_follows_the_executor_step_for_step(num_envs):
     assert outcome["truncated"] == (steps == 20 and not reached)
 
 
+def test_a_sampling_hierarchy_acts_the_same_for_the_same_seed_whatever_the_number_of_copies():
+  policy = PHPHierarchy(SPEC, hidden=(8,), sample=True, rngs=nnx.Rngs(3))
+  one = gym.act(policy, make_corridor(), 6, seed=11)
+  assert gym.act(policy, gym.vector_env(make_corridor, 4), 6, seed=11) == one
+  policy.sample = False
+  assert gym.act(policy, make_corridor(), 6, seed=11) != one  # the greedy choices on the same episodes
+
+
 def test_act_refuses_a_policy_sized_for_another_environment():
   other = PHPHierarchy(HierarchySpec("c", SPEC.levels, (2,), 9), hidden=(8,), rngs=nnx.Rngs(0))
   with pytest.raises(gym.GymError, match="observes vectors of 9 numbers; this environment's observations "
