@@ -59,6 +59,23 @@ def flatten_observation(space: spaces.Space, observation) -> np.ndarray:
   return np.asarray(spaces.flatten(space, observation), np.float32)
 
 
+def flatten_batch(envs: gymnasium.vector.VectorEnv, observations) -> np.ndarray:
+  """A vector environment's observations as float32 vectors [M, observation_size], copy by copy as
+  flatten_observation would, at once where the space allows."""
+  space, num = envs.single_observation_space, envs.num_envs
+  if isinstance(space, (spaces.Discrete, spaces.Box, spaces.MultiBinary)):
+    # batch_space keeps these flattening alike, each copy's entries together
+    return flatten_observation(envs.observation_space, observations).reshape(num, -1)
+  if isinstance(space, spaces.MultiDiscrete):  # batched, a Box of the values: one-hot them here
+    values = np.asarray(observations, np.int64).reshape(num, -1) - np.ravel(space.start)
+    offsets = np.concatenate([[0], np.cumsum(np.ravel(space.nvec))[:-1]])
+    flat = np.zeros((num, int(np.sum(space.nvec))), np.float32)
+    flat[np.arange(num)[:, None], offsets + values] = 1
+    return flat
+  return np.stack([flatten_observation(space, o) for o in gymnasium.vector.utils.iterate(envs.observation_space,
+                                                                                         observations)])
+
+
 def action_sizes(space: spaces.Space) -> tuple[int, ...]:
   """The action factors' sizes: (n,) for Discrete(n), one per entry (row-major) for MultiDiscrete."""
   if isinstance(space, spaces.Discrete):
@@ -69,12 +86,13 @@ def action_sizes(space: spaces.Space) -> tuple[int, ...]:
                  "of finite sizes)")
 
 
-def env_action(space: spaces.Space, factors) -> Any:
-  """The environment's action for an action's factors [F] (int)."""
+def env_actions(space: spaces.Space, factors: np.ndarray) -> np.ndarray:
+  """A vector environment's actions [M, ...] for M actions' factors [M, F] (int)."""
   factors = np.asarray(factors, np.int64)
   if isinstance(space, spaces.Discrete):
-    return int(space.start) + int(factors[0])
-  return (np.ravel(space.start) + factors).reshape(space.nvec.shape).astype(space.dtype)
+    return int(space.start) + factors[:, 0]
+  shape = (len(factors),) + space.nvec.shape
+  return (np.ravel(space.start) + factors).reshape(shape).astype(space.dtype)
 
 
 def action_factors(space: spaces.Space, action) -> list[int]:
@@ -354,10 +372,6 @@ def act(policy: PHPHierarchy | FlatLSTMPolicy, env: gymnasium.Env | gymnasium.ve
   graphdef, params = nnx.split(policy)
   leaves, treedef = jax.tree.flatten(params)
 
-  def flat(observations) -> np.ndarray:
-    return np.stack([flatten_observation(observation_space, o)
-                     for o in gymnasium.vector.utils.iterate(envs.observation_space, observations)])
-
   def restart(copies: np.ndarray) -> None:
     nonlocal observations
     mask = np.zeros(num, bool)
@@ -371,7 +385,7 @@ def act(policy: PHPHierarchy | FlatLSTMPolicy, env: gymnasium.Env | gymnasium.ve
   while (state.episode >= 0).any():
     while True:
       new_memory, actions, returned = _decisions(
-          graphdef, treedef, leaves, memory, flat(observations), fresh, np.maximum(state.episode, 0),
+          graphdef, treedef, leaves, memory, flatten_batch(envs, observations), fresh, np.maximum(state.episode, 0),
           state.steps, key)
       ended = np.flatnonzero(np.asarray(returned) & (state.episode >= 0))
       if not ended.size:
@@ -382,11 +396,10 @@ def act(policy: PHPHierarchy | FlatLSTMPolicy, env: gymnasium.Env | gymnasium.ve
     memory, fresh = new_memory, np.zeros(num, bool)
     actions = np.asarray(actions)
     if state.stacks is not None:
-      frames = np.stack([np.asarray(memory.procedures), np.asarray(memory.counters)], -1)  # [M, d, 2]
+      frames = np.stack([np.asarray(memory.procedures), np.asarray(memory.counters)], -1).tolist()  # [M][d][2]
       for m in np.flatnonzero(state.episode >= 0):
-        state.stacks[m].append(frames[m].tolist())
-    observations, rewards, terminated, truncated, infos = envs.step(
-        np.stack([env_action(action_space, a) for a in actions]))
+        state.stacks[m].append(frames[m])
+    observations, rewards, terminated, truncated, infos = envs.step(env_actions(action_space, actions))
     state.steps += 1
     state.returns += rewards
     truncated = truncated | (state.steps >= limit)

@@ -111,17 +111,42 @@ def test_every_space_kind_flattens_and_others_are_refused():
       gym.observation_size(bad)
 
 
+class Fixed(gymnasium.Env):
+  """Observes a fixed sample of its space."""
+
+  def __init__(self, space, seed):
+    self.observation_space, self.action_space = space, spaces.Discrete(2)
+    space.seed(seed)
+    self.observation = space.sample()
+
+  def reset(self, *, seed=None, options=None):
+    return self.observation, {}
+
+
+@pytest.mark.parametrize("space", [
+    spaces.Discrete(4, start=1), spaces.Box(-2, 2, (2, 3)), spaces.MultiBinary(5),
+    spaces.MultiDiscrete([5, 5, 4]), spaces.MultiDiscrete([[2, 3], [4, 5]], start=[[1, 0], [0, 2]]),
+    spaces.Dict({"a": spaces.Discrete(3), "b": spaces.Box(0, 1, (2,))})])
+def test_a_vector_environments_observations_flatten_copy_by_copy(space):
+  envs = gymnasium.vector.SyncVectorEnv([lambda s=s: Fixed(space, s) for s in range(3)])
+  observations, _ = envs.reset()
+  rows = gym.flatten_batch(envs, observations)
+  assert rows.shape == (3, gym.observation_size(space)) and rows.dtype == np.float32
+  for row, one in zip(rows, [env.observation for env in envs.envs]):
+    np.testing.assert_array_equal(row, gym.flatten_observation(space, one))
+
+
 def test_action_factors_round_trip_and_other_action_spaces_are_refused():
   discrete, multi = spaces.Discrete(4, start=2), spaces.MultiDiscrete([[2, 3], [4, 5]], start=[[1, 0], [0, 2]])
   assert gym.action_sizes(discrete) == (4,) and gym.action_sizes(multi) == (2, 3, 4, 5)
   for space in (discrete, multi):
     space.seed(0)
-    for _ in range(20):
-      action = space.sample()
-      factors = gym.action_factors(space, action)
-      assert all(0 <= f < n for f, n in zip(factors, gym.action_sizes(space)))
-      np.testing.assert_array_equal(gym.env_action(space, factors), action)
-      assert space.contains(gym.env_action(space, factors))
+    actions = [space.sample() for _ in range(20)]
+    factors = [gym.action_factors(space, a) for a in actions]
+    assert all(0 <= f < n for row in factors for f, n in zip(row, gym.action_sizes(space)))
+    back = gym.env_actions(space, factors)
+    np.testing.assert_array_equal(back, np.stack(actions))
+    assert all(space.contains(a) for a in back)
   with pytest.raises(gym.GymError, match="action space Box"):
     gym.action_sizes(spaces.Box(0, 1, (2,)))
 
