@@ -161,6 +161,8 @@ def _expert_output(output) -> tuple[Any, Any]:
 def _stack_spec(stacks: list, sizes: tuple[int, ...], episode: int) -> HierarchySpec:
   """A spec that admits every procedure id in an episode's stacks (for checking them without a hierarchy)."""
   given = [frames for frames in stacks if frames is not None]
+  if not given:  # nothing to check
+    return HierarchySpec("expert", (("p",), ("p",)), sizes, 0)
   depths = {len(frames) if isinstance(frames, list) else 0 for frames in given}
   if len(depths) != 1 or 0 in depths:
     raise GymError(f"episode {episode}: every step's stack must list one [procedure, counter] pair per level, "
@@ -212,7 +214,7 @@ def record(env: gymnasium.Env, expert, episodes: int, seed: int, annotated: int 
                        "returns a bare action, not (action, stack))")
       line["stack"] = stacks
     try:
-      demo_files.parse_demonstration(line, spec or _stack_spec(stacks, sizes, episode))
+      demo_files.parse_demonstration(line, spec or _stack_spec(line.get("stack", []), sizes, episode))
     except ValueError as e:
       raise GymError(f"episode {episode}: {e}") from None
     lines.append(line)
