@@ -4,11 +4,11 @@ r"""Runs a fitted policy in a Gymnasium environment: one JSON line per episode, 
 
 --policy is a workdir of `experiments.fit` (a PHP hierarchy or a flat LSTM); ENV as in `experiments.record`.
 Episode i is reset with seed S + i. A hierarchy acts by the executor's semantics (greedy, or with --sample
-drawing its operations and terminations): it pushes its root,
-descends on the first observation, and after every action pops the procedures that terminate and resumes
-the one below them; the episode ends when the environment ends it, or when the root returns. With
---num_envs, M copies of the environment run side by side (a gymnasium.vector environment) and each step's
-decisions for all of them are one compiled call. Each line, in episode order:
+drawing its operations and terminations): it pushes its root, descends on the first observation, and after
+every action pops the procedures that terminate and resumes the one below them; the episode ends when the
+environment ends it, or when the root returns. With --num_envs, M copies of the environment run side by
+side (a gymnasium.vector environment) and each step's decisions for all of them are one compiled call. Each
+line, in episode order:
 
   {"return": float, "steps": int,
    "success": bool,                     info["is_success"] at the end where the environment gives it,
