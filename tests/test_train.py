@@ -43,8 +43,8 @@ def test_level_views_are_the_supervisors_call_sequences():
 def test_level_loss_is_the_complete_data_log_likelihood_for_strong_views():
   demos = _addition_demos([("19", "25"), ("7", "8")], num_strong=2)
   view = views.lowest_view(demos, 3)
-  # The lowest level's networks alone (as make_hierarchy builds them), the computations jitted: each eager op
-  # would compile on its own.
+  # The lowest level's networks alone, with make_hierarchy's settings for it (it would build all three
+  # levels), and the computations jitted: run eagerly, each op compiles on its own.
   php = PHPLevel(ADDITION.spec.num_procs(2), ADDITION.spec.obs_dim, ADDITION.spec.op_sizes(2), (16,),
                  rngs=nnx.Rngs(0))
   model = objective.LevelModel(php, RootMLP(44, 3, (8,), rngs=nnx.Rngs(0)))
