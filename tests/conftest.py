@@ -1,7 +1,8 @@
 """Settings for a pytest run: a persistent compilation cache in a fresh temporary directory, so that the many
 identical computations the training tests compile again (each training run jits its own closures) are
-compiled by XLA once per run, and removed at the end of the run. Also puts the checkout on the PYTHONPATH of the commands the tests run:
-experiments/ is not installed, and `python -m experiments.X` must find it whatever the working directory."""
+compiled by XLA once per run, and removed at the end of the run; XLA without LLVM's optimizations. Also puts
+the checkout on the PYTHONPATH of the commands the tests run: experiments/ is not installed, and
+`python -m experiments.X` must find it whatever the working directory."""
 import os
 import pathlib
 import shutil
@@ -19,6 +20,10 @@ jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 # The commands the tests run share the cache: each compiles the same programs as the others.
 os.environ.update(JAX_COMPILATION_CACHE_DIR=CACHE, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
                   JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
+# XLA compiles without LLVM's optimizations (in this process, whose backend starts after this, and in the
+# commands): on the CPU they take most of the compile time, which is most of the suite's time, and the tests'
+# programs are small. Settings given in XLA_FLAGS come after, so that they win.
+os.environ["XLA_FLAGS"] = " ".join(filter(None, ["--xla_backend_optimization_level=0", os.environ.get("XLA_FLAGS")]))
 
 
 def pytest_sessionfinish(session, exitstatus):

@@ -15,6 +15,7 @@ from flax import nnx, serialization
 from experiments import plot, segmentation, sweep
 from php_jax import checkpoint, datasets, decoding, evaluation, fitting, flat_lstm, tasks, train, views
 from php_jax.envs import nanocraft, nanocraft_task
+from tests import processes
 
 NANOCRAFT = tasks.get("nanocraft")
 
@@ -214,17 +215,18 @@ def test_sweep_refuses_bad_grids(entries, message):
 
 
 def test_sweep_command_refuses_bad_flags_and_writes_nothing(tmp_path):
-  workdir = tmp_path / "sweep"
-  for flags, message in [(["--grid=num_demos=16,x"], "num_demos values"), (["--parallel=0"], "parallel"),
-                         (["--grid=seed=1", "--grid=seed=2"], "given twice"), (["--gpus=0,0"], "distinct"),
-                         (["--seeds=1,x"], "distinct non-negative integers"),
-                         (["--seeds=1,2", "--grid=seed=3"], "give one of them"),
-                         (["--task=sorting"], "--task: unknown task 'sorting'")]:
-    proc = subprocess.run([sys.executable, "-m", "experiments.sweep", "--task=nanocraft", f"--workdir={workdir}",
-                           *flags], capture_output=True, text=True, timeout=300)
+  cases = [(["--grid=num_demos=16,x"], "num_demos values"), (["--parallel=0"], "parallel"),
+           (["--grid=seed=1", "--grid=seed=2"], "given twice"), (["--gpus=0,0"], "distinct"),
+           (["--seeds=1,x"], "distinct non-negative integers"), (["--seeds=1,2", "--grid=seed=3"], "give one of them"),
+           (["--task=sorting"], "--task: unknown task 'sorting'")]
+  # Run at the same time, each with its own workdir.
+  procs = processes.run_all([[sys.executable, "-m", "experiments.sweep", "--task=nanocraft",
+                              f"--workdir={tmp_path / f'sweep{i}'}", *flags] for i, (flags, _) in enumerate(cases)],
+                            capture_output=True, text=True, timeout=300)
+  for (flags, message), proc in zip(cases, procs):
     assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, (
         flags, proc.stderr)
-  assert not workdir.exists()
+  assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.slow

@@ -10,6 +10,8 @@ from php_jax import datasets, decoding, objective, stack_lattice, tasks
 from php_jax.model import PHPHierarchy
 
 NANOCRAFT = tasks.get("nanocraft")
+# objective.stack_inputs as one compiled program (capacity static), not op by op.
+_stack_inputs = nnx.jit(objective.stack_inputs, static_argnums=1)
 
 
 def _by_hand(hierarchy: PHPHierarchy, obs, actions, procs, taus, length) -> float:
@@ -49,7 +51,7 @@ def test_stack_inputs_give_the_executor_semantics_log_probability():
     n = int(batch.length[b])
     obs, act = np.asarray(batch.observations[b]), np.asarray(batch.actions[b])
     procs, taus = np.asarray(batch.procedures[b]), np.asarray(batch.counters[b])
-    inputs = objective.stack_inputs(hierarchy, capacity, jnp.asarray(obs), jnp.asarray(act), jnp.asarray(n))
+    inputs = _stack_inputs(hierarchy, capacity, jnp.asarray(obs), jnp.asarray(act), jnp.asarray(n))
     annotated = stack_lattice.forward_backward(inputs, jnp.asarray(procs), jnp.asarray(taus)).log_likelihood
     np.testing.assert_allclose(annotated, _by_hand(hierarchy, obs, act, procs, taus, n), rtol=1e-4)
     free = stack_lattice.forward_backward(inputs).log_likelihood
@@ -62,7 +64,7 @@ def test_decode_returns_the_viterbi_stacks_and_likelihoods():
   capacity = (20, 6, 4)
   decoded = decoding.decode(hierarchy, capacity, batch, chunk=2)  # chunks of 2, the last one padded
   for b in range(5):
-    inputs = objective.stack_inputs(hierarchy, capacity, batch.observations[b], batch.actions[b], batch.length[b])
+    inputs = _stack_inputs(hierarchy, capacity, batch.observations[b], batch.actions[b], batch.length[b])
     path = stack_lattice.viterbi(inputs)
     np.testing.assert_allclose(decoded.log_likelihood[b], stack_lattice.forward_backward(inputs).log_likelihood,
                                rtol=1e-5)
@@ -73,7 +75,7 @@ def test_decode_returns_the_viterbi_stacks_and_likelihoods():
 def test_log_likelihood_alone_equals_forward_backward_and_has_its_gradient():
   batch = datasets.training_demos(NANOCRAFT, 2, 2, 2)
   hierarchy = PHPHierarchy(NANOCRAFT.spec, hidden=(16,), rngs=nnx.Rngs(4))
-  inputs = objective.stack_inputs(hierarchy, (20, 6, 4), batch.observations[1], batch.actions[1], batch.length[1])
+  inputs = _stack_inputs(hierarchy, (20, 6, 4), batch.observations[1], batch.actions[1], batch.length[1])
   for annotation in ((None, None), (batch.procedures[1], None)):
     posterior = stack_lattice.forward_backward(inputs, *annotation)
     np.testing.assert_allclose(stack_lattice.log_likelihood(inputs, *annotation), posterior.log_likelihood, rtol=1e-6)

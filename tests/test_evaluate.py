@@ -11,6 +11,7 @@ from experiments import cli
 from experiments import problems as problem_files
 from php_jax import evaluation, tasks
 from php_jax.envs import addition, bubblesort_task, nanocraft_task
+from tests import processes
 
 
 def _evaluate(tmp_path, task, lines):
@@ -55,10 +56,13 @@ def test_blank_file_is_refused(tmp_path):
 def test_bad_flags_are_refused_before_anything_runs(tmp_path):
   problems = tmp_path / "in.jsonl"
   problems.write_text('{"a": "1", "b": "2"}\n')
-  for flag, message in [(f"--out={problems}", "is the input file"), ("--batch_size=0", "batch_size"),
-                        ("--batch_size=x", "batch_size"), ("--tsk=addition", "tsk")]:
-    proc = subprocess.run([sys.executable, "-m", "experiments.evaluate", "--task=addition", f"--problems={problems}",
-                           f"--out={tmp_path / 'out.jsonl'}", flag], capture_output=True, text=True, timeout=300)
+  cases = [(f"--out={problems}", "is the input file"), ("--batch_size=0", "batch_size"),
+           ("--batch_size=x", "batch_size"), ("--tsk=addition", "tsk")]
+  # Run at the same time, each with an --out of its own (which the first case's flag replaces).
+  procs = processes.run_all([[sys.executable, "-m", "experiments.evaluate", "--task=addition", f"--problems={problems}",
+                              f"--out={tmp_path / f'out{i}.jsonl'}", flag] for i, (flag, _) in enumerate(cases)],
+                            capture_output=True, text=True, timeout=300)
+  for (flag, message), proc in zip(cases, procs):
     assert proc.returncode == 2 and message in proc.stderr, (flag, proc.stderr)
     assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
   assert problems.read_text() == '{"a": "1", "b": "2"}\n' and sorted(p.name for p in tmp_path.iterdir()) == [

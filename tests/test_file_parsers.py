@@ -5,7 +5,6 @@ import io
 import json
 import pathlib
 import re
-import subprocess
 import sys
 
 import numpy as np
@@ -16,6 +15,7 @@ from hypothesis import strategies as st
 from experiments import problems as problem_files
 from php_jax import demo_files, json_lines, tasks
 from php_jax.hierarchy import HierarchySpec
+from tests import processes
 
 WAREHOUSE = pathlib.Path(__file__).resolve().parents[1] / "examples" / "warehouse"
 SPEC = HierarchySpec("t", (("r",), ("a", "b"), ("x", "y", "z")), (3, 2), 0)
@@ -280,21 +280,20 @@ def test_depth_is_counted_outside_strings_only():
     json_lines.loads(json.dumps([deepest]).encode())
 
 
-def _run(*args):
-  return subprocess.run([sys.executable, "-m", *args], capture_output=True, text=True, timeout=300)
-
-
 def test_commands_refuse_bad_numbers_in_one_line_before_writing(tmp_path):
   problems = _write(tmp_path / "p.jsonl", '{"a": "1", "b": "2"}\n' + DEEP + "\n")
   out = tmp_path / "out.jsonl"
-  proc = _run("experiments.evaluate", "--task=addition", "--policy=oracle", f"--problems={problems}", f"--out={out}")
-  assert proc.returncode == 2 and proc.stderr.strip() == (
-      f"error: {problems}:2: malformed addition problem: arrays and objects nested deeper than 32")
-  assert not out.exists()
   demos = _write(tmp_path / "d.jsonl", _observations("1e39") + "\n")
   workdir = tmp_path / "w"
-  proc = _run("experiments.fit", f"--demos={demos}", f"--hierarchy={WAREHOUSE / 'warehouse.json'}",
-              f"--workdir={workdir}")
-  assert proc.returncode == 2 and proc.stderr.strip() == (
+  # The two commands at the same time.
+  evaluate, fit = processes.run_all(
+      [[sys.executable, "-m", "experiments.evaluate", "--task=addition", "--policy=oracle", f"--problems={problems}",
+        f"--out={out}"],
+       [sys.executable, "-m", "experiments.fit", f"--demos={demos}", f"--hierarchy={WAREHOUSE / 'warehouse.json'}",
+        f"--workdir={workdir}"]], capture_output=True, text=True, timeout=300)
+  assert evaluate.returncode == 2 and evaluate.stderr.strip() == (
+      f"error: {problems}:2: malformed addition problem: arrays and objects nested deeper than 32")
+  assert not out.exists()
+  assert fit.returncode == 2 and fit.stderr.strip() == (
       f"error: {demos}:1: malformed demonstration: number 1e39 is beyond ±3.4e38 (float32's range)")
   assert not workdir.exists()

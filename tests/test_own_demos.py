@@ -12,6 +12,7 @@ import pytest
 
 from php_jax import datasets, demo_files, demos, replay, tasks, views
 from php_jax.demos import UNKNOWN
+from tests import processes
 
 NANOCRAFT = tasks.get("nanocraft")
 WAREHOUSE = pathlib.Path(__file__).resolve().parents[1] / "examples" / "warehouse"
@@ -186,25 +187,27 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
       {"observations": [[0.0], [1.0], [2.0]], "actions": [[0], [3]],
        "stack": [[[0, 0], [1, 0], [0, 0]], [[0, 0], [1, 1], [3, 0]]]}]))
   cases = [
-      (("experiments.fit", f"--demos={outside}", f"--hierarchy={hierarchy}", f"--workdir={tmp_path / 'w'}",
+      (("experiments.fit", f"--demos={outside}", f"--hierarchy={hierarchy}", f"--workdir={tmp_path / 'w1'}",
         "--call_graph=operations"), f"--demos={outside}: demonstration 1, step 0: no chain of calls"),
-      (("experiments.fit", f"--demos={outside}", f"--hierarchy={hierarchy}", f"--workdir={tmp_path / 'w'}",
+      (("experiments.fit", f"--demos={outside}", f"--hierarchy={hierarchy}", f"--workdir={tmp_path / 'w2'}",
         "--call_graph=some"), "flag --call_graph=some: value should be one of <all|calls|operations>"),
-      (("experiments.fit", f"--demos={bad}", f"--hierarchy={hierarchy}", f"--workdir={tmp_path / 'w'}"),
+      (("experiments.fit", f"--demos={bad}", f"--hierarchy={hierarchy}", f"--workdir={tmp_path / 'w3'}"),
        f"{bad}:2:"),
-      (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={bad}", f"--workdir={tmp_path / 'w'}"),
+      (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={bad}", f"--workdir={tmp_path / 'w4'}"),
        "cannot read a hierarchy"),
       (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={hierarchy}",
-        f"--workdir={tmp_path / 'w'}", "--validation_fraction=1.5"), "--validation_fraction"),
+        f"--workdir={tmp_path / 'w5'}", "--validation_fraction=1.5"), "--validation_fraction"),
       (("experiments.decode", f"--policy={tmp_path / 'none'}", f"--demos={bad}", f"--out={tmp_path / 'o.jsonl'}"),
        "no trained model"),
       (("experiments.decode", f"--policy={tmp_path}", f"--demos={bad}", f"--out={bad}"), "is the input file"),
   ]
-  for args, message in cases:
-    proc = _run(*args)
+  # Run at the same time, each with its own workdir.
+  procs = processes.run_all([[sys.executable, "-m", *args] for args, _ in cases], capture_output=True, text=True,
+                            timeout=600)
+  for (args, message), proc in zip(cases, procs):
     assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, (
         args, proc.stderr)
-  assert not (tmp_path / "w").exists() and not (tmp_path / "o.jsonl").exists()
+  assert not any((tmp_path / f"w{i}").exists() for i in range(1, 6)) and not (tmp_path / "o.jsonl").exists()
 
 
 def test_export_demos_writes_the_training_set_of_train(tmp_path):

@@ -12,6 +12,7 @@ from flax import nnx
 
 from php_jax import checkpoint, datasets, evaluation, fitting, objective, tasks, train, views
 from php_jax.envs import nanocraft, nanocraft_task
+from tests import processes
 
 NANOCRAFT = tasks.get("nanocraft")
 CONFIG = train.TrainConfig(iterations=20, eval_every=10, hidden=(8,), root="mlp", root_hidden=8,
@@ -161,15 +162,19 @@ def test_the_training_command_with_seeds_writes_each_seeds_separate_run(tmp_path
 def test_the_training_command_refuses_seeds_with_flags_they_do_not_go_with(tmp_path):
   without_root = [a for a in BASE if a != "--root=mlp"]  # --root is level-wise training's
   nanocraft = [sys.executable, "-m", "experiments.nanocraft", "--num_demos=4"]  # it trains jointly by default
-  for command, flag, message in [
+  cases = [
+      # Seed 0's annotated demonstration shows build_u placing a block, seed 1's does not. (First: it makes the
+      # demonstrations, the longest of the runs.)
+      (nanocraft + ["--training=levelwise"], "--num_strong=1",
+       "--seeds: the seeds' annotated demonstrations show different call graphs (operations)"),
       (BASE, "--seed=2", "--seeds and --seed: give one"), (BASE, "--seeds=1,1", "distinct"),
       (without_root, "--training=joint", "--seeds trains level-wise only; this run trains jointly (--training=joint)"),
       (nanocraft, "--num_strong=1", "jointly (--training=joint, the task default): add --training=levelwise"),
-      (nanocraft, "--call_penalty=0,1,0", "--call_penalty: applies to level-wise training only"),
-      # Seed 0's annotated demonstration shows build_u placing a block, seed 1's does not.
-      (nanocraft + ["--training=levelwise"], "--num_strong=1",
-       "--seeds: the seeds' annotated demonstrations show different call graphs (operations)")]:
-    bad = subprocess.run(command + ["--seeds=0,1", flag, f"--workdir={tmp_path / 'bad'}"], capture_output=True,
-                         text=True, timeout=600, cwd=ROOT)
+      (nanocraft, "--call_penalty=0,1,0", "--call_penalty: applies to level-wise training only")]
+  # Run at the same time, each with its own workdir.
+  procs = processes.run_all([command + ["--seeds=0,1", flag, f"--workdir={tmp_path / f'bad{i}'}"]
+                             for i, (command, flag, _) in enumerate(cases)], capture_output=True, text=True,
+                            timeout=600, cwd=ROOT)
+  for i, ((_, _, message), bad) in enumerate(zip(cases, procs)):
     assert bad.returncode == 2 and message in bad.stderr and bad.stderr.count("\n") == 1, bad.stderr[-2000:]
-    assert not (tmp_path / "bad").exists()
+    assert not (tmp_path / f"bad{i}").exists()

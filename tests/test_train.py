@@ -10,7 +10,7 @@ from flax import nnx
 
 from php_jax import agreement, checkpoint, datasets, evaluation, fitting, lattice, objective, tasks, train, views
 from php_jax.envs import addition_task, nanocraft_task
-from php_jax.model import RootMLP
+from php_jax.model import PHPLevel, RootMLP
 from php_jax.envs import addition, nanocraft
 
 ADDITION = tasks.get("addition")
@@ -43,17 +43,22 @@ def test_level_views_are_the_supervisors_call_sequences():
 def test_level_loss_is_the_complete_data_log_likelihood_for_strong_views():
   demos = _addition_demos([("19", "25"), ("7", "8")], num_strong=2)
   view = views.lowest_view(demos, 3)
-  model = objective.LevelModel(train.make_hierarchy(ADDITION.spec, train.TrainConfig(hidden=(16,))).levels[2],
-                           RootMLP(44, 3, (8,), rngs=nnx.Rngs(0)))
+  # The lowest level's networks alone, with make_hierarchy's settings for it (it would build all three
+  # levels), and the computations jitted: run eagerly, each op compiles on its own.
+  php = PHPLevel(ADDITION.spec.num_procs(2), ADDITION.spec.obs_dim, ADDITION.spec.op_sizes(2), (16,),
+                 rngs=nnx.Rngs(0))
+  model = objective.LevelModel(php, RootMLP(44, 3, (8,), rngs=nnx.Rngs(0)))
+  level_loss = nnx.jit(lambda m, buckets: objective.level_loss(m, buckets, 4, strong_weight=1.0))
   batch = views.device_view(view)
-  loss = objective.level_loss(model, [batch], 4, strong_weight=1.0)
-  split = objective.level_loss(model, [views.device_view(b) for b in views.length_buckets(view, 2)], 4, 1.0)
+  loss = level_loss(model, [batch])
+  split = level_loss(model, [views.device_view(b) for b in views.length_buckets(view, 2)])
   np.testing.assert_allclose(split, loss, rtol=1e-6)
+  lattice_inputs = nnx.jit(lambda m, one: objective.lattice_inputs(m, one, 4))
   direct = []
   for b in range(2):
     none = -jnp.ones_like(batch.procedures[b])
     one = jax.tree.map(lambda x: x[b], batch)._replace(procedures=none, counters=none)
-    inputs = objective.lattice_inputs(model, one, 4)
+    inputs = lattice_inputs(model, one)
     direct.append(lattice.complete_log_likelihood(*inputs, batch.procedures[b], batch.counters[b], batch.length[b]))
   np.testing.assert_allclose(loss, -np.mean(direct), rtol=1e-5)
 
