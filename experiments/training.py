@@ -1,5 +1,5 @@
-"""What the training commands share: the workdir and model flags, and a run's start and end in one line (their training
-settings' flags: `config_flags`)."""
+"""What the training commands share: the workdir and model flags, and a run's start and end in one line
+(their training settings' flags: `config_flags`)."""
 from __future__ import annotations
 
 import os
