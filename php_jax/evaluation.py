@@ -11,14 +11,16 @@ import jax
 import numpy as np
 
 from php_jax import executor, flat_lstm
+from php_jax.hierarchy import HierarchySpec
 from php_jax.task import Task
 
 
-def _rollout(task: Task, policy, states, keys, max_steps) -> executor.Rollout:
-  """A hierarchy (oracle or PHP) runs in the stack-machine executor; the flat LSTM baseline in its own loop."""
+def rollout(policy, spec: HierarchySpec, env, states, keys, max_steps: int) -> executor.Rollout:
+  """The outcomes (nothing recorded) of a batch of episodes from states [B, ...]: a hierarchy (oracle or PHP)
+  runs in the stack-machine executor, the flat LSTM baseline in its own loop."""
   if isinstance(policy, flat_lstm.FlatLSTMPolicy):
-    return flat_lstm.rollout_batch(policy, task.env, states, max_steps)
-  return executor.rollout_batch(policy, task.spec, task.env, states, keys, max_steps, record=False)
+    return flat_lstm.rollout_batch(policy, env, states, max_steps)
+  return executor.rollout_batch(policy, spec, env, states, keys, max_steps, record=False)
 
 
 def solve(task: Task, policy, problems: list, batch_size: int = 64, budget_factor: int = 2) -> list[dict]:
@@ -42,7 +44,7 @@ def solve(task: Task, policy, problems: list, batch_size: int = 64, budget_facto
       chunk = indices[start:start + size]
       padded = chunk + [chunk[0]] * (size - len(chunk))
       states = task.make_states([problems[i] for i in padded], bucket)
-      rollouts = jax.device_get(_rollout(task, policy, states, keys, max_steps))
+      rollouts = jax.device_get(rollout(policy, task.spec, task.env, states, keys, max_steps))
       for row, index in enumerate(chunk):
         r = jax.tree.map(lambda x, row=row: x[row], rollouts)
         fields, right = task.outcome(problems[index], r.final_state)

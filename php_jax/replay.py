@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from php_jax import executor, flat_lstm
+from php_jax import evaluation
 from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
 
@@ -58,11 +58,7 @@ def replay(policy, spec: HierarchySpec, batch: Demonstration, key: jax.Array | N
   states = RecordingState(jnp.asarray(batch.observations), jnp.asarray(batch.actions), jnp.asarray(batch.length),
                           jnp.zeros(num, jnp.int32), jnp.zeros(num, bool))
   keys = jax.random.split(jax.random.key(0) if key is None else key, num)
-  max_steps = int(batch.actions.shape[1]) + 1
-  if isinstance(policy, flat_lstm.FlatLSTMPolicy):
-    rollout = flat_lstm.rollout_batch(policy, RECORDING, states, max_steps)
-  else:
-    rollout = executor.rollout_batch(policy, spec, RECORDING, states, keys, max_steps, record=False)
+  rollout = evaluation.rollout(policy, spec, RECORDING, states, keys, int(batch.actions.shape[1]) + 1)
   steps, length = np.asarray(rollout.length), np.asarray(batch.length)
   replayed = np.asarray(rollout.terminated) & (steps == length)
   # A failed step is the episode's last; a root returning early ends the episode at `steps` < length.

@@ -9,8 +9,10 @@ import sys
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from flax import nnx
 
 from php_jax import datasets, demo_files, demos, replay, tasks, views
+from php_jax.flat_lstm import FlatLSTMPolicy
 from php_jax.demos import UNKNOWN
 from tests import processes
 
@@ -148,6 +150,23 @@ def test_oracle_replays_its_demonstrations_and_mismatches_are_located():
   result = replay.replay(NANOCRAFT.oracle, NANOCRAFT.spec, changed)
   assert result.replayed.tolist() == [False, False] + [True] * 6
   assert result.first_mismatch[:2].tolist() == [3, length[1]]
+
+
+def test_a_flat_lstm_replays_as_its_own_steps_on_the_recorded_observations_say():
+  batch = datasets.training_demos(NANOCRAFT, 1, 6, 0)
+  policy = FlatLSTMPolicy(NANOCRAFT.spec.obs_dim, NANOCRAFT.spec.action_sizes, 8, rngs=nnx.Rngs(2))
+  result = replay.replay(policy, NANOCRAFT.spec, batch)
+  for b, length in enumerate(np.asarray(batch.length)):
+    carry, previous, expected = policy.initial_carry(), jnp.full(len(policy.action_sizes), -1), -1
+    for t in range(length + 1):  # the recorded actions are the LSTM's own up to its first mismatch
+      carry, factors, stop = policy.step(carry, jnp.asarray(batch.observations[b, t]), previous)
+      taken = [int(jnp.argmax(lp)) for lp in factors]
+      if (t < length and (stop > 0 or taken != list(batch.actions[b, t]))) or (t == length and stop <= 0):
+        expected = t
+        break
+      if t < length:
+        previous = jnp.asarray(batch.actions[b, t])
+    assert result.first_mismatch[b] == expected and result.replayed[b] == (expected == -1), b
 
 
 def _run(*args):
