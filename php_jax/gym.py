@@ -13,7 +13,6 @@ Episode i is reset with seed + i, in `record` and in `act` alike.
 from __future__ import annotations
 
 import functools
-import importlib
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -24,7 +23,7 @@ import numpy as np
 from flax import nnx
 from gymnasium import spaces
 
-from php_jax import demo_files, executor
+from php_jax import demo_files, executor, import_path
 from php_jax.flat_lstm import FlatLSTMPolicy
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy
@@ -102,18 +101,6 @@ def action_factors(space: spaces.Space, action) -> list[int]:
   return (np.ravel(np.asarray(action, np.int64)) - np.ravel(space.start)).tolist()
 
 
-def _attribute(path: str, what: str):
-  """The object at "module:attribute"; GymError saying why it cannot be loaded."""
-  module_name, colon, attribute = path.partition(":")
-  if not (colon and module_name and attribute):
-    raise GymError(f"{what} {path!r} must be module:attribute")
-  try:
-    return getattr(importlib.import_module(module_name), attribute)
-  except Exception as e:  # whatever importing the user's module raises
-    raise GymError(f"cannot load {what} {path!r}: {type(e).__name__}: "
-                   f"{str(e).splitlines()[0] if str(e) else ''}") from None
-
-
 def env_maker(name: str) -> Callable[[], gymnasium.Env]:
   """A function making the environment `name`: a registered Gymnasium id ("Taxi-v3") or "module:attribute",
   a callable returning a gymnasium.Env. Raises GymError for an unknown id or an unloadable callable."""
@@ -123,7 +110,7 @@ def env_maker(name: str) -> Callable[[], gymnasium.Env]:
     except gymnasium.error.Error as e:
       raise GymError(f"unknown environment {name!r}: {e}") from None
     return lambda: gymnasium.make(name)
-  make = _attribute(name, "environment")
+  make = import_path.load_attribute(name, "environment", GymError)
   if not callable(make):
     raise GymError(f"environment {name!r} is a {type(make).__name__}, not a callable returning a gymnasium.Env")
 
@@ -138,7 +125,7 @@ def env_maker(name: str) -> Callable[[], gymnasium.Env]:
 
 def expert_maker(name: str) -> Callable[[gymnasium.Env], Any]:
   """The callable at "module:attribute" that takes the environment and returns an expert."""
-  make = _attribute(name, "expert")
+  make = import_path.load_attribute(name, "expert", GymError)
   if not callable(make):
     raise GymError(f"expert {name!r} is a {type(make).__name__}, not a callable taking the environment")
   return make

@@ -2,8 +2,7 @@
 defined elsewhere is also reachable by its import path, "package.module:NAME"."""
 from __future__ import annotations
 
-import importlib
-
+from php_jax import import_path
 from php_jax.envs import addition_task, bubblesort_task, nanocraft_task
 from php_jax.task import Task
 
@@ -16,11 +15,7 @@ def get(name: str) -> Task:
     return TASKS[name]
   module_name, colon, attribute = name.partition(":")
   if colon and module_name and attribute:
-    try:
-      task = getattr(importlib.import_module(module_name), attribute)
-    except Exception as e:  # whatever importing the user's module raises (a command's module: its flags clash)
-      raise ValueError(f"cannot load task {name!r}: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
-                       ) from None
+    task = import_path.load_attribute(name, "task")
     if isinstance(task, Task):
       return task
     raise ValueError(f"{name!r} is a {type(task).__name__}, not a php_jax Task")

@@ -106,6 +106,17 @@ def test_a_task_defined_outside_the_library_demonstrates_and_trains_one_level():
 
 
 @pytest.mark.slow
+def test_a_task_path_that_does_not_load_or_is_no_task_is_refused_naming_it():
+  assert tasks.get("tests.test_task_interface:COUNTDOWN") is COUNTDOWN
+  for path, message in [("no_such_module:TASK", "cannot load task 'no_such_module:TASK': ModuleNotFoundError"),
+                        ("tests.test_task_interface:NO_SUCH", "cannot load task 'tests.test_task_interface:"
+                         "NO_SUCH': AttributeError"),
+                        ("tests.test_task_interface:json", "is a module, not a php_jax Task"),
+                        ("no_colon", "unknown task 'no_colon'")]:
+    with pytest.raises(ValueError, match=message):
+      tasks.get(path)
+
+
 def test_the_training_command_and_evaluate_run_a_task_given_by_import_path(tmp_path):
   name = "--task=tests.test_task_interface:COUNTDOWN"
   workdir = tmp_path / "run"
