@@ -28,21 +28,18 @@ import time
 import numpy as np
 from absl import app, flags
 
-from experiments import cli
+from experiments import cli, environment_flags
 from php_jax import checkpoint, gym
 from php_jax.model import PHPHierarchy
 
 _POLICY = flags.DEFINE_string("policy", None, "Workdir of experiments.fit holding the policy.")
-_ENV = flags.DEFINE_string("env", None, "A registered Gymnasium id, or module:attribute of a callable "
-                           "returning a gymnasium.Env.")
 _EPISODES = flags.DEFINE_integer("episodes", 100, "Episodes to run.", lower_bound=1)
-_SEED = flags.DEFINE_integer("seed", 0, "Episode i is reset with seed + i.", lower_bound=0)
 _NUM_ENVS = flags.DEFINE_integer("num_envs", 1, "Copies of the environment stepped together.", lower_bound=1)
 _OUT = flags.DEFINE_string("out", None, "Output JSON-lines file, one line per episode.")
 _SAMPLE = flags.DEFINE_bool("sample", False, "A hierarchy samples its operations and terminations instead of "
                             "taking the most likely (the key of episode i's step t folds in i and t).")
-_MAX_STEPS = flags.DEFINE_integer("max_steps", None, "Step limit per episode. Default: the environment's "
-                                  f"time limit, else {gym.DEFAULT_MAX_STEPS}.", lower_bound=1)
+
+flags.adopt_module_key_flags(environment_flags)
 
 
 def main(argv):
@@ -56,15 +53,17 @@ def main(argv):
       if not isinstance(policy, PHPHierarchy):
         raise ValueError(f"--sample: --policy={_POLICY.value} is a flat LSTM, which acts greedily")
       policy.sample = True
-    envs = gym.vector_env(gym.env_maker(_ENV.value), _NUM_ENVS.value)
+    envs = gym.vector_env(gym.env_maker(environment_flags.ENV.value), _NUM_ENVS.value)
     try:
       gym.check_policy(policy, envs.single_observation_space, envs.single_action_space)
     except gym.GymError as e:
-      raise ValueError(f"--policy={_POLICY.value} does not fit --env={_ENV.value}: {e}") from None
+      raise ValueError(f"--policy={_POLICY.value} does not fit --env={environment_flags.ENV.value}: {e}"
+                       ) from None
   except (OSError, ValueError) as e:  # GymError and CheckpointError are ValueErrors
     cli.fail(str(e))
   start = time.perf_counter()
-  episodes = gym.act(policy, envs, _EPISODES.value, _SEED.value, _MAX_STEPS.value)
+  episodes = gym.act(policy, envs, _EPISODES.value, environment_flags.SEED.value,
+                     environment_flags.MAX_STEPS.value)
   seconds = time.perf_counter() - start
   with cli.output_errors("out", _OUT.value):
     checkpoint.write_atomically(_OUT.value, "".join(json.dumps(e) + "\n" for e in episodes).encode())

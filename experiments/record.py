@@ -17,22 +17,19 @@ import json
 
 from absl import app, flags
 
-from experiments import cli
+from experiments import cli, environment_flags
 from php_jax import checkpoint, demo_files, gym
 
-_ENV = flags.DEFINE_string("env", None, "A registered Gymnasium id, or module:attribute of a callable "
-                           "returning a gymnasium.Env.")
 _EXPERT = flags.DEFINE_string("expert", None, "module:attribute of a callable that takes the environment and "
                               "returns the expert.")
 _EPISODES = flags.DEFINE_integer("episodes", None, "Episodes to record.", lower_bound=1)
 _ANNOTATED = flags.DEFINE_integer("annotated", 0, "How many of the first episodes keep the expert's call "
                                   "stacks.", lower_bound=0)
-_SEED = flags.DEFINE_integer("seed", 0, "Episode i is reset with seed + i.", lower_bound=0)
 _OUT = flags.DEFINE_string("out", None, "Output demonstration file (JSON lines).")
 _HIERARCHY = flags.DEFINE_string("hierarchy", None, "Optional hierarchy file: stacks are also checked "
                                  "against its procedures.")
-_MAX_STEPS = flags.DEFINE_integer("max_steps", None, "Step limit per episode. Default: the environment's "
-                                  f"time limit, else {gym.DEFAULT_MAX_STEPS}.", lower_bound=1)
+
+flags.adopt_module_key_flags(environment_flags)
 
 
 def main(argv):
@@ -44,12 +41,14 @@ def main(argv):
     if _ANNOTATED.value > _EPISODES.value:
       raise ValueError(f"--annotated={_ANNOTATED.value} is more than --episodes={_EPISODES.value}")
     spec = demo_files.read_hierarchy(_HIERARCHY.value).spec if _HIERARCHY.value else None
-    env = gym.env_maker(_ENV.value)()
+    env = gym.env_maker(environment_flags.ENV.value)()
     expert = gym.expert_maker(_EXPERT.value)(env)
     if spec is not None and spec.action_sizes != gym.action_sizes(env.action_space):
       raise ValueError(f"--hierarchy={_HIERARCHY.value} has action factor sizes {list(spec.action_sizes)}; "
-                       f"--env={_ENV.value}'s {env.action_space} has {list(gym.action_sizes(env.action_space))}")
-    lines = gym.record(env, expert, _EPISODES.value, _SEED.value, _ANNOTATED.value, spec, _MAX_STEPS.value)
+                       f"--env={environment_flags.ENV.value}'s {env.action_space} has "
+                       f"{list(gym.action_sizes(env.action_space))}")
+    lines = gym.record(env, expert, _EPISODES.value, environment_flags.SEED.value, _ANNOTATED.value, spec,
+                       environment_flags.MAX_STEPS.value)
   except (OSError, ValueError) as e:  # GymError and DemoFileError are ValueErrors
     cli.fail(str(e))
   with cli.output_errors("out", _OUT.value):

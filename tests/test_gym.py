@@ -19,6 +19,7 @@ from php_jax import checkpoint, demo_files, executor, gym
 from php_jax.flat_lstm import FlatLSTMPolicy
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy
+from tests import processes
 
 LENGTH = 6  # corridor cells
 LEFT, RIGHT = 0, 1
@@ -303,21 +304,31 @@ def test_unknown_environments_and_experts_are_refused_naming_them():
 
 
 def test_record_and_act_refusals_end_in_one_line_and_exit_2(tmp_path):
-  out, wide = tmp_path / "out.jsonl", tmp_path / "wide"
+  out, wide, flat = tmp_path / "out.jsonl", tmp_path / "wide", tmp_path / "flat"
   wide.mkdir()
+  flat.mkdir()
   checkpoint.save_hierarchy(str(wide), "c", PHPHierarchy(HierarchySpec("c", SPEC.levels, (2,), 9), hidden=(8,),
                                                          rngs=nnx.Rngs(0)), (8,))
-  env = "--env=tests.test_gym:make_corridor"
+  checkpoint.save_flat_lstm(str(flat), "c", FlatLSTMPolicy(8, (2,), 4, rngs=nnx.Rngs(0)), SPEC)
+  env, expert = "--env=tests.test_gym:make_corridor", "--expert=tests.test_gym:CorridorExpert"
+  record = ("experiments.record", env, expert, f"--out={out}")
   cases = [
       (("experiments.record", env, "--expert=tests.test_gym:BrokenExpert", "--episodes=2", "--annotated=1",
         "--seed=1", f"--out={out}"), "episode 0: stack step 1: "),
       (("experiments.act", f"--policy={wide}", env, f"--out={out}"),
        f"--policy={wide} does not fit {env}: the policy observes vectors of 9 numbers"),
-      (("experiments.record", env, "--expert=tests.test_gym:CorridorExpert", "--episodes=2", "--annotated=3",
-        f"--out={out}"), "--annotated=3 is more than --episodes=2"),
+      ((*record, "--episodes=2", "--annotated=3"), "--annotated=3 is more than --episodes=2"),
+      ((*record, "--episodes=0"), "--episodes=0"),
+      ((*record, "--episodes=2", "--annotated=-1"), "--annotated=-1"),
+      ((*record, "--episodes=2", "--seed=-1"), "--seed=-1"),
+      ((*record, "--episodes=2", "--max_steps=0"), "--max_steps=0"),
+      (("experiments.act", f"--policy={flat}", env, "--num_envs=0", f"--out={out}"), "--num_envs=0"),
+      (("experiments.act", f"--policy={flat}", env, "--sample", f"--out={out}"),
+       f"--sample: --policy={flat} is a flat LSTM, which acts greedily"),
   ]
-  for args, message in cases:
-    proc = _run(*args)
+  procs = processes.run_all([[sys.executable, "-m", *args] for args, _ in cases], capture_output=True, text=True,
+                            timeout=600)
+  for (args, message), proc in zip(cases, procs):
     assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, (
         args, proc.stderr)
   assert not out.exists()
