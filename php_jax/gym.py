@@ -174,7 +174,7 @@ def record(env: gymnasium.Env, expert, episodes: int, seed: int, annotated: int 
   (default: the environment's time limit, else DEFAULT_MAX_STEPS).
   """
   observation_space, action_space = env.observation_space, env.action_space
-  observation_size(observation_space)
+  _check_observation_space(observation_space)
   sizes = action_sizes(action_space)
   limit = _max_steps(env, max_steps)
   lines = []
