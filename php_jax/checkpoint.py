@@ -84,9 +84,10 @@ def restore_named(template, named: dict, source: str):
     if name not in named:
       raise CheckpointError(f"{source}: array {name} is missing (saved with another architecture?)")
     value = np.asarray(named[name])
-    if value.shape != np.shape(leaf) or value.dtype != np.asarray(leaf).dtype:
+    dtype = np.dtype(leaf.dtype) if hasattr(leaf, "dtype") else np.asarray(leaf).dtype  # arrays or their shapes
+    if value.shape != np.shape(leaf) or value.dtype != dtype:
       raise CheckpointError(f"{source}: array {name} is {value.dtype}{list(value.shape)}; the model needs "
-                            f"{np.asarray(leaf).dtype}{list(np.shape(leaf))}")
+                            f"{dtype}{list(np.shape(leaf))}")
     restored.append(jnp.asarray(value))
   return jax.tree_util.tree_unflatten(treedef, restored)
 
@@ -217,14 +218,19 @@ def load_policy(workdir: str) -> tuple[str, PHPHierarchy | FlatLSTMPolicy]:
                           "run, or saved by an older php_jax (then train it again)")
   spec = _saved_spec(arch_path, architecture)
   if kind == "flat_lstm":
-    model = FlatLSTMPolicy(spec.obs_dim, spec.action_sizes, hidden, rngs=nnx.Rngs(0))
+    def build():
+      return FlatLSTMPolicy(spec.obs_dim, spec.action_sizes, hidden, rngs=nnx.Rngs(0))
   else:
     tau_in_termination, tau_limit = tau
     if len(tau_in_termination) != spec.num_levels:
       raise CheckpointError(f"{arch_path}: tau_in_termination has {len(tau_in_termination)} entries; {task_name} "
                             f"has {spec.num_levels} levels")
-    model = PHPHierarchy(spec, hidden=hidden, tau_in_termination=tau_in_termination, tau_limit=tau_limit,
-                         allowed_ops=_saved_allowed_ops(arch_path, architecture, spec), rngs=nnx.Rngs(0))
+    allowed_ops = _saved_allowed_ops(arch_path, architecture, spec)
+
+    def build():
+      return PHPHierarchy(spec, hidden=hidden, tau_in_termination=tau_in_termination, tau_limit=tau_limit,
+                          allowed_ops=allowed_ops, rngs=nnx.Rngs(0))
+  model = nnx.eval_shape(build)  # its shapes only: every parameter comes from the file (and no state but them)
   nnx.update(model, restore_named(nnx.state(model, nnx.Param), _unpack(params, model_path), model_path))
   return task_name, model
 

@@ -21,6 +21,8 @@ one JSON object:
              {"q1": [0, 1]}]}                 procedures may take: callees by name, or at the lowest level
                                               each action factor's values (ints where there is one factor);
                                               a procedure not named may take any
+   "action_names": [["left", "right"], ...]}  optional: per action factor, a name for each of its values
+                                              (what `experiments.show` prints and draws)
 
 A hierarchy file holds at most MAX_COUNT levels, action factors and hidden layers, and at most MAX_SIZE
 procedures per level, values per action factor, units per layer and counters per level. Lines and files are
@@ -43,7 +45,7 @@ from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.hierarchy import HierarchySpec
 from php_jax.task import check_keys
 
-HIERARCHY_KEYS = ("levels", "action_sizes", "name", "capacity", "hidden", "calls")
+HIERARCHY_KEYS = ("levels", "action_sizes", "name", "capacity", "hidden", "calls", "action_names")
 DEMONSTRATION_KEYS = ("observations", "actions", "stack")
 MAX_COUNT = 64
 MAX_SIZE = 4096
@@ -61,10 +63,12 @@ class Hierarchy:
     spec: the levels and action factor sizes (obs_dim 0: the demonstrations say).
     capacity: per level, root first, the least counter capacity (None where derived); None: derived.
     hidden: hidden layer sizes of every network; None: the default.
+    action_names: per action factor, the names of its values; None: not named.
   """
   spec: HierarchySpec
   capacity: tuple[int | None, ...] | None
   hidden: tuple[int, ...] | None
+  action_names: tuple[tuple[str, ...], ...] | None = None
 
 
 def _is_int(x) -> bool:
@@ -122,7 +126,24 @@ def _hierarchy(obj, default_name: str) -> Hierarchy:
   spec = HierarchySpec(name, tuple(tuple(level) for level in levels), tuple(sizes), 0)
   if obj.get("calls") is not None:
     spec = dataclasses.replace(spec, allowed_ops=_declared_calls(obj["calls"], spec))
-  return Hierarchy(spec, tuple(capacity) if capacity else None, tuple(hidden) if hidden else None)
+  names = obj.get("action_names")
+  if names is not None and not (isinstance(names, list) and len(names) == len(sizes) and all(
+      isinstance(factor, list) and len(factor) == size and all(isinstance(n, str) and n for n in factor)
+      for factor, size in zip(names, sizes))):
+    raise ValueError(f'"action_names" must give, per action factor ({len(sizes)}), one non-empty name for each '
+                     f'of its values ({json_lines.shown(sizes)}); got {json_lines.shown(names)}')
+  return Hierarchy(spec, tuple(capacity) if capacity else None, tuple(hidden) if hidden else None,
+                   tuple(map(tuple, names)) if names else None)
+
+
+def action_namer(action_names: tuple[tuple[str, ...], ...] | None):
+  """An elementary action (a list of ints, one per factor) → its text: the factors' names joined by spaces,
+  or without names the index (one factor) or the list of indices."""
+  def name(action: list[int]) -> str:
+    if action_names:
+      return " ".join(names[a] for names, a in zip(action_names, action))
+    return str(action[0]) if len(action) == 1 else str(list(action))
+  return name
 
 
 def _declared_calls(calls, spec: HierarchySpec) -> tuple:

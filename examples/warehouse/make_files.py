@@ -61,7 +61,7 @@ def main():
   rng = np.random.default_rng(0)
   demos = [demonstration(rng.integers(1, 8, size=rng.integers(1, 4)).tolist()) for _ in range(140)]
   with open(os.path.join(HERE, "warehouse.json"), "w") as f:
-    json.dump({"levels": LEVELS, "action_sizes": [4]}, f)
+    json.dump({"levels": LEVELS, "action_sizes": [4], "action_names": [["left", "right", "pick", "drop"]]}, f)
     f.write("\n")
   with open(os.path.join(HERE, "train.jsonl"), "w") as f:
     for i, demo in enumerate(demos[:40]):
