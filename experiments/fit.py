@@ -102,8 +102,10 @@ def run() -> dict:
              "num_held_out": len(held_out.length), "num_held_out_annotated": int(np.sum(held_out.strong))})
   flat = training.flat_lstm_hidden()
   with progress.shown(config, None if flat else spec.num_levels, training.WORKDIR.value) as echo:
-    return train_and_evaluate(experiment, config, training.WORKDIR.value, training.OVERWRITE.value, flat,
-                              training.WAIT.value, echo)
+    results = train_and_evaluate(experiment, config, training.WORKDIR.value, training.OVERWRITE.value, flat,
+                                 training.WAIT.value, echo)
+  training.write_report(training.WORKDIR.value)  # drawn from --demos, numbered as in that file
+  return results
 
 
 def main(argv):

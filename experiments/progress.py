@@ -82,6 +82,7 @@ class TrainingProgress:
 
   def _finish(self, row: dict) -> None:
     self.progress.stop()
+    self.progress.update(self.starting, visible=False)
     seed = f"seed {row['seed']}: " if "seed" in row else ""
     workdir = f"{self.workdir}/seed={row['seed']}" if "seed" in row else self.workdir
     table = Table(title=f"{seed}test results")
@@ -90,9 +91,21 @@ class TrainingProgress:
     for name, value in row["test"].items():
       table.add_row(name, f"{value:.3f}" if isinstance(value, float) else str(value))
     self.console.print(table)
-    self.console.print(f"{row['wall_seconds']:.0f} s in all; the model, results.json and metrics.jsonl are in "
-                       f"{workdir}")
+    if row.get("finished_before"):
+      self.console.print(f"this run had already finished in {workdir} ({row['wall_seconds']:.0f} s); "
+                         "--overwrite trains it again")
+    else:
+      self.console.print(f"{row['wall_seconds']:.0f} s in all; the model, results.json and metrics.jsonl are in "
+                         f"{workdir}")
 
   def close(self) -> None:
     """Ends the live display (if the run ended before its results)."""
     self.progress.stop()
+
+
+def report_written(path: str) -> None:
+  """Says where a run's report was written: a line at a terminal, else a JSON line {"report": path}."""
+  if sys.stdout.isatty():
+    Console().print(f"report: {path}")
+  else:
+    run.print_row({"report": path})

@@ -16,6 +16,7 @@ vmapped program per level (`php_jax.train.train_seeds`).
 from __future__ import annotations
 
 import dataclasses
+import os
 
 from absl import app, flags
 
@@ -78,7 +79,9 @@ def run(task_name: str) -> dict:
   if SEEDS.value is None:
     experiment = _experiment(task_name, task, config.seed, num_demos, num_test, lengths)
     with progress.shown(config, None if flat else task.spec.num_levels, workdir) as echo:
-      return train_and_evaluate(experiment, config, workdir, overwrite, flat, wait, echo)
+      results = train_and_evaluate(experiment, config, workdir, overwrite, flat, wait, echo)
+    training.write_report(workdir, experiment.demos)
+    return results
   seeds = _seeds(config)
   experiments = [_experiment(task_name, task, s, num_demos, num_test, lengths) for s in seeds]
   try:
@@ -86,8 +89,11 @@ def run(task_name: str) -> dict:
   except ValueError as e:
     raise config_flags.UsageError(f"--seeds: {e}") from None
   with progress.shown(config, task.spec.num_levels, workdir) as echo:
-    return train_and_evaluate_seeds(experiments, [dataclasses.replace(config, seed=s) for s in seeds], workdir,
-                                    overwrite, wait, echo)
+    results = train_and_evaluate_seeds(experiments, [dataclasses.replace(config, seed=s) for s in seeds], workdir,
+                                       overwrite, wait, echo)
+  for seed, experiment in zip(seeds, experiments):
+    training.write_report(os.path.join(workdir, f"seed={seed}"), experiment.demos)
+  return results
 
 
 def _seeds(config: train.TrainConfig) -> list[int]:

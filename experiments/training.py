@@ -8,7 +8,7 @@ from typing import Callable
 import jax
 from absl import flags
 
-from experiments import cli
+from experiments import cli, progress, run_report
 from experiments.config_flags import UsageError
 from php_jax import checkpoint, run
 
@@ -26,6 +26,16 @@ MODEL = flags.DEFINE_enum("model", "php", ["php", "flat_lstm"],
                           "php: the hierarchy (--training says how); flat_lstm: the behaviour-cloning baseline, "
                           "an LSTM over observations and previous actions.")
 LSTM_HIDDEN = flags.DEFINE_integer("lstm_hidden", 128, "Hidden units of the flat LSTM baseline.")
+REPORT = flags.DEFINE_bool("report", True, "At the end, write WORKDIR/report.html: settings, results, learning "
+                           "curves, call graph and three training demonstrations decoded and drawn (a few seconds).")
+
+
+def write_report(workdir: str, demos=None) -> None:
+  """With --report, the run's report.html where it is missing or older than its results (`run_report`)."""
+  if REPORT.value:
+    written = run_report.write_if_stale(workdir, demos)
+    if written:
+      progress.report_written(written)
 
 
 def flat_lstm_hidden() -> int | None:

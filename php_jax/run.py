@@ -69,7 +69,8 @@ def train_and_evaluate(experiment: Experiment, config: TrainConfig, workdir: str
   """Trains a PHP hierarchy by config.training (resuming the workdir's checkpoint if an earlier run was
   interrupted), or with flat_lstm_hidden the flat LSTM baseline of that many units; saves it, tests it,
   writes results.json; returns the results. overwrite: delete an earlier run's files first (else it is
-  resumed, or refused with CheckpointError if its settings differ). The run holds the workdir's lock
+  resumed, or refused with CheckpointError if its settings differ; a finished run with the same settings is
+  not trained again: its results are shown and returned). The run holds the workdir's lock
   throughout (`workdir_lock`; wait: for another run holding it to end). echo(row) shows each logged row and
   last the test results."""
   config = train.with_strong_weight(config, experiment.demos)  # resolved here so that results.json records it
@@ -77,6 +78,10 @@ def train_and_evaluate(experiment: Experiment, config: TrainConfig, workdir: str
   spec = experiment.spec
   with workdir_lock(workdir, wait):
     clear_workdir(workdir, RUN_FILES, overwrite)
+    finished = _finished(workdir, experiment, config, flat_lstm_hidden)
+    if finished:
+      echo({"test": finished["test"], "wall_seconds": finished["wall_seconds"], "finished_before": True})
+      return finished
     with MetricsLog(workdir, echo=echo) as log:
       if flat_lstm_hidden:
         model, trained = _train_flat_lstm(experiment, config, flat_lstm_hidden, log)
@@ -108,6 +113,12 @@ def train_and_evaluate_seeds(experiments: list[Experiment], configs: list[TrainC
     clear_workdir(workdir, (SEEDS_CHECKPOINT,), overwrite)
     for run_dir in workdirs:
       clear_workdir(run_dir, RUN_FILES, overwrite)
+    finished = [_finished(run_dir, e, c, None) for run_dir, e, c in zip(workdirs, experiments, configs)]
+    if all(finished):
+      for c, results in zip(configs, finished):
+        echo({"seed": c.seed, "test": results["test"], "wall_seconds": results["wall_seconds"],
+              "finished_before": True})
+      return finished
     logs = [stack.enter_context(MetricsLog(run_dir, {"seed": c.seed}, echo)) for run_dir, c in zip(workdirs, configs)]
     trained = train.train_seeds(spec, [e.demos for e in experiments], configs, [e.validate for e in experiments],
                                 log=lambda s, row: logs[s](row),
@@ -122,6 +133,38 @@ def train_and_evaluate_seeds(experiments: list[Experiment], configs: list[TrainC
     return [_write_results(run_dir, {"task": e.name, "model": "php", "config": dataclasses.asdict(c), **e.extra,
                                      **together, **_levels(report)}, e.test(hierarchy), log, commit)
             for run_dir, c, e, (hierarchy, report), log in zip(workdirs, configs, experiments, trained, logs)]
+
+
+def _finished(workdir: str, experiment: Experiment, config: TrainConfig, flat_lstm_hidden: int | None) -> dict | None:
+  """The results.json of a run that finished in workdir with these settings; None if no run finished there
+  (or its results.json cannot be read: the run then resumes and writes it again). Raises WorkdirError (or
+  CheckpointError, for other demonstrations) naming the settings that differ if it was made with others."""
+  paths = [os.path.join(workdir, name) for name in (RESULTS_FILE, checkpoint.ARCHITECTURE_FILE, checkpoint.MODEL_FILE)]
+  if not all(map(os.path.isfile, paths)):
+    return None
+  try:
+    with open(paths[0], encoding="utf-8") as f:
+      results = json.load(f)
+  except (OSError, ValueError):
+    return None
+  if not isinstance(results, dict) or not isinstance(results.get("config"), dict) or "test" not in results:
+    return None
+  model = "flat_lstm" if flat_lstm_hidden else "php"
+  expected = json.loads(json.dumps({"task": experiment.name, "model": model, **experiment.extra}))
+  differ = [f"{k}: {results.get(k)!r} there, {v!r} here" for k, v in expected.items() if results.get(k) != v]
+  saved_config, config_json = results["config"], json.loads(json.dumps(dataclasses.asdict(config)))
+  differ += [f"--{k}: {saved_config.get(k)!r} there, {v!r} here" for k, v in config_json.items()
+             if saved_config.get(k) != v and not (k == "strong_weight" and differ)]  # it follows num_strong
+  if flat_lstm_hidden and (results.get("flat_lstm") or {}).get("hidden") != flat_lstm_hidden:
+    differ.append(f"--lstm_hidden: {(results.get('flat_lstm') or {}).get('hidden')!r} there, {flat_lstm_hidden} here")
+  if differ:
+    raise WorkdirError(f"{workdir} holds a finished run made with other settings ({'; '.join(differ)}); use a "
+                       "fresh workdir, or --overwrite to train again")
+  saved = checkpoint.read_training(os.path.join(workdir, checkpoint.TRAINING_FILE))
+  if saved is not None and model == "php":  # the demonstrations' digest: another data file, say
+    train.check_resumable(os.path.join(workdir, checkpoint.TRAINING_FILE), saved[0].get("settings", {}),
+                          train.run_settings(experiment.spec, experiment.demos, config))
+  return results
 
 
 LOCK_FILE = ".lock"

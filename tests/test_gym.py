@@ -254,8 +254,10 @@ def test_recorded_demonstrations_fit_a_hierarchy_that_solves_the_environment(tmp
   lines = gym.record(make_corridor(), CorridorExpert(None), episodes=24, seed=0, annotated=4)
   demos.write_text("".join(json.dumps(line) + "\n" for line in lines))
   proc = _run("experiments.fit", f"--demos={demos}", f"--hierarchy={tmp_path / 'corridor.json'}",
-              f"--workdir={run}", "--iterations=150", "--eval_every=50", "--hidden=16", "--learning_rate=0.03")
+              f"--workdir={run}", "--iterations=150", "--eval_every=50", "--hidden=16", "--learning_rate=0.03",
+              "--noreport")
   assert proc.returncode == 0, proc.stderr
+  assert not (run / "report.html").exists()
   _, policy = checkpoint.load_policy(str(run))
   episodes = gym.act(policy, gym.vector_env(make_corridor, 4), 20, seed=100)
   assert all(e["success"] and e["steps"] == len(e["stack"]) for e in episodes), episodes

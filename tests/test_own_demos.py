@@ -174,26 +174,43 @@ def _run(*args):
 
 
 @pytest.mark.slow
-def test_fit_and_decode_commands_on_the_warehouse_example(tmp_path):
+def test_fit_decode_show_and_report_on_the_warehouse_example(tmp_path):
   workdir, out = tmp_path / "fit", tmp_path / "decoded.jsonl"
-  proc = _run("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={WAREHOUSE / 'warehouse.json'}",
-              f"--workdir={workdir}", "--iterations=20", "--eval_every=10", "--hidden=16")
+  fit = ["experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={WAREHOUSE / 'warehouse.json'}",
+         f"--workdir={workdir}", "--iterations=20", "--eval_every=10", "--hidden=16"]
+  proc = _run(*fit)
   assert proc.returncode == 0, proc.stderr
-  results = json.loads((workdir / "results.json").read_text())
+  results_before = (workdir / "results.json").read_bytes()
+  results = json.loads(results_before)
   assert results["task"] == "warehouse" and results["num_demos"] == 36 and results["num_held_out"] == 4
   assert results["num_annotated"] + 4 >= 4 and 0 <= results["test"]["held_out_replayed"] <= 1
+  report = (workdir / "report.html").read_text()
+  assert report.count("<svg") == 4 and "<script" not in report and "Decoded demonstrations" in report
+  assert "fulfil" in report and "held_out_replayed" in report
   held_out = tmp_path / "held.jsonl"
   held_out.write_text("".join((WAREHOUSE / "held_out.jsonl").read_text().splitlines(keepends=True)[:5]))
-  proc = _run("experiments.decode", f"--policy={workdir}", f"--demos={held_out}", f"--out={out}")
-  assert proc.returncode == 0, proc.stderr
+  shown = [tmp_path / "shown.png", tmp_path / "shown.html"]
+  decode, show_held_out, show_own, rerun = processes.run_all([[sys.executable, "-m", *args] for args in [
+      ("experiments.decode", f"--policy={workdir}", f"--demos={held_out}", f"--out={out}"),
+      ("experiments.show", f"--policy={workdir}", f"--demos={held_out}", "--index=1", f"--out={shown[0]}"),
+      ("experiments.show", f"--policy={workdir}", "--index=0", f"--out={shown[1]}"),
+      fit]], capture_output=True, text=True, timeout=600)
+  assert all(proc.returncode == 0 for proc in (decode, show_held_out, show_own, rerun)), [
+      proc.stderr for proc in (decode, show_held_out, show_own, rerun)]
   rows = [json.loads(line) for line in out.read_text().splitlines()]
   given = [json.loads(line) for line in held_out.read_text().splitlines()]
-  assert len(rows) == 5 and "level 1: decoded stacks agree" in proc.stdout
+  assert len(rows) == 5 and "level 1: decoded stacks agree" in decode.stdout
   for row, demo in zip(rows, given):
     assert set(row) == {"log_likelihood", "stack", "replayed", "first_mismatch"}
     assert np.isfinite(row["log_likelihood"]) and row["log_likelihood"] < 0
     assert np.shape(row["stack"]) == (len(demo["actions"]), 3, 2)
     assert row["replayed"] == (row["first_mismatch"] is None)
+  assert "the demonstration's own call stack:\n  fulfil\n    fetch\n      go_right: right" in show_held_out.stdout
+  assert shown[0].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and "<svg" in shown[1].read_text()
+  assert f"demonstration 0 of {WAREHOUSE / 'train.jsonl'}" in show_own.stdout  # the run's own file
+  # A finished run is not trained again: its results are shown, results.json is left as it was.
+  assert json.loads(rerun.stdout.splitlines()[-1]).get("finished_before") is True
+  assert (workdir / "results.json").read_bytes() == results_before
 
 
 def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
@@ -219,6 +236,8 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
       (("experiments.decode", f"--policy={tmp_path / 'none'}", f"--demos={bad}", f"--out={tmp_path / 'o.jsonl'}"),
        "no trained model"),
       (("experiments.decode", f"--policy={tmp_path}", f"--demos={bad}", f"--out={bad}"), "is the input file"),
+      (("experiments.show", f"--policy={tmp_path / 'none'}"), "no trained model"),
+      (("experiments.show", f"--policy={tmp_path}", f"--out={tmp_path / 'o.txt'}"), "must end in .png, .svg, .html"),
   ]
   # Run at the same time, each with its own workdir.
   procs = processes.run_all([[sys.executable, "-m", *args] for args, _ in cases], capture_output=True, text=True,
@@ -227,6 +246,7 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
     assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, (
         args, proc.stderr)
   assert not any((tmp_path / f"w{i}").exists() for i in range(1, 6)) and not (tmp_path / "o.jsonl").exists()
+  assert not (tmp_path / "o.txt").exists()
 
 
 def test_export_demos_writes_the_training_set_of_train(tmp_path):

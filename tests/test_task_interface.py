@@ -19,6 +19,7 @@ from php_jax import config as config_lib
 from php_jax import run
 from php_jax.hierarchy import HierarchySpec
 from php_jax.task import Task, TrainingDefaults
+from tests import processes
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DEC, REST = 0, 1  # elementary actions: decrement the counter, or do nothing
@@ -126,24 +127,25 @@ def test_the_training_command_and_evaluate_run_a_task_given_by_import_path(tmp_p
   results = json.loads((workdir / "results.json").read_text())
   assert results["task"] == "tests.test_task_interface:COUNTDOWN" and set(results["levels"]) == {"0", "1", "2"}
   assert results["config"]["iterations"] == 100 and results["config"]["hidden"] == [8]  # the task's defaults
-  problems = tmp_path / "in.jsonl"
+  report = (workdir / "report.html").read_text()  # the training command's report of a task's run
+  assert "Call graph" in report and report.count("<svg") == 4 and "the demonstration&#x27;s own call stack" in report
+  problems, bad = tmp_path / "in.jsonl", tmp_path / "bad.jsonl"
   problems.write_text('{"count": 3}\n{"count": 1}\n')
-  for policy in ("oracle", str(workdir)):
-    out = tmp_path / "out.jsonl"
-    proc = subprocess.run([sys.executable, "-m", "experiments.evaluate", name, f"--policy={policy}",
-                           f"--problems={problems}", f"--out={out}"], capture_output=True, text=True, timeout=300,
-                          cwd=ROOT)
+  bad.write_text('{"count": 0}\n')
+  outs = [tmp_path / "oracle.jsonl", tmp_path / "learned.jsonl", tmp_path / "refused.jsonl"]
+  procs = processes.run_all(
+      [[sys.executable, "-m", "experiments.evaluate", name, f"--policy={policy}", f"--problems={file}",
+        f"--out={out}"] for policy, file, out in [("oracle", problems, outs[0]), (str(workdir), problems, outs[1]),
+                                                  ("oracle", bad, outs[2])]],
+      capture_output=True, text=True, timeout=300, cwd=ROOT)
+  for proc, out in zip(procs[:2], outs):
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = [json.loads(line) for line in out.read_text().splitlines()]
     assert set(rows[0]) == {"left", "terminated", "valid", "steps", "correct"}
-    if policy == "oracle":
-      assert rows == [{"left": 0, "terminated": True, "valid": True, "steps": 6, "correct": True},
-                      {"left": 0, "terminated": True, "valid": True, "steps": 2, "correct": True}]
-  problems.write_text('{"count": 0}\n')
-  proc = subprocess.run([sys.executable, "-m", "experiments.evaluate", name, "--policy=oracle",
-                         f"--problems={problems}", f"--out={tmp_path / 'bad.jsonl'}"], capture_output=True,
-                        text=True, timeout=300, cwd=ROOT)
-  assert proc.returncode == 2 and f"{problems}:1:" in proc.stderr and not (tmp_path / "bad.jsonl").exists()
+  assert [json.loads(line) for line in outs[0].read_text().splitlines()] == [
+      {"left": 0, "terminated": True, "valid": True, "steps": 6, "correct": True},
+      {"left": 0, "terminated": True, "valid": True, "steps": 2, "correct": True}]
+  assert procs[2].returncode == 2 and f"{bad}:1:" in procs[2].stderr and not outs[2].exists()
 
 
 @pytest.mark.slow
