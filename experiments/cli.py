@@ -6,6 +6,7 @@ import contextlib
 import os
 import signal
 import sys
+import textwrap
 import threading
 from typing import NoReturn
 
@@ -91,12 +92,18 @@ def seed_list(values: list[str]) -> list[int]:
 
 
 _HELP = {"--help", "-help", "-h", "-?", "--helpshort", "--helpfull", "--helpxml"}
+_GROUPS = {"experiments.config_flags": "training settings", "experiments.training": "the run and its workdir",
+           "experiments.environment_flags": "the environment"}
 
 
 def parse_flags(argv: list[str]) -> list[str]:
   """absl's flag parsing, with a bad flag reported in one line and exit status 2 (for app.run's flags_parser),
-  and --help (absl's exits 1 once it has printed the help) exiting 0. Log messages below warnings (JAX's
-  start-up notes) are not shown unless --verbosity asks for them."""
+  and --help or -h printing the command's usage and its flags grouped by what they set, exit status 0
+  (--helpfull: absl's own list, with its logging flags). Log messages below warnings (JAX's start-up notes)
+  are not shown unless --verbosity asks for them."""
+  if set(argv[1:]) & {"--help", "-help", "-h", "-?", "--helpshort"}:
+    print(grouped_help(argv[0]))
+    sys.exit(0)
   try:
     argv = flags.FLAGS(argv)
   except flags.Error as e:
@@ -108,3 +115,25 @@ def parse_flags(argv: list[str]) -> list[str]:
   if not flags.FLAGS["verbosity"].present:
     logging.set_verbosity(logging.WARNING)
   return argv
+
+
+def grouped_help(program: str) -> str:
+  """The command's docstring, then its flags: its own first, then each group it shares with other commands
+  (training settings, the run, the environment), each flag with its default and help."""
+  module = sys.modules["__main__"]
+  defined = {}
+  for flag in flags.FLAGS.get_key_flags_for_module(program):
+    source = flags.FLAGS.find_module_defining_flag(flag.name, default=program)
+    defined.setdefault(_GROUPS.get(source, "flags of this command"), []).append(flag)
+  order = ["flags of this command", *_GROUPS.values()]
+  parts = [(module.__doc__ or "").strip(), ""]
+  for group in sorted(defined, key=order.index):
+    parts.append(f"{group[0].upper()}{group[1:]}:")
+    for flag in sorted(defined[group], key=lambda f: f.name):
+      name = f"--[no]{flag.name}" if flag.boolean else f"--{flag.name}"
+      default = "" if flag.default is None or "Default: " in flag.help else f" (default: {flag.default_as_str.strip(chr(39))})"
+      parts.append(textwrap.fill(f"{flag.help}{default}", width=100, initial_indent=f"  {name}: ",
+                                 subsequent_indent="      "))
+    parts.append("")
+  parts.append("--helpfull lists absl's own flags too (logging, --flagfile).")
+  return "\n".join(parts)

@@ -30,11 +30,22 @@ SEEDS = flags.DEFINE_list("seeds", None, "Several seeds (e.g. 1,2,3,4,5) trained
                           "each seed's run, the same as with --seed, goes to WORKDIR/seed=S.")
 _TASK = flags.DEFINE_string("task", None, f"The task: one of {', '.join(tasks.TASKS)}, or module:attribute "
                             "of a php_jax.task.Task defined elsewhere.")
+
+
+def _per_task(value) -> str:
+  """The registered tasks' values of a training-set default, for --help."""
+  return "; ".join(f"{task.name}: {value(task.defaults)}" for task in tasks.TASKS.values())
+
+
 _NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "Demonstrations in the training set, where the task offers "
-                                  "a choice. Default: the task's.")
+                                  "a choice. Default: the task's (" + _per_task(
+                                      lambda d: d.num_demos if not d.num_demos_fixed else f"{d.num_demos}, fixed")
+                                  + ").")
 _TEST_LENGTHS = flags.DEFINE_list("test_lengths", None, "Problem sizes of the test sets (e.g. digits, array "
-                                  "lengths). Default: the task's.")
-_NUM_TEST = flags.DEFINE_integer("num_test", None, "Test problems per test set. Default: the task's.")
+                                  "lengths). Default: the task's (" + _per_task(
+                                      lambda d: ",".join(map(str, d.test_lengths or ())) or "one set") + ").")
+_NUM_TEST = flags.DEFINE_integer("num_test", None, "Test problems per test set. Default: the task's ("
+                                 + _per_task(lambda d: d.num_test) + ").")
 
 
 def _task_defaults(name: str, default) -> str:

@@ -83,10 +83,13 @@ def test_config_errors_name_the_field():
   assert dataclasses.replace(config, min_capacity=(0, 4, 4)).min_capacity == (0, 4, 4)
 
 
-def test_help_exits_0_and_shows_every_setting():
+def test_help_exits_0_and_shows_every_setting_grouped_with_its_default():
   proc = subprocess.run([sys.executable, "-m", "experiments.train", "--help"], capture_output=True, text=True,
                         timeout=120, cwd=ROOT)
   assert proc.returncode == 0, proc.stderr[-2000:]
   for field in config_lib.fields():
     assert f"--{field.name}:" in proc.stdout or f"--[no]{field.name}:" in proc.stdout, field.name
-  assert "2000 (bubblesort: 1000)" in proc.stdout
+  text = " ".join(proc.stdout.split())  # the help is wrapped at 100 columns
+  assert "Default: 2000 (bubblesort: 1000)" in text and "Default: the task's (addition: 160, fixed;" in text
+  groups = [line for line in proc.stdout.splitlines() if line.endswith(":") and not line.startswith(" ")]
+  assert groups == ["Flags of this command:", "Training settings:", "The run and its workdir:"]
