@@ -59,7 +59,7 @@ class PHPLevel(nnx.Module):
     tau_limit: both networks see min(τ, tau_limit) (None: τ itself). A procedure whose decisions need only
       the first few counter values then behaves the same for any number of operations: a limit of 1 tells
       the first operation from the others, 0 hides τ.
-    allowed_ops: [K][Σ op_sizes] bools: per procedure, which value of each operation factor it may take
+    allowed_ops: `[K][Σ op_sizes]` bools: per procedure, which value of each operation factor it may take
       (which callee, or which value of each elementary action factor; the others get probability 0); None:
       any.
   """

@@ -13,7 +13,7 @@ state is the tensor index s = (h_0, τ_0, h_1, τ_1, ..., h_{d-1}, τ_{d-1}) of 
 Semantics (the executor's): at t = 0 the root frame (0, 0) pushes a chain of frames (h_i, 0) down to level
 d-1. The lowest frame emits a_t. Then, from the bottom up, each level stops or continues; the first level j
 that continues moves to τ_j + 1 (impossible at C_j) and levels j+1..d-1 are pushed afresh at step t+1 with
-τ = 0, each calling the next with log_call[·][t+1]. All d levels stop exactly after step length-1, never before.
+τ = 0, each calling the next with `log_call[·][t+1]`. All d levels stop exactly after step length-1, never before.
 
 The transition is never formed as an S × S matrix. It factors into a stop cascade and a push chain:
 

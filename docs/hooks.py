@@ -1,0 +1,101 @@
+"""mkdocs hooks: RESULTS.md, BUILD.md and the figures in results/ become pages and files of the site; a
+`<!-- flags: experiments.X -->` line becomes the table of that command's flags with their defaults and help,
+read from the command itself (`--helpxml`); and every `python -m experiments.X --flag...` command in the
+pages and README.md, outside tables (BUILD.md's list commands that are refused), must name a command that
+exists and flags it defines, or the build fails."""
+from __future__ import annotations
+
+import functools
+import glob
+import os
+import re
+import subprocess
+import sys
+import xml.etree.ElementTree as ElementTree
+
+from mkdocs.structure.files import File
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PAGES_FROM_ROOT = ("RESULTS.md", "BUILD.md")
+_FLAGS_MARK = re.compile(r"^<!-- flags: (experiments\.\w+) -->$", re.MULTILINE)
+_COMMAND = re.compile(r"python -m (experiments\.[a-z_]+)\b((?:[^\n`&;|]|\\\n)*)")
+_GROUPS = {"experiments.config_flags": "training settings", "experiments.training": "the run and its workdir",
+           "experiments.environment_flags": "the environment"}
+
+
+def on_files(files, config):
+  """RESULTS.md, BUILD.md and results/ (their figures) from the repository's root."""
+  site, urls = config["site_dir"], config["use_directory_urls"]
+  for path in (*PAGES_FROM_ROOT, *sorted(glob.glob("results/**/*.png", root_dir=ROOT, recursive=True))):
+    files.append(File(path, src_dir=ROOT, dest_dir=site, use_directory_urls=urls))
+  return files
+
+
+def on_page_markdown(markdown: str, page, config, files) -> str:
+  check_commands(markdown, page.file.src_path)
+  return _FLAGS_MARK.sub(lambda match: flag_table(match.group(1)), markdown)
+
+
+def on_pre_build(config):
+  with open(os.path.join(ROOT, "README.md"), encoding="utf-8") as f:
+    check_commands(f.read(), "README.md")
+
+
+@functools.cache
+def command_flags(module: str) -> tuple[tuple[str, str, str, str], ...]:
+  """(group, name, default, help) of every flag a command defines (its own and those it adopts), read from
+  `python -m module --helpxml`; SystemExit naming the module if it cannot run."""
+  proc = subprocess.run([sys.executable, "-m", module, "--helpxml"], capture_output=True, text=True, cwd=ROOT,
+                        env={**os.environ, "JAX_PLATFORMS": "cpu"})
+  if proc.returncode != 0:
+    raise SystemExit(f"docs: `python -m {module} --helpxml` failed: {proc.stderr.strip()[-500:]}")
+  flags = []
+  for flag in ElementTree.fromstring(proc.stdout).iter("flag"):
+    source = flag.findtext("file") or ""
+    if flag.findtext("key") != "yes" and source not in _GROUPS:
+      continue
+    group = _GROUPS.get(source, "the command's own")
+    flags.append((group, flag.findtext("name"), flag.findtext("default") or "", flag.findtext("meaning") or ""))
+  return tuple(flags)
+
+
+def flag_table(module: str) -> str:
+  """A Markdown table of the command's flags, its own first."""
+  order = ["the command's own", *_GROUPS.values()]
+  rows = sorted(command_flags(module), key=lambda f: (order.index(f[0]), f[1]))
+  lines = [f"Every flag of `python -m {module}` (its `--help` says the same):", "",
+           "| flag | default | what it sets |", "| --- | --- | --- |"]
+  for group, name, default, meaning in rows:
+    meaning, _, stated = meaning.replace("\n", " ").partition(" Default: ")  # a default the help states
+    shown = stated.rstrip(".") if stated else (f"`{default}`" if default else "unset")
+    cells = [f"`--{name}` ({group})", shown, meaning]
+    cells = [c.replace("|", "\\|").replace("<", "&lt;").replace(">", "&gt;") for c in cells]
+    lines.append("| " + " | ".join(cells) + " |")
+  return "\n".join(lines)
+
+
+def check_commands(markdown: str, where: str) -> None:
+  """SystemExit naming the page, command and flag if a command in markdown is not one, or gives a flag it
+  does not define."""
+  known_modules = {os.path.basename(p)[:-3] for p in glob.glob(os.path.join(ROOT, "experiments", "*.py"))}
+  prose = "\n".join(line for line in markdown.splitlines() if not line.startswith("|"))  # tables: refused inputs
+  for match in _COMMAND.finditer(prose):
+    module, rest = match.group(1), match.group(2)
+    if module.split(".")[1] not in known_modules:
+      raise SystemExit(f"docs: {where}: `python -m {module}` is not a command")
+    if module in _NOT_ABSL:
+      continue
+    own, _, passed_on = rest.partition(" -- ")
+    _check_flags(module, own, where)
+    if module == "experiments.sweep" and passed_on:  # the flags after -- go to every run's experiments.train
+      _check_flags("experiments.train", passed_on, where)
+
+
+def _check_flags(module: str, text: str, where: str) -> None:
+  names = {name for _, name, _, _ in command_flags(module)} | {"help", "helpfull", "verbosity"}
+  for flag in re.findall(r"(?<![\w-])--([a-z_]+)", text):
+    if flag not in names and not (flag.startswith("no") and flag[2:] in names):
+      raise SystemExit(f"docs: {where}: `python -m {module}` has no flag --{flag}")
+
+
+_NOT_ABSL = {"experiments.benchmark"}  # subcommands, each with flags of its own
