@@ -28,7 +28,7 @@ import time
 import numpy as np
 from absl import app, flags
 
-from experiments import cli, environment_flags
+from experiments import cli, environment_flags, progress
 from php_jax import checkpoint, gym
 from php_jax.model import PHPHierarchy
 
@@ -62,8 +62,9 @@ def main(argv):
   except (OSError, ValueError) as e:  # GymError and CheckpointError are ValueErrors
     cli.fail(str(e))
   start = time.perf_counter()
-  episodes = gym.act(policy, envs, _EPISODES.value, environment_flags.SEED.value,
-                     environment_flags.MAX_STEPS.value)
+  with progress.counting(_EPISODES.value, "episodes") as on_episode:
+    episodes = gym.act(policy, envs, _EPISODES.value, environment_flags.SEED.value,
+                       environment_flags.MAX_STEPS.value, on_episode)
   seconds = time.perf_counter() - start
   with cli.output_errors("out", _OUT.value):
     checkpoint.write_atomically(_OUT.value, "".join(json.dumps(e) + "\n" for e in episodes).encode())

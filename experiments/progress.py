@@ -1,7 +1,9 @@
-"""What a person at a terminal sees while a command trains: a live display (rich) of each phase (level k of n,
-lowest first, or every level at once), its iterations done of total, the last loss and best validation,
-elapsed time and time left; then a table of the test results and where the model is. Away from a terminal
-the commands print the logged rows as JSON lines instead (`php_jax.run.print_row`)."""
+"""What a person at a terminal sees while a command works: for training, a live display (rich) of each phase
+(level k of n, lowest first, or every level at once), its iterations done of total, the last loss and best
+validation, elapsed time and time left, then a table of the test results and where the model is (away from
+a terminal the logged rows as JSON lines instead, `php_jax.run.print_row`); for commands that go through
+episodes (`act`, `record`), a bar of episodes done of total with the time left (nothing away from a
+terminal, where their closing lines say it all)."""
 from __future__ import annotations
 
 import contextlib
@@ -14,6 +16,18 @@ from rich.table import Table
 
 from php_jax import run
 from php_jax.config import TrainConfig
+
+
+@contextlib.contextmanager
+def counting(total: int, what: str) -> Iterator[Callable[[], None]]:
+  """A callback to call once per item done (of total, e.g. episodes), drawn as a bar at a terminal."""
+  if not sys.stdout.isatty():
+    yield lambda: None
+    return
+  with Progress(TextColumn(what), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TextColumn("left"),
+                TimeRemainingColumn(), transient=True) as bar:
+    task = bar.add_task(what, total=total)
+    yield lambda: bar.advance(task)
 
 
 @contextlib.contextmanager
@@ -49,6 +63,9 @@ class TrainingProgress:
   def __call__(self, row: dict) -> None:
     if "test" in row:
       self._finish(row)
+      return
+    if row.get("phase") == "testing":
+      self.progress.add_task("testing", total=None, status="")
       return
     if self.seed is None and "seed" in row:
       self.seed = row["seed"]

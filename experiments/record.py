@@ -17,7 +17,7 @@ import json
 
 from absl import app, flags
 
-from experiments import cli, environment_flags
+from experiments import cli, environment_flags, progress
 from php_jax import checkpoint, demo_files, gym
 
 _EXPERT = flags.DEFINE_string("expert", None, "module:attribute of a callable that takes the environment and "
@@ -47,8 +47,9 @@ def main(argv):
       raise ValueError(f"--hierarchy={_HIERARCHY.value} has action factor sizes {list(spec.action_sizes)}; "
                        f"--env={environment_flags.ENV.value}'s {env.action_space} has "
                        f"{list(gym.action_sizes(env.action_space))}")
-    lines = gym.record(env, expert, _EPISODES.value, environment_flags.SEED.value, _ANNOTATED.value, spec,
-                       environment_flags.MAX_STEPS.value)
+    with progress.counting(_EPISODES.value, "episodes") as on_episode:
+      lines = gym.record(env, expert, _EPISODES.value, environment_flags.SEED.value, _ANNOTATED.value, spec,
+                         environment_flags.MAX_STEPS.value, on_episode)
   except (OSError, ValueError) as e:  # GymError and DemoFileError are ValueErrors
     cli.fail(str(e))
   with cli.output_errors("out", _OUT.value):

@@ -15,9 +15,8 @@ from experiments import pictures, run_view
 from php_jax import checkpoint
 from php_jax.demos import Demonstration
 from php_jax.model import PHPHierarchy
-from php_jax.run import METRICS_FILE, RESULTS_FILE
+from php_jax.run import METRICS_FILE, REPORT_FILE, RESULTS_FILE
 
-REPORT_FILE = "report.html"
 NUM_DRAWN = 3
 
 

@@ -24,12 +24,15 @@ runs sharing a GPU do not each reserve most of it.
 from __future__ import annotations
 
 import concurrent.futures
+import ctypes
 import itertools
 import os
 import queue
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from typing import Callable, Iterator, TypeVar
 
 from absl import app, flags
@@ -112,6 +115,17 @@ def run_on_devices(jobs: list[Job], run: Callable[[Job, str | None], Result], de
     yield from pool.map(one, jobs)
 
 
+def _end_with_the_sweep() -> None:
+  """In a run's process before it starts (Linux): SIGTERM when the sweep's thread that started it ends, so
+  that a sweep killed (even by SIGKILL) leaves no run behind holding its workdir; the run keeps its last
+  checkpoint, and the sweep's rerun resumes it."""
+  if sys.platform == "linux":
+    ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
+_PR_SET_PDEATHSIG = 1
+
+
 def _run(task: str, workdir: str, combo: dict[str, str], extra: list[str],
          gpu: str | None) -> tuple[str, int, str | None]:
   """(workdir, exit status, refusal): a run refused before any work (exit status 2) leaves no workdir behind
@@ -122,7 +136,8 @@ def _run(task: str, workdir: str, combo: dict[str, str], extra: list[str],
   command = [sys.executable, "-m", "experiments.train", f"--task={task}", f"--workdir={workdir}",
              *(f"--{k}={v}" for k, v in combo.items()), *extra]
   with open(log, "a") as out:
-    code = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, env=device_environment(gpu)).returncode
+    code = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, env=device_environment(gpu),
+                          preexec_fn=_end_with_the_sweep).returncode
   if code == 2 and fresh and os.listdir(workdir) == ["stdout.log"]:
     with open(log) as f:
       refusal = (f.read().strip().splitlines() or [""])[-1]
@@ -133,6 +148,8 @@ def _run(task: str, workdir: str, combo: dict[str, str], extra: list[str],
 
 def main(argv):
   extra = argv[1:]
+  cli.exit_on_interrupt("every finished run is kept, and a run cut short keeps its checkpoint; rerun the same "
+                        "command to go on")
   try:
     combos = parse_grid(_GRID.value)
   except ValueError as e:
@@ -157,10 +174,13 @@ def main(argv):
     cli.fail(f"--task: {e}")
   todo = pending(combos, _WORKDIR.value, seeds)
   print(f"{len(combos)} runs, {len(combos) - len(todo)} already done, {len(todo)} to run", flush=True)
-  failed = []
-  for workdir, code, refusal in run_on_devices(todo, lambda wc, gpu: _run(_TASK.value, wc[0], wc[1], extra, gpu),
-                                               gpus, _PARALLEL.value):
-    print(f"{'done' if code == 0 else f'FAILED (exit {code})'}: {workdir}" + (f": {refusal}" if refusal else ""),
+  failed, start = [], time.time()
+  for ended, (workdir, code, refusal) in enumerate(run_on_devices(
+      todo, lambda wc, gpu: _run(_TASK.value, wc[0], wc[1], extra, gpu), gpus, _PARALLEL.value), 1):
+    elapsed = time.time() - start
+    left = elapsed / ended * (len(todo) - ended)
+    print(f"[{ended}/{len(todo)}, {elapsed / 60:.0f} min, about {left / 60:.0f} min left] "
+          f"{'done' if code == 0 else f'FAILED (exit {code})'}: {workdir}" + (f": {refusal}" if refusal else ""),
           flush=True)
     if code:
       failed.append(f"{workdir} (refused, nothing written)" if refusal else workdir)

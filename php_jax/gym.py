@@ -164,15 +164,18 @@ def _stack_spec(stacks: list, sizes: tuple[int, ...], episode: int) -> Hierarchy
 
 
 def record(env: gymnasium.Env, expert, episodes: int, seed: int, annotated: int = 0,
-           spec: HierarchySpec | None = None, max_steps: int | None = None) -> list[dict]:
+           spec: HierarchySpec | None = None, max_steps: int | None = None,
+           on_episode: Callable[[], None] | None = None) -> list[dict]:
   """The expert's episodes as demonstration lines (dicts in the demonstration file's format).
 
   The first `annotated` episodes keep the stacks the expert gives; the others are actions only. Every line
   is checked as the demonstration file reader checks it (against spec where given: procedure ids in range),
   so the stacks follow the call-stack rules. Raises GymError naming the episode and step of the first
   problem. An episode ends when the environment terminates or truncates it, or after max_steps actions
-  (default: the environment's time limit, else DEFAULT_MAX_STEPS).
+  (default: the environment's time limit, else DEFAULT_MAX_STEPS). on_episode() is called as each episode
+  ends (for a progress display).
   """
+  on_episode = on_episode or (lambda: None)
   observation_space, action_space = env.observation_space, env.action_space
   _check_observation_space(observation_space)
   sizes = action_sizes(action_space)
@@ -205,6 +208,7 @@ def record(env: gymnasium.Env, expert, episodes: int, seed: int, annotated: int 
     except ValueError as e:
       raise GymError(f"episode {episode}: {e}") from None
     lines.append(line)
+    on_episode()
   return lines
 
 
@@ -337,7 +341,7 @@ def _info_value(infos: dict, key: str, m: int):
 
 
 def act(policy: PHPHierarchy | FlatLSTMPolicy, env: gymnasium.Env | gymnasium.vector.VectorEnv, episodes: int,
-        seed: int, max_steps: int | None = None) -> list[dict]:
+        seed: int, max_steps: int | None = None, on_episode: Callable[[], None] | None = None) -> list[dict]:
   """Runs a learned policy for `episodes` episodes in the real environment; episode i is reset with seed + i.
 
   A hierarchy runs by the executor's semantics (greedy, or sampling when built with sample=True): push the
@@ -349,8 +353,10 @@ def act(policy: PHPHierarchy | FlatLSTMPolicy, env: gymnasium.Env | gymnasium.ve
 
   Returns per episode {"return", "steps", "success" (info["is_success"] at the end where the environment
   gives it, else terminated and not truncated), "terminated", "truncated", "stack" (per step the call stack
-  [[procedure, counter], ...], root first; None for a flat LSTM)}.
+  [[procedure, counter], ...], root first; None for a flat LSTM)}. on_episode() is called as each episode
+  ends (for a progress display).
   """
+  on_episode = on_episode or (lambda: None)
   envs = env if isinstance(env, gymnasium.vector.VectorEnv) else vector_env(lambda: env, 1)
   observation_space, action_space = envs.single_observation_space, envs.single_action_space
   check_policy(policy, observation_space, action_space)
@@ -381,6 +387,7 @@ def act(policy: PHPHierarchy | FlatLSTMPolicy, env: gymnasium.Env | gymnasium.ve
         break
       for m in ended:  # the policy ended the episode before the environment did
         state.finish(m, False, False, None)
+        on_episode()
       restart(ended)
     memory, fresh = new_memory, np.zeros(num, bool)
     actions = np.asarray(actions)
@@ -396,6 +403,7 @@ def act(policy: PHPHierarchy | FlatLSTMPolicy, env: gymnasium.Env | gymnasium.ve
     for m in done:
       if state.episode[m] >= 0:
         state.finish(m, bool(terminated[m]), bool(truncated[m]), _info_value(infos, "is_success", m))
+        on_episode()
     if done.size:
       restart(done)
   return state.results

@@ -30,8 +30,9 @@ from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
 
 METRICS_FILE, RESULTS_FILE, SEEDS_CHECKPOINT = "metrics.jsonl", "results.json", "seeds_checkpoint.msgpack"
+REPORT_FILE = "report.html"  # the training commands write it (`experiments.run_report`); --overwrite clears it
 RUN_FILES = (checkpoint.TRAINING_FILE, METRICS_FILE, RESULTS_FILE, checkpoint.ARCHITECTURE_FILE,
-             checkpoint.MODEL_FILE)
+             checkpoint.MODEL_FILE, REPORT_FILE)
 
 
 class WorkdirError(ValueError):
@@ -92,6 +93,7 @@ def train_and_evaluate(experiment: Experiment, config: TrainConfig, workdir: str
         checkpoint.save_hierarchy(workdir, experiment.name, model, config.hidden, capacity)
     results = {"task": experiment.name, "model": "flat_lstm" if flat_lstm_hidden else "php",
                "config": dataclasses.asdict(config), **experiment.extra, **trained}
+    log.echo({"phase": "testing"})
     return _write_results(workdir, results, experiment.test(model), log, commit)
 
 
@@ -130,6 +132,7 @@ def train_and_evaluate_seeds(experiments: list[Experiment], configs: list[TrainC
     for log in logs:
       log.close()
     together = {"trained_with_seeds": [c.seed for c in configs]}  # its times are the shared program's
+    echo({"phase": "testing"})
     return [_write_results(run_dir, {"task": e.name, "model": "php", "config": dataclasses.asdict(c), **e.extra,
                                      **together, **_levels(report)}, e.test(hierarchy), log, commit)
             for run_dir, c, e, (hierarchy, report), log in zip(workdirs, configs, experiments, trained, logs)]

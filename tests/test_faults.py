@@ -1,5 +1,6 @@
 """Faults injected into every command: SIGKILL at seeded random moments, then the same command again, ends as
-an uninterrupted run would; a full disk ends in one line and a rerun that loses and repeats nothing."""
+an uninterrupted run would (train, fit, sweep; evaluate, export_demos, decode and show write whole files or
+none); a full disk ends in one line and a rerun that loses and repeats nothing."""
 import errno
 import json
 import os
@@ -38,6 +39,11 @@ def _evaluate(out):
 def _export(out):
   return ["experiments.export_demos", "--task=nanocraft", "--num_demos=12", "--num_strong=3", "--seed=2",
           f"--out={out}", f"--hierarchy_out={out}.hierarchy.json"]
+
+
+def _sweep(workdir):
+  return ["experiments.sweep", "--task=tests.test_task_interface:COUNTDOWN", f"--workdir={workdir}",
+          "--grid=num_strong=1,2", "--", "--root=mlp", "--iterations=100", "--eval_every=20", "--noreport"]
 
 
 def _python(args, timeout=600):
@@ -103,6 +109,53 @@ def test_outputs_killed_at_random_moments_are_whole_or_absent_and_the_rerun_writ
     assert not out.exists() or out.read_bytes() == reference.read_bytes()  # never part of one
     proc = _python(command(out))
     assert proc.returncode == 0, proc.stderr[-3000:]
+    assert out.read_bytes() == reference.read_bytes()
+
+
+@pytest.mark.slow
+def test_a_sweep_killed_at_random_moments_leaves_no_run_behind_and_its_rerun_ends_as_uninterrupted(tmp_path):
+  reference = tmp_path / "reference"
+  duration = _timed(_sweep(reference))
+  runs = sorted(p.name for p in reference.iterdir())
+  assert runs == ["num_strong=1", "num_strong=2"]
+  rng = random.Random(2)
+  for attempt in range(KILLS):
+    workdir = tmp_path / f"killed{attempt}"
+    _kill_after(_sweep(workdir), rng.uniform(0.0, duration))
+    time.sleep(1)  # the run it was running ends on the SIGTERM its parent's death sends
+    proc = _python(_sweep(workdir))
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    for name in runs:
+      assert _run_record(workdir / name) == _run_record(reference / name), (attempt, name)
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+  workdir = tmp_path_factory.mktemp("fitted") / "fit"
+  proc = _python(_fit(workdir) + ["--noreport"])
+  assert proc.returncode == 0, proc.stderr[-3000:]
+  return workdir
+
+
+def _decode(policy, out):
+  return ["experiments.decode", f"--policy={policy}", f"--demos={WAREHOUSE / 'held_out.jsonl'}", f"--out={out}"]
+
+
+def _show(policy, out):
+  return ["experiments.show", f"--policy={policy}", "--index=3", f"--out={out}"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("command, suffix", [(_decode, ".jsonl"), (_show, ".png")], ids=["decode", "show"])
+def test_decode_and_show_killed_at_random_moments_write_whole_files_or_none(tmp_path, fitted, command, suffix):
+  reference = tmp_path / f"reference{suffix}"
+  duration = _timed(command(fitted, reference))
+  rng = random.Random(3)
+  for attempt in range(KILLS):
+    out = tmp_path / f"killed{attempt}{suffix}"
+    _kill_after(command(fitted, out), rng.uniform(0.0, duration))
+    assert not out.exists() or out.read_bytes() == reference.read_bytes()  # never part of one
+    assert _python(command(fitted, out)).returncode == 0
     assert out.read_bytes() == reference.read_bytes()
 
 

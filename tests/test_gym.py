@@ -155,8 +155,10 @@ def test_action_factors_round_trip_and_other_action_spaces_are_refused():
 def test_record_keeps_the_first_episodes_stacks_and_writes_readable_lines(tmp_path):
   lines = gym.record(make_corridor(), CorridorExpert(None), episodes=5, seed=3, annotated=2, spec=SPEC)
   assert ["stack" in line for line in lines] == [True, True, False, False, False]
-  again = gym.record(make_corridor(), CorridorExpert(None), episodes=5, seed=3, annotated=2)
-  assert again == lines  # episode i is reset with seed + i
+  ended = []
+  again = gym.record(make_corridor(), CorridorExpert(None), episodes=5, seed=3, annotated=2,
+                     on_episode=lambda: ended.append(1))
+  assert again == lines and len(ended) == 5  # episode i is reset with seed + i; each end told once
   first = lines[0]
   assert len(first["observations"]) == len(first["actions"]) + 1
   goal = int(np.argmax(first["observations"][0][:2]))
@@ -220,7 +222,9 @@ def test_act_follows_the_executor_step_for_step(num_envs):
 def test_a_sampling_hierarchy_acts_the_same_for_the_same_seed_whatever_the_number_of_copies():
   policy = PHPHierarchy(SPEC, hidden=(8,), sample=True, rngs=nnx.Rngs(3))
   one = gym.act(policy, make_corridor(), 6, seed=11)
-  assert gym.act(policy, gym.vector_env(make_corridor, 4), 6, seed=11) == one
+  ended = []
+  assert gym.act(policy, gym.vector_env(make_corridor, 4), 6, seed=11, on_episode=lambda: ended.append(1)) == one
+  assert len(ended) == 6  # each episode's end told once, whichever copy ran it
   policy.sample = False
   assert gym.act(policy, make_corridor(), 6, seed=11) != one  # the greedy choices on the same episodes
 

@@ -25,11 +25,18 @@ def test_each_level_shows_its_iterations_loss_validation_and_the_end_a_table():
       {"level": 1, "iteration": 250, "loss": 0.5, "seconds": 4.0},
       {"level": 0, "capacity": 9, "view_length": 9, "seconds": 5.0},
       {"level": 0, "iteration": 200, "loss": 0.1, "validation": 0.96, "seconds": 6.0},
+      {"phase": "testing"},
       {"test": {"20": 1.0, "50": 0.98}, "wall_seconds": 61.0}])
   assert "level 2 (1 of 3)" in text and "100/250" in text and "loss 1.234" in text  # warm-up counted below the root
   assert "level 1 (2 of 3)" in text and "250/250" in text
   assert "level 0 (3 of 3)" in text and "200/200" in text and "best validation 0.960" in text
-  assert "test results" in text and "0.980" in text and "61 s in all" in text and "are in runs/w" in text
+  assert "testing" in text and "test results" in text and "0.980" in text and "61 s in all" in text
+  assert "are in runs/w" in text
+
+
+def test_a_finished_run_shows_its_results_and_says_it_trained_nothing():
+  text = _display(TrainConfig(), 3, [{"test": {"accuracy": 1.0}, "wall_seconds": 61.0, "finished_before": True}])
+  assert "1.000" in text and "had already finished in runs/w (61 s); --overwrite trains it again" in text
 
 
 def test_joint_and_flat_runs_and_other_seeds():
