@@ -18,14 +18,18 @@ from __future__ import annotations
 import dataclasses
 import os
 
+import numpy as np
 from absl import app, flags
 
 from experiments import cli, config_flags, progress, training
-from php_jax import datasets, evaluation, tasks, train
+from php_jax import datasets, demo_files, evaluation, tasks, train
 from php_jax.run import Experiment, train_and_evaluate, train_and_evaluate_seeds
 
 NUM_STRONG = flags.DEFINE_integer("num_strong", 1, "Strongly supervised (call-stack annotated) demonstrations.")
 NUM_VALIDATION = flags.DEFINE_integer("num_validation", 50, "Validation problems (training distribution).")
+_ANNOTATE = flags.DEFINE_string("annotate", None, "Which training demonstrations are annotated: the \"index\" of "
+                                "each line of this file (experiments.suggest's output), instead of --num_strong "
+                                "chosen at random.")
 SEEDS = flags.DEFINE_list("seeds", None, "Several seeds (e.g. 1,2,3,4,5) trained as one program, level-wise: "
                           "each seed's run, the same as with --seed, goes to WORKDIR/seed=S.")
 _TASK = flags.DEFINE_string("task", None, f"The task: one of {', '.join(tasks.TASKS)}, or module:attribute "
@@ -83,18 +87,19 @@ def run(task_name: str) -> dict:
     lengths = [int(n) for n in _TEST_LENGTHS.value]
   if num_test < 1 or any(n < 1 for n in lengths):
     raise config_flags.UsageError(f"--num_test and --test_lengths must be positive; got {num_test}, {list(lengths)}")
+  annotated = _annotated(num_demos)
   if NUM_VALIDATION.value < 1:
     raise config_flags.UsageError(f"--num_validation must be a positive integer; got {NUM_VALIDATION.value}")
   workdir, overwrite, wait = training.WORKDIR.value, training.OVERWRITE.value, training.WAIT.value
   flat = training.flat_lstm_hidden()
   if SEEDS.value is None:
-    experiment = _experiment(task_name, task, config.seed, num_demos, num_test, lengths)
+    experiment = _experiment(task_name, task, config.seed, num_demos, num_test, lengths, annotated)
     with progress.shown(config, None if flat else task.spec.num_levels, workdir) as echo:
       results = train_and_evaluate(experiment, config, workdir, overwrite, flat, wait, echo)
     training.write_report(workdir, experiment.demos)
     return results
   seeds = _seeds(config)
-  experiments = [_experiment(task_name, task, s, num_demos, num_test, lengths) for s in seeds]
+  experiments = [_experiment(task_name, task, s, num_demos, num_test, lengths, annotated) for s in seeds]
   try:
     train.common_call_graph(task.spec, [e.demos for e in experiments], [config] * len(seeds))
   except ValueError as e:
@@ -121,10 +126,28 @@ def _seeds(config: train.TrainConfig) -> list[int]:
     raise config_flags.UsageError(str(e)) from None
 
 
-def _experiment(task_name: str, task, seed: int, num_demos: int, num_test: int, lengths) -> Experiment:
-  """Seed's run of task (named task_name on the command line): its training demonstrations, validation and
-  test sets, results.json entries."""
+def _annotated(num_demos: int) -> list[int] | None:
+  """The training demonstrations --annotate names (None without it); UsageError naming the file's problem."""
+  if _ANNOTATE.value is None:
+    return None
+  if flags.FLAGS["num_strong"].present:
+    raise config_flags.UsageError("--annotate and --num_strong: give one of them")
+  try:
+    indices = demo_files.read_indices(_ANNOTATE.value, num_demos)
+  except demo_files.DemoFileError as e:
+    raise config_flags.UsageError(f"--annotate: {e}") from None
+  return indices
+
+
+def _experiment(task_name: str, task, seed: int, num_demos: int, num_test: int, lengths,
+                annotated: list[int] | None) -> Experiment:
+  """Seed's run of task (named task_name on the command line): its training demonstrations (annotated: which
+  are; None: --num_strong at random), validation and test sets, results.json entries."""
   demos = datasets.training_demos(task, seed, num_demos, NUM_STRONG.value)
+  if annotated is not None:
+    strong = np.zeros(num_demos, bool)
+    strong[annotated] = True
+    demos = demos._replace(strong=strong)
   validation = task.validation_problems(seed + datasets.SEED_OFFSETS["validation"], NUM_VALIDATION.value)
   test_seed = seed + datasets.SEED_OFFSETS["test"]
   test_sets = ({str(n): task.test_problems(test_seed, num_test, n) for n in lengths} if lengths
@@ -133,7 +156,7 @@ def _experiment(task_name: str, task, seed: int, num_demos: int, num_test: int, 
                     lambda model: {key: evaluation.accuracy(task, model, problems)
                                    for key, problems in test_sets.items()},
                     {"seed": seed, "num_demos": num_demos, "num_strong": int(demos.strong.sum()),
-                     "num_test": num_test})
+                     "num_test": num_test, **({"annotated": annotated} if annotated is not None else {})})
 
 
 def main_for(task_name: str | None):

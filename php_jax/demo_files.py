@@ -335,3 +335,28 @@ def demonstration_lines(batch: Demonstration, annotated) -> list[str]:
                        for t in range(n)]
     lines.append(json.dumps(line))
   return lines
+
+
+def read_indices(path: str, count: int) -> list[int]:
+  """The distinct "index" of every line of a file (`experiments.suggest`'s output), each in 0..count-1, in the
+  file's order. Raises DemoFileError naming the file and line."""
+  indices = []
+  try:
+    f = open(path, "rb")
+  except OSError as e:
+    raise DemoFileError(f"{path}: cannot read: {e.strerror}") from None
+  with f:
+    for number, raw in json_lines.lines(f):
+      try:
+        obj = json_lines.loads(raw)
+        index = obj.get("index") if isinstance(obj, dict) else None
+        if not (_is_int(index) and 0 <= index < count):
+          raise ValueError(f'each line needs an "index" in 0..{count - 1}; got {json_lines.shown(index)}')
+        if index in indices:
+          raise ValueError(f"index {index} is given twice")
+      except ValueError as e:
+        raise DemoFileError(f"{path}:{number}: {e}") from None
+      indices.append(index)
+  if not indices:
+    raise DemoFileError(f"{path}: names no demonstration")
+  return indices

@@ -238,6 +238,14 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
       (("experiments.decode", f"--policy={tmp_path}", f"--demos={bad}", f"--out={bad}"), "is the input file"),
       (("experiments.show", f"--policy={tmp_path / 'none'}"), "no trained model"),
       (("experiments.show", f"--policy={tmp_path}", f"--out={tmp_path / 'o.txt'}"), "must end in .png, .svg, .html"),
+      (("experiments.suggest", f"--demos={bad}", "--task=nanocraft", "--budget=1", f"--out={tmp_path / 'o.jsonl'}"),
+       "give --demos (with --hierarchy) or --task, one of them"),
+      (("experiments.suggest", f"--demos={bad}", f"--hierarchy={hierarchy}", "--budget=1",
+        f"--out={tmp_path / 'o.jsonl'}"), f"{bad}:2:"),
+      (("experiments.suggest", "--task=nanocraft", "--budget=0", f"--out={tmp_path / 'o.jsonl'}"),
+       "flag --budget=0: value should be >= 1"),
+      (("experiments.train", "--task=nanocraft", f"--workdir={tmp_path / 'w6'}", f"--annotate={bad}"),
+       f"--annotate: {bad}:1: each line needs an \"index\" in 0..63"),
   ]
   # Run at the same time, each with its own workdir.
   procs = processes.run_all([[sys.executable, "-m", *args] for args, _ in cases], capture_output=True, text=True,
@@ -245,7 +253,7 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
   for (args, message), proc in zip(cases, procs):
     assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, (
         args, proc.stderr)
-  assert not any((tmp_path / f"w{i}").exists() for i in range(1, 6)) and not (tmp_path / "o.jsonl").exists()
+  assert not any((tmp_path / f"w{i}").exists() for i in range(1, 7)) and not (tmp_path / "o.jsonl").exists()
   assert not (tmp_path / "o.txt").exists()
 
 

@@ -1,0 +1,88 @@
+r"""Which demonstrations to annotate: ranks the actions-only ones by what annotating them would add.
+
+  python -m experiments.suggest --demos=FILE.jsonl --hierarchy=H.json --budget=K --out=OUT.jsonl [--policy=RUN]
+  python -m experiments.suggest --task=NAME --seed=S [--num_demos=M] --budget=K --out=OUT.jsonl
+
+The first form reads your demonstration file (demonstrations already annotated count as chosen); the second
+takes a registered task's training set as `experiments.train --seed=S` builds it, none annotated. Each of
+the --budget chosen demonstrations, best first, is one output line {"index": its 0-based line number (or
+index in the task's training set), "score": what it adds, "why": in words}. The choice covers, greedily,
+the most behaviour no annotated or chosen demonstration shows (the action values and pairs of consecutive
+actions each demonstration takes, rare ones weighing most; `php_jax.annotation_choice`); with --policy, a
+trained hierarchy's uncertainty about each demonstration's segmentation adds to its score. Annotate the
+chosen ones (in your file), or give the output to `experiments.train --annotate=OUT.jsonl`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+from absl import app, flags
+
+from experiments import cli, run_view
+from php_jax import annotation_choice, checkpoint, datasets, demo_files, tasks
+
+_DEMOS = flags.DEFINE_string("demos", None, "Demonstrations (JSON lines), some perhaps annotated.")
+_HIERARCHY = flags.DEFINE_string("hierarchy", None, "Their hierarchy file (with --demos).")
+_TASK = flags.DEFINE_string("task", None, "A registered task (or module:attribute) whose training set to rank, "
+                            "instead of --demos.")
+_SEED = flags.DEFINE_integer("seed", 0, "With --task: the seed of the training set (experiments.train's --seed).",
+                             lower_bound=0)
+_NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "With --task: demonstrations in the training set, where the "
+                                  "task offers a choice. Default: the task's.")
+_POLICY = flags.DEFINE_string("policy", None, "Optional: a trained hierarchy's workdir; its uncertainty about "
+                              "each demonstration's segmentation adds to the score.")
+_BUDGET = flags.DEFINE_integer("budget", None, "How many demonstrations to choose.", lower_bound=1)
+_OUT = flags.DEFINE_string("out", None, "Output JSON-lines file, best first.")
+
+
+def _task_demos():
+  """The task's training set (none annotated) and its action namer."""
+  task = tasks.get(_TASK.value)
+  num_demos = task.defaults.num_demos if _NUM_DEMOS.value is None else _NUM_DEMOS.value
+  if task.defaults.num_demos_fixed and num_demos != task.defaults.num_demos:
+    raise ValueError(f"--num_demos: {task.name}'s training set has {task.defaults.num_demos} demonstrations; got "
+                     f"{num_demos}")
+  if num_demos < 1:
+    raise ValueError(f"--num_demos must be positive; got {num_demos}")
+  return datasets.training_demos(task, _SEED.value, num_demos, 0), task.spec, task.action_name
+
+
+def _file_demos():
+  """The file's demonstrations and their action namer."""
+  if not _HIERARCHY.value:
+    raise ValueError("--demos needs --hierarchy")
+  hierarchy = demo_files.read_hierarchy(_HIERARCHY.value)
+  demos, spec = demo_files.read_demonstrations(_DEMOS.value, hierarchy.spec)
+  return demos, spec, demo_files.action_namer(hierarchy.action_names)
+
+
+def main(argv):
+  if argv[1:]:
+    cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
+  cli.exit_on_interrupt(f"--out={_OUT.value} not written")
+  try:
+    if bool(_DEMOS.value) == bool(_TASK.value):
+      raise ValueError("give --demos (with --hierarchy) or --task, one of them")
+    cli.check_outputs({"out": _OUT.value}, {"demos": _DEMOS.value, "hierarchy": _HIERARCHY.value})
+    demos, spec, action_name = _task_demos() if _TASK.value else _file_demos()
+    doubt = None
+    if _POLICY.value:
+      run = run_view.load(_POLICY.value)
+      if run.hierarchy.spec.levels != spec.levels or run.hierarchy.spec.obs_dim != spec.obs_dim:
+        raise ValueError(f"--policy={_POLICY.value} is a hierarchy of other levels or observation size")
+      doubt = annotation_choice.uncertainty(run.hierarchy, run.capacity, demos)
+  except (OSError, ValueError) as e:  # DemoFileError and CheckpointError are ValueErrors
+    cli.fail(str(e))
+  chosen = annotation_choice.suggest(demos, _BUDGET.value, action_name, doubt)
+  lines = "".join(json.dumps(dataclasses.asdict(s)) + "\n" for s in chosen)
+  with cli.output_errors("out", _OUT.value):
+    checkpoint.write_atomically(_OUT.value, lines.encode())
+  for s in chosen:
+    print(f"{s.index}: {s.why}")
+  print(f"{len(chosen)} of {int((~demos.strong).sum())} actions-only demonstrations chosen -> {_OUT.value}")
+
+
+if __name__ == "__main__":
+  flags.mark_flags_as_required(["budget", "out"])
+  app.run(main, flags_parser=cli.parse_flags)
