@@ -5,11 +5,12 @@ r"""Figures and tables from the results.json files of training runs (e.g. those 
 Per task: OUT/TASK.md, a table with one row per (model, demonstrations, strongly supervised) and, per test set
 (a test length, or "accuracy"), the mean test accuracy over trials with its range and the trials at 100%,
 then the mean decoding agreement with the supervisor at level 1 (the level whose segmentation decides the
-root's training data), by exact procedure ids and up to a renaming of them; and OUT/TASK.png, per test set
-the accuracy against the number of strongly supervised demonstrations (paper Figure 2), one line per total
-number of demonstrations, mean with min–max bars (runs trained with --training=joint as a dash-dotted line
-of their own, runs with a --call_graph other than "all" as a solid one with triangles), the flat LSTM (which
-ignores annotations) as a dashed level and weak-only PHP runs as a dotted one in the same colour.
+root's training data), by exact procedure ids and up to a renaming of them; and OUT/TASK.png, one panel per
+test set (two to a row): the accuracy against the number of annotated demonstrations (paper Figure 2; log
+scale, ticks at the measured numbers), one line per model and number of demonstrations ("PHP, 64
+demonstrations"; runs trained with --training=joint dash-dotted, runs with a --call_graph other than "all"
+solid with triangles), the mean over trials with min–max bars, and the flat LSTM (which ignores annotations)
+and runs with nothing annotated as levels across the panel, their values in the legend.
 """
 from __future__ import annotations
 
@@ -112,14 +113,30 @@ def markdown(runs: dict[Key, list[dict]]) -> str:
 
 
 _STYLES = {"php": ("o", "-"), "php-joint": ("s", "-.")}  # (marker, line); with a call graph: triangles, solid
+_MODES = {"joint": "every level at once"}
 
 
-def figure(runs: dict[Key, list[dict]], path: str) -> None:
+def _label(model: str, total: int) -> str:
+  """A line's legend: the model, the number of demonstrations, how it was trained."""
+  if model == "flat_lstm":
+    return f"flat LSTM, {total} demonstrations"
+  parts = model.split("-")[1:]
+  how = [_MODES.get(p, f"call graph: {p}") for p in parts]
+  return ", ".join([f"PHP, {total} demonstrations", *how])
+
+
+def figure(runs: dict[Key, list[dict]], path: str, task: str = "") -> None:
+  """Per test set one panel: test accuracy against the number of annotated demonstrations (log scale, ticks
+  at the measured numbers), a line per model and number of demonstrations, the mean over trials with
+  min–max bars; the flat LSTM and runs with nothing annotated as levels across the panel."""
   names = test_sets(runs)
-  fig, axes = plt.subplots(1, len(names), figsize=(6 * len(names), 4), squeeze=False)
+  columns = min(2, len(names))
+  rows = -(-len(names) // columns)
+  fig, axes = plt.subplots(rows, columns, figsize=(6.4 * columns, 4.2 * rows + 0.6), squeeze=False)
   totals = sorted({total for _, total, _ in runs})
   color = {total: f"C{i}" for i, total in enumerate(totals)}  # a data-set size keeps its colour throughout
-  for ax, name in zip(axes[0], names):
+  measured = sorted({strong for _, _, strong in runs if strong > 0})
+  for ax, name in zip(axes.flat, names):
     lines = defaultdict(list)
     for (model, total, strong), trials in runs.items():
       accs = [r["test"][name] for r in trials if name in r["test"]]
@@ -127,26 +144,33 @@ def figure(runs: dict[Key, list[dict]], path: str) -> None:
         lines[(model, total)].append((strong, np.mean(accs), min(accs), max(accs)))
     for (model, total), points in sorted(lines.items()):
       x, mean, low, high = map(np.array, zip(*sorted(points)))
-      php = model != "flat_lstm"
-      label = ", ".join([f"PHP-{total}", *model.split("-")[1:]])
+      php, label = model != "flat_lstm", _label(model, total)
       if php and np.any(x > 0):
         annotated = x > 0
         marker, linestyle = _STYLES.get(model, ("^", "-"))
         ax.errorbar(x[annotated], mean[annotated], yerr=[(mean - low)[annotated], (high - mean)[annotated]],
                     marker=marker, linestyle=linestyle, capsize=3, color=color[total], label=label)
-      if php and x[0] == 0:  # weak only: no place on the log axis, one level across it
-        ax.axhline(mean[0], linestyle=":", color=color[total], label=f"{label}, weak only ({mean[0]:.3f})")
+      if php and x[0] == 0:  # nothing annotated: no place on the log axis, one level across it
+        ax.axhline(mean[0], linestyle=":", linewidth=2, color=color[total],
+                   label=f"{label}, none annotated ({mean[0]:.3f})")
       elif not php:  # actions only: one level across the axis
-        ax.axhline(mean[0], linestyle="--", color=color[total], alpha=0.6,
-                   label=f"flat LSTM-{total} ({mean[0]:.3f})")
+        ax.axhline(mean[0], linestyle="--", linewidth=2, color=color[total], label=f"{label} ({mean[0]:.3f})")
     ax.set_xscale("log", base=2)
-    ax.set_xlabel("strongly supervised demonstrations")
-    ax.set_ylabel("test accuracy" if name == "accuracy" else f"test accuracy, size {name}")
-    ax.set_ylim(0, 1.02)
+    if measured:
+      ax.set_xticks(measured, [str(m) for m in measured])
+      ax.minorticks_off()
+    ax.set_xlabel("annotated demonstrations (log scale)")
+    ax.set_ylabel("test accuracy")
+    ax.set_title("fresh test problems" if name == "accuracy" else f"test problems of size {name}", fontsize=10)
+    ax.set_ylim(-0.03, 1.03)  # a level at 0 stays visible
     ax.legend(loc="lower right", fontsize=8)
     ax.grid(alpha=0.3)
+  for ax in list(axes.flat)[len(names):]:
+    ax.set_visible(False)
+  fig.suptitle(f"{task + ': ' if task else ''}test accuracy against the number of annotated demonstrations "
+               "(mean over trials; bars: min–max)", fontsize=11)
   fig.tight_layout()
-  fig.savefig(path, dpi=120)
+  fig.savefig(path, dpi=110)
   plt.close(fig)
 
 
@@ -166,7 +190,7 @@ def main(argv):
   for task, runs in group_runs(results).items():
     name = task.replace(":", "_").replace("/", "_")
     checkpoint.write_atomically(os.path.join(_OUT.value, f"{name}.md"), markdown(runs).encode())
-    _draw_atomically(lambda p, runs=runs: figure(runs, p), os.path.join(_OUT.value, f"{name}.png"))
+    _draw_atomically(lambda p, runs=runs, task=task: figure(runs, p, task), os.path.join(_OUT.value, f"{name}.png"))
     written += [f"{name}.md", f"{name}.png"]
   print(f"{len(results)} runs -> {', '.join(os.path.join(_OUT.value, w) for w in written)}")
 
