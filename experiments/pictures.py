@@ -82,9 +82,10 @@ def _draw_heat_map(fig, ax, level: int, marginal: np.ndarray, decoded: Call, pro
   fig.colorbar(image, ax=ax, fraction=0.02, pad=0.01)
 
 
-def curves_figure(rows: Sequence[dict]) -> Figure | None:
-  """Learning curves from metrics.jsonl rows: per phase (a level, lowest first, or every level at once), the
-  training loss against the iteration, and the validation score where logged. None if no row has a loss."""
+def curves_figure(rows: Sequence[dict], whole: str = "every level at once") -> Figure | None:
+  """Learning curves from metrics.jsonl rows: per phase (a level, lowest first, or the rows without a level,
+  titled whole: a joint run, or the flat LSTM), the training loss against the iteration, and the validation
+  score where logged. None if no row has a loss."""
   phases: dict = {}
   for row in rows:
     if "iteration" in row and "loss" in row and "seed" not in row:
@@ -97,7 +98,7 @@ def curves_figure(rows: Sequence[dict]) -> Figure | None:
   for ax, phase in zip(axes, order):
     logged = phases[phase]
     ax.plot([r["iteration"] for r in logged], [r["loss"] for r in logged], color="tab:blue")
-    ax.set_title(f"level {phase}" if isinstance(phase, int) else "every level at once", fontsize=10)
+    ax.set_title(f"level {phase}" if isinstance(phase, int) else whole, fontsize=10)
     ax.set_xlabel("iteration")
     ax.set_ylabel("training loss (nats per demonstration)", color="tab:blue", fontsize=8)
     validated = [r for r in logged if r.get("validation") is not None]

@@ -26,7 +26,8 @@ def write(workdir: str, demos: Demonstration | None = None) -> str:
   results = run_view.read_results(workdir)
   title = f"{results.get('task', 'run')}: {workdir}"
   parts = [_summary(results), "<h2>Learning curves</h2>"]
-  curves = pictures.curves_figure(_metrics(workdir))
+  curves = pictures.curves_figure(_metrics(workdir),
+                                  "flat LSTM" if results.get("model") == "flat_lstm" else "every level at once")
   parts.append(pictures.svg(curves) if curves else "<p>No training iterations were logged.</p>")
   try:
     run = run_view.load(workdir)

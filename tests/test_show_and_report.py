@@ -79,7 +79,7 @@ def test_a_flat_lstm_is_refused_by_show_and_reported_without_stacks(tmp_path):
   with pytest.raises(ValueError, match="holds a flat LSTM, which has no call stack to show"):
     run_view.load(workdir)
   page = pathlib.Path(run_report.write(workdir)).read_text()
-  assert "No call stack to show" in page and page.count("<svg") == 1
+  assert "No call stack to show" in page and page.count("<svg") == 1 and "flat LSTM</text>" in page
 
 
 def test_a_finished_run_is_not_trained_again_and_other_settings_are_named(tmp_path):
