@@ -73,6 +73,10 @@ def _read_results(path: str) -> dict:
     raise ValueError(f"{path}: not a training run's results (not a JSON object)")
   if results.get("model", "php") != "php":
     raise ValueError(f"{path} is a {results['model']} run, which has no hierarchy to decode")
+  if "hierarchy" in results and "seed" not in results:  # experiments.fit's
+    raise ValueError(f"{path} is a fit run, whose actions-only demonstrations carry no stack to compare with: "
+                     "experiments.decode on a file of annotated ones prints the agreement per level, and "
+                     "experiments.show draws one")
   for key, kind in (("task", str), ("seed", int), ("num_demos", int), ("num_strong", int)):
     if not isinstance(results.get(key), kind):
       raise ValueError(f"{path}: not a training run's results (needs {kind.__name__} {key!r})")

@@ -222,7 +222,13 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
       GOOD, {"observations": [[0.0], [1.0]], "actions": [[3]], "stack": [[[0, 0], [0, 0], None]]},
       {"observations": [[0.0], [1.0], [2.0]], "actions": [[0], [3]],
        "stack": [[[0, 0], [1, 0], [0, 0]], [[0, 0], [1, 1], [3, 0]]]}]))
+  fitted = tmp_path / "fitted"  # what segmentation reads first of a fit run's workdir
+  fitted.mkdir()
+  (fitted / "results.json").write_text(json.dumps({"task": "warehouse", "model": "php", "hierarchy": hierarchy,
+                                                   "num_demos": 36, "demos": "train.jsonl"}))
+  (fitted / "checkpoint.msgpack").write_bytes(b"")
   cases = [
+      (("experiments.segmentation", f"--run={fitted}"), "is a fit run, whose actions-only demonstrations carry no"),
       (("experiments.fit", f"--demos={outside}", f"--hierarchy={hierarchy}", f"--workdir={tmp_path / 'w1'}",
         "--call_graph=operations"), f"--demos={outside}: demonstration 1, step 0: no chain of calls"),
       (("experiments.fit", f"--demos={outside}", f"--hierarchy={hierarchy}", f"--workdir={tmp_path / 'w2'}",
@@ -243,7 +249,7 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
       (("experiments.suggest", f"--demos={bad}", f"--hierarchy={hierarchy}", "--budget=1",
         f"--out={tmp_path / 'o.jsonl'}"), f"{bad}:2:"),
       (("experiments.suggest", "--task=nanocraft", "--budget=0", f"--out={tmp_path / 'o.jsonl'}"),
-       "flag --budget=0: value should be >= 1"),
+       "flag --budget=0: 0 is not a positive integer"),
       (("experiments.train", "--task=nanocraft", f"--workdir={tmp_path / 'w6'}", f"--annotate={bad}"),
        f"--annotate: {bad}:1: each line needs an \"index\" in 0..63"),
   ]
