@@ -47,7 +47,7 @@ def main(argv):
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
   cli.exit_on_interrupt(f"--out={_OUT.value} not written")
   try:
-    cli.check_outputs({"out": _OUT.value}, {})
+    cli.check_outputs({"out": _OUT.value}, {"policy": _POLICY.value})
     _, policy = checkpoint.load_policy(_POLICY.value)
     if _SAMPLE.value:
       if not isinstance(policy, PHPHierarchy):

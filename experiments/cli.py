@@ -16,8 +16,9 @@ from php_jax import checkpoint
 
 
 def fail(message: str) -> NoReturn:
-  """Prints "error: message" to stderr and exits with status 2."""
-  print(f"error: {message}", file=sys.stderr)
+  """Prints "error: message" to stderr, on one line (a newline inside it, say in a path, written as \\n), and
+  exits with status 2."""
+  print(f"error: {message}".replace("\r", "\\r").replace("\n", "\\n"), file=sys.stderr)
   sys.exit(2)
 
 
@@ -48,8 +49,13 @@ def exit_on_interrupt(message: str) -> None:
 def check_outputs(outputs: dict[str, str | None], inputs: dict[str, str | None]) -> None:
   """Raises ValueError naming the flag of the first output ({flag: path}; None: not asked for) that could
   not be written, before any work: an empty path, a directory, a file in a missing or unwritable directory,
-  one of the inputs ({flag: path}) or another output."""
-  seen = dict(inputs)
+  one of the inputs ({flag: path}; a --policy workdir's flag: its model files) or another output."""
+  seen = {}
+  for flag, path in inputs.items():
+    if flag == "policy" and path:
+      seen.update({f"policy={path}:{name}": os.path.join(path, name) for name in checkpoint.MODEL_FILES})
+    else:
+      seen[flag] = path
   for flag, path in outputs.items():
     if path is None:
       continue
@@ -64,6 +70,8 @@ def check_outputs(outputs: dict[str, str | None], inputs: dict[str, str | None])
       raise ValueError(f"--{flag}={path}: directory {directory} is not writable")
     for other, other_path in seen.items():
       if other_path and _same_file(path, other_path):
+        if other.startswith("policy="):
+          raise ValueError(f"--{flag}={path} is the model file {other_path} of --{other.rsplit(':', 1)[0]}")
         raise ValueError(f"--{flag}={path} is the {'input file' if other in inputs else 'same file as'} "
                          f"--{other}={other_path}")
     seen[flag] = path

@@ -67,7 +67,7 @@ def main(argv):
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
   cli.exit_on_interrupt(f"--out={_OUT.value} not written")
   try:
-    cli.check_outputs({"out": _OUT.value}, {"demos": _DEMOS.value})
+    cli.check_outputs({"out": _OUT.value}, {"demos": _DEMOS.value, "policy": _POLICY.value})
     _, hierarchy = checkpoint.load_policy(_POLICY.value)
     capacity = checkpoint.saved_capacity(_POLICY.value)
     if not isinstance(hierarchy, PHPHierarchy) or capacity is None:

@@ -16,6 +16,7 @@ from absl import app, flags
 
 from experiments import cli
 from php_jax import checkpoint, datasets, demo_files, tasks
+from php_jax.config import MAX_SEED
 
 _TASK = flags.DEFINE_string("task", None, f"The task: one of {', '.join(tasks.TASKS)}, or module:attribute.")
 _SPLIT = flags.DEFINE_enum("split", "training", ["training", "validation", "test"], "Which problems.")
@@ -41,21 +42,27 @@ def main(argv):
   except ValueError as e:
     cli.fail(str(e))
   num = task.defaults.num_demos if _NUM_DEMOS.value is None else _NUM_DEMOS.value
+  if task.defaults.num_demos_fixed and _SPLIT.value == "training" and num != task.defaults.num_demos:
+    cli.fail(f"--num_demos: {task.name}'s training set has {task.defaults.num_demos} demonstrations; got {num}")
   if num < 1 or not 0 <= _NUM_STRONG.value <= num:
     cli.fail(f"--num_strong must be in 0..--num_demos={num} and --num_demos ≥ 1; got {_NUM_STRONG.value} of {num}")
   if _SIZE.value is not None and _SPLIT.value != "test":
     cli.fail("--size is for --split=test")
   if _SIZE.value is not None and _SIZE.value < 1:
     cli.fail(f"--size must be a positive integer; got {_SIZE.value}")
-  if _SEED.value < 0:
-    cli.fail(f"--seed must be a non-negative integer; got {_SEED.value}")
+  if not 0 <= _SEED.value <= MAX_SEED:
+    cli.fail(f"--seed must be an integer in 0..{MAX_SEED}; got {_SEED.value}")
   seed = _SEED.value + datasets.SEED_OFFSETS[_SPLIT.value]
-  if _SPLIT.value == "training":
-    problems = task.training_problems(seed, num)
-  elif _SPLIT.value == "validation":
-    problems = task.validation_problems(seed, num)
-  else:
-    problems = task.test_problems(seed, num, _SIZE.value)
+  try:
+    if _SPLIT.value == "training":
+      problems = task.training_problems(seed, num)
+    elif _SPLIT.value == "validation":
+      problems = task.validation_problems(seed, num)
+    else:
+      problems = task.test_problems(seed, num, _SIZE.value)
+    task.states_and_budget(problems[:1])  # a size the task cannot pose (a one-digit array) is refused here
+  except ValueError as e:
+    cli.fail(f"--size={_SIZE.value}: {e}" if _SIZE.value is not None else str(e))
   batch = datasets.problem_demonstrations(task, problems, 0)
   annotated = datasets.strong_mask(len(problems), _NUM_STRONG.value, _SEED.value)
   lines = demo_files.demonstration_lines(batch, annotated)

@@ -5,14 +5,13 @@ write it at the end of every run; `experiments.report` writes it again."""
 from __future__ import annotations
 
 import html
-import json
 import os
 
 import jax
 import numpy as np
 
 from experiments import pictures, run_view
-from php_jax import checkpoint
+from php_jax import checkpoint, json_lines
 from php_jax.demos import Demonstration
 from php_jax.model import PHPHierarchy
 from php_jax.run import METRICS_FILE, REPORT_FILE, RESULTS_FILE
@@ -24,17 +23,18 @@ def write(workdir: str, demos: Demonstration | None = None) -> str:
   """Writes workdir/report.html (atomically) and returns its path. demos: the run's training demonstrations
   (default: rebuilt as `experiments.show` does). Raises ValueError naming what cannot be read."""
   results = run_view.read_results(workdir)
+  if not (isinstance(results.get("test"), dict) and isinstance(results.get("config", {}), dict)):
+    raise ValueError(f"{os.path.join(workdir, RESULTS_FILE)}: not a finished run's results (needs its \"test\" "
+                     "results and \"config\")")
+  flat = results.get("model") == "flat_lstm"
+  run = None if flat else run_view.load(workdir)  # a hierarchy that cannot be read is refused
   title = f"{results.get('task', 'run')}: {workdir}"
   parts = [_summary(results), "<h2>Learning curves</h2>"]
-  curves = pictures.curves_figure(_metrics(workdir),
-                                  "flat LSTM" if results.get("model") == "flat_lstm" else "every level at once")
+  curves = pictures.curves_figure(_metrics(workdir), "flat LSTM" if flat else "every level at once")
   parts.append(pictures.svg(curves) if curves else "<p>No training iterations were logged.</p>")
-  try:
-    run = run_view.load(workdir)
-  except ValueError as e:
-    run = None
-    parts.append(f"<p>No call stack to show: {html.escape(str(e))}.</p>")
-  if run is not None:
+  if flat:
+    parts.append("<p>No call stack to show: a flat LSTM has none.</p>")
+  else:
     parts += ["<h2>Call graph</h2>", _call_graph(run)]
     source = "its training demonstrations"
     if demos is None:
@@ -73,11 +73,27 @@ def drawn_demonstrations(demos: Demonstration) -> list[int]:
 
 
 def _metrics(workdir: str) -> list[dict]:
+  """metrics.jsonl's rows; ValueError naming the line that is not a row a run logs."""
   path = os.path.join(workdir, METRICS_FILE)
   if not os.path.exists(path):
     return []
-  with open(path, encoding="utf-8") as f:
-    return [json.loads(line) for line in f if line.strip()]
+  rows = []
+  with open(path, "rb") as f:
+    for number, line in json_lines.lines(f):
+      try:
+        row = json_lines.loads(line)
+      except ValueError as e:
+        raise ValueError(f"{path}:{number}: {e}") from None
+      numbers = ("iteration", "loss", "validation", "level")
+      if not (isinstance(row, dict) and all(row.get(k) is None or _is_number(row[k]) for k in numbers)):
+        raise ValueError(f"{path}:{number}: not a metrics row (its iteration, loss, validation and level must be "
+                         "numbers)")
+      rows.append(row)
+  return rows
+
+
+def _is_number(x) -> bool:
+  return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
 def _summary(results: dict) -> str:

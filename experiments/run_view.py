@@ -155,4 +155,11 @@ def _task_demos(run: RunView) -> Demonstration:
     task = tasks.get(results["task"])
   except ValueError as e:
     raise ValueError(f"{run.workdir}/{RESULTS_FILE}: {e}") from None
+  mine = run.hierarchy.spec
+  if (task.spec.levels, task.spec.action_sizes, task.spec.obs_dim) != (mine.levels, mine.action_sizes, mine.obs_dim):
+    raise ValueError(f"{run.workdir}: its model is not a hierarchy of task {task.name!r}, which its results.json "
+                     "names; give --demos")
+  if not 0 <= results["num_strong"] <= results["num_demos"] or results["num_demos"] < 1:
+    raise ValueError(f"{run.workdir}/{RESULTS_FILE}: num_strong {results['num_strong']} of num_demos "
+                     f"{results['num_demos']}")
   return datasets.training_demos(task, results["seed"], results["num_demos"], results["num_strong"])

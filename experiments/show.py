@@ -34,7 +34,7 @@ def main(argv):
   out = _OUT.value
   try:
     if out is not None:
-      cli.check_outputs({"out": out}, {"demos": _DEMOS.value})
+      cli.check_outputs({"out": out}, {"demos": _DEMOS.value, "policy": _POLICY.value})
       if not out.endswith(pictures.SUFFIXES):
         raise ValueError(f"--out={out}: must end in {', '.join(pictures.SUFFIXES)}")
     run = run_view.load(_POLICY.value)

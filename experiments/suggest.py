@@ -21,6 +21,7 @@ from absl import app, flags
 
 from experiments import cli, run_view
 from php_jax import annotation_choice, checkpoint, datasets, demo_files, tasks
+from php_jax.config import MAX_SEED
 
 _DEMOS = flags.DEFINE_string("demos", None, "Demonstrations (JSON lines), some perhaps annotated.")
 _HIERARCHY = flags.DEFINE_string("hierarchy", None, "Their hierarchy file (with --demos).")
@@ -64,7 +65,15 @@ def main(argv):
   try:
     if bool(_DEMOS.value) == bool(_TASK.value):
       raise ValueError("give --demos (with --hierarchy) or --task, one of them")
-    cli.check_outputs({"out": _OUT.value}, {"demos": _DEMOS.value, "hierarchy": _HIERARCHY.value})
+    given = [f"--{name}" for name in ("hierarchy", "seed", "num_demos") if flags.FLAGS[name].present]
+    wrong = [g for g in given if (g == "--hierarchy") == bool(_TASK.value)]
+    if wrong:
+      raise ValueError(f"{wrong[0]} goes with {'--demos' if _TASK.value else '--task'}, not "
+                       f"{'--task' if _TASK.value else '--demos'}")
+    if _SEED.value > MAX_SEED:
+      raise ValueError(f"--seed must be at most {MAX_SEED}; got {_SEED.value}")
+    cli.check_outputs({"out": _OUT.value}, {"demos": _DEMOS.value, "hierarchy": _HIERARCHY.value,
+                                          "policy": _POLICY.value})
     demos, spec, action_name = _task_demos() if _TASK.value else _file_demos()
     doubt = None
     if _POLICY.value:
@@ -72,6 +81,8 @@ def main(argv):
       if run.hierarchy.spec.levels != spec.levels or run.hierarchy.spec.obs_dim != spec.obs_dim:
         raise ValueError(f"--policy={_POLICY.value} is a hierarchy of other levels or observation size")
       doubt = annotation_choice.uncertainty(run.hierarchy, run.capacity, demos)
+    if demos.strong.all():
+      raise ValueError(f"--demos={_DEMOS.value}: every demonstration is annotated already; nothing to choose")
   except (OSError, ValueError) as e:  # DemoFileError and CheckpointError are ValueErrors
     cli.fail(str(e))
   chosen = annotation_choice.suggest(demos, _BUDGET.value, action_name, doubt)

@@ -154,8 +154,11 @@ def main(argv):
     combos = parse_grid(_GRID.value)
   except ValueError as e:
     cli.fail(str(e))
+  if not _WORKDIR.value:
+    cli.fail("--workdir: must name a directory; got ''")
   if os.path.exists(_WORKDIR.value) and not os.path.isdir(_WORKDIR.value):
     cli.fail(f"--workdir={_WORKDIR.value} is a file, not a directory")
+  fresh = not os.path.exists(_WORKDIR.value)
   seeds = _SEEDS.value
   if seeds is not None:
     if any("seed" in c for c in combos):
@@ -174,7 +177,7 @@ def main(argv):
     cli.fail(f"--task: {e}")
   todo = pending(combos, _WORKDIR.value, seeds)
   print(f"{len(combos)} runs, {len(combos) - len(todo)} already done, {len(todo)} to run", flush=True)
-  failed, start = [], time.time()
+  failed, refusals, start = [], [], time.time()
   for ended, (workdir, code, refusal) in enumerate(run_on_devices(
       todo, lambda wc, gpu: _run(_TASK.value, wc[0], wc[1], extra, gpu), gpus, _PARALLEL.value), 1):
     elapsed = time.time() - start
@@ -184,6 +187,11 @@ def main(argv):
           flush=True)
     if code:
       failed.append(f"{workdir} (refused, nothing written)" if refusal else workdir)
+      refusals += [refusal] if refusal else []
+  if failed and len(refusals) == len(failed) == len(todo):  # every run refused its flags: a bad grid
+    if fresh and os.path.isdir(_WORKDIR.value) and not os.listdir(_WORKDIR.value):
+      os.rmdir(_WORKDIR.value)
+    cli.fail(f"every run was refused; the first: {refusals[0].removeprefix('error: ')}")
   if failed:
     print(f"{len(failed)} runs failed; see stdout.log in: {', '.join(failed)}", file=sys.stderr)
     sys.exit(1)

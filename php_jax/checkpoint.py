@@ -29,7 +29,12 @@ from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy
 
 MODEL_FILE, ARCHITECTURE_FILE, TRAINING_FILE = "model.msgpack", "model.json", "checkpoint.msgpack"
+MODEL_FILES = (ARCHITECTURE_FILE, MODEL_FILE)  # what load_policy reads
 WRITING = threading.Lock()  # held while write_atomically writes: whoever ends the process waits for it
+
+
+MAX_CAPACITY = 4096  # counters per level a saved model may claim (a hierarchy file's bound too)
+MAX_SIZE = 1 << 20  # observation size, action factor size and procedures per level a saved model may claim
 
 
 class CheckpointError(ValueError):
@@ -156,16 +161,31 @@ def _saved_spec(path: str, architecture: dict) -> HierarchySpec:
     return tasks.get(architecture["task"]).spec
   spec = architecture["spec"]
   try:
-    return HierarchySpec(str(spec["name"]), tuple(tuple(map(str, level)) for level in spec["levels"]),
-                         tuple(int(n) for n in spec["action_sizes"]), int(spec["obs_dim"]))
+    saved = HierarchySpec(str(spec["name"]), tuple(tuple(map(str, level)) for level in spec["levels"]),
+                          tuple(int(n) for n in spec["action_sizes"]), int(spec["obs_dim"]))
   except (TypeError, KeyError, ValueError):
-    raise CheckpointError(f"{path}: malformed hierarchy spec {spec}") from None
+    raise CheckpointError(f"{path}: malformed hierarchy spec {str(spec)[:200]}") from None
+  sizes = (saved.obs_dim, *saved.action_sizes, *map(len, saved.levels))
+  if not (saved.levels and isinstance(spec["levels"], list) and saved.action_sizes
+          and all(1 <= n <= MAX_SIZE for n in sizes)):
+    raise CheckpointError(f"{path}: malformed hierarchy spec (sizes must be in 1..{MAX_SIZE}) {str(spec)[:200]}")
+  return saved
 
 
 def saved_capacity(workdir: str) -> tuple[int, ...] | None:
   """The counter capacity per level (root first) a saved PHP hierarchy was trained with, if recorded."""
-  capacity = _read_json(os.path.join(workdir, ARCHITECTURE_FILE)).get("capacity")
-  return tuple(capacity) if capacity else None
+  path = os.path.join(workdir, ARCHITECTURE_FILE)
+  architecture = _read_json(path)
+  capacity = architecture.get("capacity")
+  if not capacity:
+    return None
+  levels = (architecture.get("spec") or {}).get("levels") if isinstance(architecture.get("spec"), dict) else None
+  if not (isinstance(capacity, list) and all(isinstance(c, int) and not isinstance(c, bool) and 1 <= c <= MAX_CAPACITY
+                                             for c in capacity)
+          and (levels is None or len(capacity) == len(levels))):
+    raise CheckpointError(f"{path}: \"capacity\" must give one integer in 1..{MAX_CAPACITY} per level; got "
+                          f"{str(capacity)[:80]}")
+  return tuple(capacity)
 
 
 def _architecture(path: str, architecture) -> tuple:

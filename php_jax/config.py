@@ -33,6 +33,9 @@ def _setting(default: Any, help: str, kind: str, choices: tuple[str, ...] = (), 
                                                       "levelwise_only": levelwise_only})
 
 
+MAX_SEED = 2**31 - 1
+
+
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
   """Hyper-parameters of Expectation–Gradient training; the defaults follow the paper where it says."""
@@ -88,6 +91,8 @@ class TrainConfig:
     for name in ("iterations", "strong_warmup", "seed"):  # 0 iterations: a warm-up alone
       if not (_is_int(getattr(self, name)) and getattr(self, name) >= 0):
         raise ConfigError(name, f"must be a non-negative integer; got {getattr(self, name)!r}")
+    if self.seed > MAX_SEED:
+      raise ConfigError("seed", f"must be at most {MAX_SEED} (a 32-bit seed); got {self.seed}")
     for name in ("learning_rate", "strong_weight", "root_strong_weight"):
       value = getattr(self, name)
       if (value is not None or name == "learning_rate") and not (_is_number(value) and value > 0):

@@ -115,7 +115,10 @@ def env_maker(name: str) -> Callable[[], gymnasium.Env]:
     raise GymError(f"environment {name!r} is a {type(make).__name__}, not a callable returning a gymnasium.Env")
 
   def checked() -> gymnasium.Env:
-    env = make()
+    try:
+      env = make()
+    except Exception as e:  # the user's code, failing in any way: one line naming it
+      raise GymError(f"environment {name!r} failed: {type(e).__name__}: {e}") from None
     if not isinstance(env, gymnasium.Env):
       raise GymError(f"environment {name!r} returned a {type(env).__name__}, not a gymnasium.Env")
     return env
@@ -124,11 +127,22 @@ def env_maker(name: str) -> Callable[[], gymnasium.Env]:
 
 
 def expert_maker(name: str) -> Callable[[gymnasium.Env], Any]:
-  """The callable at "module:attribute" that takes the environment and returns an expert."""
+  """The callable at "module:attribute" that takes the environment and returns an expert (GymError naming
+  it if it fails, or returns something without act())."""
   make = import_path.load_attribute(name, "expert", GymError)
   if not callable(make):
     raise GymError(f"expert {name!r} is a {type(make).__name__}, not a callable taking the environment")
-  return make
+
+  def checked(env: gymnasium.Env) -> Any:
+    try:
+      expert = make(env)
+    except Exception as e:  # the user's code, failing in any way: one line naming it
+      raise GymError(f"expert {name!r} failed on this environment: {type(e).__name__}: {e}") from None
+    if not callable(getattr(expert, "act", None)):
+      raise GymError(f"expert {name!r} returned a {type(expert).__name__}, which has no act(observation, info)")
+    return expert
+
+  return checked
 
 
 def _max_steps(env: gymnasium.Env | gymnasium.vector.VectorEnv, max_steps: int | None) -> int:
@@ -188,7 +202,11 @@ def record(env: gymnasium.Env, expert, episodes: int, seed: int, annotated: int 
     observations, actions, stacks = [flatten_observation(observation_space, observation).tolist()], [], []
     done = False
     while not done and len(actions) < limit:
-      action, stack = _expert_output(expert.act(observation, info))
+      try:
+        action, stack = _expert_output(expert.act(observation, info))
+      except Exception as e:  # the user's code, failing in any way: one line naming where
+        raise GymError(f"episode {episode}, step {len(actions)}: the expert's act() failed: "
+                       f"{type(e).__name__}: {e}") from None
       if not action_space.contains(action if not isinstance(action, list) else np.asarray(action)):
         raise GymError(f"episode {episode}, step {len(actions)}: the expert's action {action!r} is not in the "
                        f"action space {action_space}")

@@ -218,7 +218,7 @@ def test_sweep_command_refuses_bad_flags_and_writes_nothing(tmp_path):
   cases = [(["--grid=num_demos=16,x"], "num_demos values"), (["--parallel=0"], "parallel"),
            (["--grid=seed=1", "--grid=seed=2"], "given twice"), (["--gpus=0,0"], "distinct"),
            (["--seeds=1,x"], "distinct non-negative integers"), (["--seeds=1,2", "--grid=seed=3"], "give one of them"),
-           (["--task=sorting"], "--task: unknown task 'sorting'")]
+           (["--task=sorting"], "--task: unknown task 'sorting'"), (["--workdir="], "--workdir: must name a directory")]
   # Run at the same time, each with its own workdir.
   procs = processes.run_all([[sys.executable, "-m", "experiments.sweep", "--task=nanocraft",
                               f"--workdir={tmp_path / f'sweep{i}'}", *flags] for i, (flags, _) in enumerate(cases)],
@@ -230,12 +230,13 @@ def test_sweep_command_refuses_bad_flags_and_writes_nothing(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_sweep_run_refused_before_any_work_leaves_no_workdir(tmp_path):
+def test_a_sweep_whose_every_run_is_refused_ends_in_one_line_and_leaves_no_workdir(tmp_path):
   workdir = tmp_path / "sweep"
   proc = subprocess.run([sys.executable, "-m", "experiments.sweep", "--task=nanocraft", f"--workdir={workdir}",
                          "--grid=seed=1", "--", "--hidden="], capture_output=True, text=True, timeout=300)
-  assert proc.returncode == 1 and "seed=1: error: --hidden must list integers" in proc.stdout, proc.stdout
-  assert list(workdir.iterdir()) == []  # the refused run left no workdir
+  assert proc.returncode == 2 and "seed=1: error: --hidden must list integers" in proc.stdout, proc.stdout
+  assert proc.stderr.strip() == ("error: every run was refused; the first: --hidden must list integers; got ''")
+  assert not workdir.exists()  # neither the refused run's workdir nor the sweep's
 
 
 def test_plot_names_a_corrupt_results_file(tmp_path):

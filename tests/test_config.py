@@ -93,3 +93,8 @@ def test_help_exits_0_and_shows_every_setting_grouped_with_its_default():
   assert "Default: 2000 (bubblesort: 1000)" in text and "Default: the task's (addition: 160, fixed;" in text
   groups = [line for line in proc.stdout.splitlines() if line.endswith(":") and not line.startswith(" ")]
   assert groups == ["Flags of this command:", "Training settings:", "The run and its workdir:"]
+
+
+def test_a_seed_beyond_32_bits_is_refused():
+  with pytest.raises(config_lib.ConfigError, match=r"seed: must be at most 2147483647 \(a 32-bit seed\)"):
+    config_lib.TrainConfig(seed=2**31)

@@ -83,6 +83,16 @@ def test_unusable_out_paths_are_refused(tmp_path):
   cli.check_outputs({"out": str(tmp_path / "out.jsonl"), "log": None}, inputs)
   with pytest.raises(ValueError, match="--log=.*is the same file as --out="):
     cli.check_outputs({"out": str(tmp_path / "o.jsonl"), "log": str(tmp_path / "o.jsonl")}, inputs)
+  (tmp_path / "run").mkdir()  # a --policy workdir's model files are inputs too
+  with pytest.raises(ValueError, match=r"--out=.*run/model.json is the model file .*model.json of --policy=.*run$"):
+    cli.check_outputs({"out": str(tmp_path / "run" / "model.json")}, {"policy": str(tmp_path / "run")})
+  cli.check_outputs({"out": str(tmp_path / "run" / "decoded.jsonl")}, {"policy": str(tmp_path / "run")})
+
+
+def test_a_refusal_is_one_line_even_when_a_path_holds_a_newline(capsys):
+  with pytest.raises(SystemExit) as ended:
+    cli.fail("--out=a\nb: directory a\nb does not exist")
+  assert ended.value.code == 2 and capsys.readouterr().err == "error: --out=a\\nb: directory a\\nb does not exist\n"
 
 
 def test_malformed_line_exits_2_with_line_number_and_writes_nothing(tmp_path):

@@ -5,6 +5,7 @@ import dataclasses
 import json
 import os
 import pathlib
+import shutil
 
 import numpy as np
 import pytest
@@ -104,3 +105,44 @@ def _flat_experiment() -> run.Experiment:
   demos = type(demos)(*(np.asarray(x)[:4] for x in demos))
   return run.Experiment("warehouse", spec, demos, validate=lambda model: 0.5, test=lambda model: {"replayed": 0.5},
                         extra={"num_demos": 4})
+
+
+def test_a_model_or_run_that_cannot_be_read_is_refused_not_reported(fitted, tmp_path):
+  """Hostile workdirs (a model.json edited, even signed anew; no results; a metrics row of strings) are
+  refused in one ValueError naming the file."""
+  bad = tmp_path / "bad"
+  shutil.copytree(fitted, bad)
+  (bad / run.REPORT_FILE).unlink(missing_ok=True)  # an earlier test's
+  architecture = json.loads((bad / checkpoint.ARCHITECTURE_FILE).read_text())
+  for capacity in ([8], [0, 0, 0], ["a", "b", "c"], [11, 10_000_000, 8]):
+    (bad / checkpoint.ARCHITECTURE_FILE).write_text(json.dumps({**architecture, "capacity": capacity}))
+    with pytest.raises(checkpoint.CheckpointError, match='"capacity" must give one integer in 1..4096 per level'):
+      checkpoint.saved_capacity(str(bad))
+  spec = {**architecture["spec"], "obs_dim": -1}
+  edited = {**architecture, "spec": spec}
+  params = (bad / checkpoint.MODEL_FILE).read_bytes()
+  edited["sha256"] = checkpoint._model_digest(params, edited)  # signed anew, as an editor could
+  (bad / checkpoint.ARCHITECTURE_FILE).write_text(json.dumps(edited))
+  with pytest.raises(checkpoint.CheckpointError, match="malformed hierarchy spec"):
+    checkpoint.load_policy(str(bad))
+  with pytest.raises(ValueError, match="malformed hierarchy spec"):
+    run_report.write(str(bad))  # a report of a model that cannot be read is refused, not written
+  assert not (bad / run.REPORT_FILE).exists()
+  empty = tmp_path / "empty"
+  empty.mkdir()
+  with pytest.raises(ValueError, match="not a finished run's results"):
+    run_report.write(str(empty))
+  rows = tmp_path / "rows"
+  shutil.copytree(fitted, rows)
+  (rows / run.METRICS_FILE).write_text('{"level": 2, "iteration": "ten", "loss": 1.0}\n')
+  with pytest.raises(ValueError, match=r"metrics.jsonl:1: not a metrics row"):
+    run_report.write(str(rows))
+
+
+def test_a_run_whose_task_is_not_its_models_hierarchy_is_refused(fitted, tmp_path):
+  other = tmp_path / "other"
+  shutil.copytree(fitted, other)
+  (other / run.RESULTS_FILE).write_text(json.dumps({"task": "bubblesort", "seed": 0, "num_demos": 128,
+                                                    "num_strong": 0, "config": {}, "test": {}}))
+  with pytest.raises(ValueError, match="its model is not a hierarchy of task 'bubblesort'"):
+    run_view.demonstrations(run_view.load(str(other)), None)
