@@ -6,11 +6,12 @@ r"""Which demonstrations to annotate: ranks the actions-only ones by what annota
 The first form reads your demonstration file (demonstrations already annotated count as chosen); the second
 takes a registered task's training set as `experiments.train --seed=S` builds it, none annotated. Each of
 the --budget chosen demonstrations, best first, is one output line {"index": its 0-based line number (or
-index in the task's training set), "score": what it adds, "why": in words}. The choice covers, greedily,
-the most behaviour no annotated or chosen demonstration shows (the action values and pairs of consecutive
-actions each demonstration takes, rare ones weighing most; `php_jax.annotation_choice`); with --policy, a
-trained hierarchy's uncertainty about each demonstration's segmentation adds to its score. Annotate the
-chosen ones (in your file), or give the output to `experiments.train --annotate=OUT.jsonl`.
+index in the task's training set), "score": its number of steps (with --policy: the model's summed
+uncertainty over them), "why": in words}. While some behaviour the demonstrations show (the action values
+and pairs of consecutive actions they take) is shown by no annotated or earlier chosen one, the next is the
+longest that shows some of it; then the longest of the others (`php_jax.annotation_choice`). With --policy,
+a trained hierarchy's uncertainty about each demonstration's segmentation ranks instead of its length.
+Annotate the chosen ones (in your file), or give the output to `experiments.train --annotate=OUT.jsonl`.
 """
 from __future__ import annotations
 
@@ -32,7 +33,7 @@ _SEED = flags.DEFINE_integer("seed", 0, "With --task: the seed of the training s
 _NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "With --task: demonstrations in the training set, where the "
                                   "task offers a choice. Default: the task's.")
 _POLICY = flags.DEFINE_string("policy", None, "Optional: a trained hierarchy's workdir; its uncertainty about "
-                              "each demonstration's segmentation adds to the score.")
+                              "each demonstration's segmentation ranks instead of the length.")
 _BUDGET = flags.DEFINE_integer("budget", None, "How many demonstrations to choose.", lower_bound=1)
 _OUT = flags.DEFINE_string("out", None, "Output JSON-lines file, best first.")
 

@@ -3,14 +3,15 @@
 An annotation teaches the hierarchy which procedure takes which operation, and with `--call_graph` it also
 bounds what each procedure may take: an operation that no annotated demonstration shows is, for the
 procedure that should take it, locked out. So the annotated demonstrations should together show every kind
-of behaviour the data holds. Without a model, a demonstration's behaviour is read off its elementary
+of behaviour the data holds, and as much of it as they can: long demonstrations, whose calls run their
+full course, teach more than short or unusual ones (measured on NanoCraft: RESULTS.md, "Which
+demonstrations to annotate"). Without a model, a demonstration's behaviour is read off its elementary
 actions: the action values it takes and the pairs of consecutive actions (a procedure's operations show up
 as such pairs: MOVE_DOWN then PLACE_BLOCK is a different routine from MOVE_DOWN then MOVE_DOWN). The choice is
-greedy: each next demonstration is the one that shows the most behaviour no demonstration annotated or
-chosen so far shows, each kind weighed by its rarity (1 / the number of demonstrations showing it, so that
-what few demonstrations show counts most), ties going to the shorter one (less to annotate). Given a trained
-hierarchy, a demonstration's uncertainty counts too: the mean entropy per step of its posterior over each
-level's procedures (in nats), where the model is least sure how to segment it.
+greedy: while some behaviour that the demonstrations show is shown by no annotated or earlier chosen one,
+the next is the longest demonstration that shows some of it; after that, the longest of the others. Given a
+trained hierarchy, its uncertainty ranks instead of the length: the demonstration's summed entropy of the
+posterior over each level's procedures (nats, over its steps), what the model least knows how to segment.
 """
 from __future__ import annotations
 
@@ -54,24 +55,24 @@ def uncertainty(hierarchy: PHPHierarchy, capacity, demos: Demonstration) -> np.n
 def suggest(demos: Demonstration, budget: int, action_name: Callable[[list[int]], str] = str,
             certainty_of: np.ndarray | None = None) -> list[Suggestion]:
   """Up to budget of the batch's demonstrations [B, ...] not yet annotated (demos.strong), best first
-  (module docstring). certainty_of: optional [B] uncertainty (`uncertainty`) added to each score."""
+  (module docstring). certainty_of: optional [B] mean uncertainty per step (`uncertainty`); the score is
+  then the summed uncertainty, else the number of steps."""
   length = np.asarray(demos.length)
   shown = [behaviours(a, n) for a, n in zip(np.asarray(demos.actions), length)]
   counts: dict[tuple, int] = {}
   for kinds in shown:
     for kind in kinds:
       counts[kind] = counts.get(kind, 0) + 1
+  worth = length.astype(float) if certainty_of is None else np.asarray(certainty_of) * length
   covered = set().union(*(shown[b] for b in np.flatnonzero(np.asarray(demos.strong))))
   left = [b for b in range(len(length)) if not demos.strong[b]]
   chosen = []
   while left and len(chosen) < budget:
-    def score(b):
-      gain = sum(1 / counts[k] for k in shown[b] - covered)
-      return gain + (0.0 if certainty_of is None else float(certainty_of[b]))
-    best = max(left, key=lambda b: (round(score(b), 9), -length[b], -b))
+    adding = [b for b in left if shown[b] - covered] or left
+    best = max(adding, key=lambda b: (round(float(worth[b]), 9), -b))
     new = sorted(shown[best] - covered, key=lambda k: (counts[k], str(k)))
-    chosen.append(Suggestion(best, round(score(best), 6), _why(new, counts, length[best], action_name,
-                                                               None if certainty_of is None else certainty_of[best])))
+    doubt = None if certainty_of is None else float(certainty_of[best])
+    chosen.append(Suggestion(best, round(float(worth[best]), 6), _why(new, counts, length[best], action_name, doubt)))
     covered |= shown[best]
     left.remove(best)
   return chosen

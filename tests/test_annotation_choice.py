@@ -37,27 +37,32 @@ def test_a_demonstration_shows_its_actions_and_their_consecutive_pairs():
       ("action", (0,)), ("action", (1,)), ("pair", (0,), (0,)), ("pair", (0,), (1,))}
 
 
-def test_the_choice_takes_what_no_annotated_demonstration_shows_rare_first_shorter_on_ties():
+def test_the_choice_takes_the_longest_that_shows_what_no_annotated_one_shows_then_the_longest():
   demos = _batch([[0, 0, 0], [0, 1], [0, 0, 0, 0], [0, 1, 2], [0, 1, 2, 2]], strong=[True, False, False, False,
                                                                                     False])
   chosen = annotation_choice.suggest(demos, 3, action_name=lambda a: "abc"[a[0]])
-  assert [c.index for c in chosen][:2] == [4, 1]  # 4 shows c, c-c, b-c; then a-b alone is left, in 1 (shorter than 3)
-  assert "the rarest c then c" in chosen[0].why and chosen[0].score > chosen[1].score
-  assert chosen[2].score == 0 and "shows nothing that the annotated and earlier chosen" in chosen[2].why
+  # 4 and 2 are the longest, but 2 shows only what the annotated 0 does; once 4 is chosen nothing is left
+  # unshown, and the longest of the others come next.
+  assert [c.index for c in chosen] == [4, 2, 3] and [c.score for c in chosen] == [4, 4, 3]
+  assert "shows 5 kinds of behaviour" in chosen[0].why and "the rarest c then c, c, b then c (in 1 of" in chosen[0].why
+  assert "shows nothing that the annotated and earlier chosen" in chosen[1].why
   assert all(c.index != 0 for c in chosen)  # the annotated one is never suggested
 
 
 @settings(max_examples=40, deadline=None)
 @given(st.lists(st.lists(st.integers(0, 3), min_size=1, max_size=6), min_size=1, max_size=8))
-def test_a_budget_of_every_demonstration_ranks_each_once_and_covers_everything_shown(action_lists):
+def test_each_pick_is_the_longest_that_adds_something_until_everything_is_shown(action_lists):
   demos = _batch(action_lists)
   chosen = annotation_choice.suggest(demos, len(action_lists))
   assert sorted(c.index for c in chosen) == list(range(len(action_lists)))
-  scores = [c.score for c in chosen]
-  assert scores == sorted(scores, reverse=True)  # each pick adds no more than the one before (coverage shrinks)
   shows = [annotation_choice.behaviours(demos.actions[b], demos.length[b]) for b in range(len(action_lists))]
-  adding = [c.index for c in chosen if c.score > 0]
-  assert set().union(*(shows[b] for b in adding)) == set().union(*shows)  # those adding something cover all
+  covered, left = set(), set(range(len(action_lists)))
+  for c in chosen:
+    adding = [b for b in left if shows[b] - covered] or sorted(left)
+    assert c.index in adding and len(action_lists[c.index]) == max(len(action_lists[b]) for b in adding)
+    covered |= shows[c.index]
+    left.remove(c.index)
+  assert covered == set().union(*shows)
 
 
 def test_uncertainty_is_an_entropy_per_step_within_its_bounds():
