@@ -139,7 +139,8 @@ def grouped_help(program: str) -> str:
     parts.append(f"{group[0].upper()}{group[1:]}:")
     for flag in sorted(defined[group], key=lambda f: f.name):
       name = f"--[no]{flag.name}" if flag.boolean else f"--{flag.name}"
-      default = "" if flag.default is None or "Default: " in flag.help else f" (default: {flag.default_as_str.strip(chr(39))})"
+      stated = flag.default is None or "Default: " in flag.help
+      default = "" if stated else f" (default: {flag.default_as_str.strip(chr(39))})"
       parts.append(textwrap.fill(f"{flag.help}{default}", width=100, initial_indent=f"  {name}: ",
                                  subsequent_indent="      "))
     parts.append("")

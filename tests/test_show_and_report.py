@@ -87,7 +87,8 @@ def test_a_finished_run_is_not_trained_again_and_other_settings_are_named(tmp_pa
   workdir, experiment, config = str(tmp_path / "flat"), _flat_experiment(), TrainConfig(iterations=2, eval_every=1)
   rows = []
   first = run.train_and_evaluate(experiment, config, workdir, flat_lstm_hidden=4, echo=rows.append)
-  files = {name: (tmp_path / "flat" / name).read_bytes() for name in run.RUN_FILES if (tmp_path / "flat" / name).exists()}
+  written = [tmp_path / "flat" / name for name in run.RUN_FILES if (tmp_path / "flat" / name).exists()]
+  files = {path.name: path.read_bytes() for path in written}
   rows.clear()
   again = run.train_and_evaluate(experiment, config, workdir, flat_lstm_hidden=4, echo=rows.append)
   assert again == json.loads(json.dumps(first))  # as results.json holds it
