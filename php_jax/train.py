@@ -156,7 +156,7 @@ def run_settings(spec: HierarchySpec, demos: Demonstration, config: TrainConfig)
   return json.loads(json.dumps(settings))  # as a checkpoint stores it: tuples become lists
 
 
-_BEFORE_THEY_EXISTED = {"snapshot": "earliest"}  # settings whose default differs from what runs did before them
+BEFORE_THEY_EXISTED = {"snapshot": "earliest"}  # settings whose default differs from what runs did before them
 
 
 _WHY = {"demonstrations": " (another seed, number of demonstrations or of annotated ones, or data file; the "
@@ -166,8 +166,8 @@ _WHY = {"demonstrations": " (another seed, number of demonstrations or of annota
 def check_resumable(path: str, saved_settings: dict, settings: dict) -> None:
   """Raises CheckpointError naming the settings that differ between a checkpoint and this run. A setting the
   checkpoint does not name (it predates the setting) counts as what runs did before it: its default, or
-  _BEFORE_THEY_EXISTED's value."""
-  defaults = json.loads(json.dumps({**dataclasses.asdict(TrainConfig()), **_BEFORE_THEY_EXISTED}))
+  BEFORE_THEY_EXISTED's value."""
+  defaults = json.loads(json.dumps({**dataclasses.asdict(TrainConfig()), **BEFORE_THEY_EXISTED}))
   saved_settings = {**saved_settings, "config": {**defaults, **saved_settings.get("config", {})}}
   if saved_settings == settings:
     return

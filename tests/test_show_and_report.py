@@ -94,6 +94,11 @@ def test_a_finished_run_is_not_trained_again_and_other_settings_are_named(tmp_pa
   assert again == json.loads(json.dumps(first))  # as results.json holds it
   assert rows == [{"test": first["test"], "wall_seconds": first["wall_seconds"], "finished_before": True}]
   assert {name: (tmp_path / "flat" / name).read_bytes() for name in files} == files
+  results_path = tmp_path / "flat" / run.RESULTS_FILE
+  older = json.loads(results_path.read_text())
+  del older["config"]["length_buckets"]  # a run made before that setting existed ran with its default
+  results_path.write_text(json.dumps(older))
+  assert run.train_and_evaluate(experiment, config, workdir, flat_lstm_hidden=4, echo=rows.append) == older
   with pytest.raises(run.WorkdirError, match=r"other settings \(--iterations: 2 there, 3 here\); use a fresh"):
     run.train_and_evaluate(experiment, dataclasses.replace(config, iterations=3), workdir, flat_lstm_hidden=4)
   with pytest.raises(run.WorkdirError, match=r"--lstm_hidden: 4 there, 5 here"):
