@@ -25,7 +25,6 @@ from absl import app, flags
 
 from experiments import cli
 from php_jax import agreement, checkpoint, decoding, demo_files, replay
-from php_jax.demos import UNKNOWN
 from php_jax.model import PHPHierarchy
 
 _POLICY = flags.DEFINE_string("policy", None, "Workdir holding a fitted hierarchy.")
@@ -48,20 +47,6 @@ def decode_lines(hierarchy: PHPHierarchy, capacity, batch) -> tuple[list[dict], 
   return lines, decoded
 
 
-def stack_agreement(batch, decoded: decoding.Decoded, level: int) -> tuple[float, float | None] | None:
-  """(exact, up to renaming) fraction of annotated steps whose decoded frame at level equals the given one;
-  None if no step is annotated there."""
-  procs, taus = np.asarray(batch.procedures)[..., level], np.asarray(batch.counters)[..., level]
-  known = procs != UNKNOWN
-  if not known.any():
-    return None
-  size = int(max(procs.max(), decoded.procedures[..., level].max())) + 1
-  counts = np.zeros((size, size), np.int64)
-  same_tau = known & (decoded.counters[..., level] == taus)
-  np.add.at(counts, (decoded.procedures[..., level][same_tau], procs[same_tau]), 1)
-  return agreement.exact_fraction(counts, known.sum()), agreement.relabelled_fraction(counts, known.sum())
-
-
 def main(argv):
   if argv[1:]:
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
@@ -82,7 +67,8 @@ def main(argv):
   replayed = sum(line["replayed"] for line in lines)
   print(f"{hierarchy.spec.name}: {replayed}/{len(lines)} replayed -> {_OUT.value}")
   for level in range(1, hierarchy.spec.num_levels):
-    measured = stack_agreement(batch, decoded, level)
+    measured = agreement.stack_agreement(batch.procedures, batch.counters, decoded.procedures, decoded.counters,
+                                         level)
     if measured:
       exact, renamed = measured
       print(f"level {level}: decoded stacks agree with the given ones on {exact:.3f} of annotated steps"

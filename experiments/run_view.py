@@ -12,7 +12,7 @@ from typing import Callable
 import numpy as np
 
 from experiments import pictures
-from php_jax import call_tree, checkpoint, datasets, decoding, demo_files, tasks
+from php_jax import agreement, call_tree, checkpoint, datasets, decoding, demo_files, tasks
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.model import PHPHierarchy
 from php_jax.run import RESULTS_FILE
@@ -107,21 +107,20 @@ def decoded(run: RunView, batch: Demonstration, indices: list[int]) -> list[tupl
     finite = np.isfinite(log_likelihood)
     lines = [f"decoded call stack ({f'log-likelihood {log_likelihood:.3f}' if finite else 'no stack fits it'}):",
              *("  " + line for line in call_tree.text(tree, run.procedure_name, actions))]
-    agreement = {}
+    agreed = {}
     if supervisor:
       lines += ["the demonstration's own call stack:",
                 *("  " + line for line in call_tree.text(supervisor, run.procedure_name, actions))]
       for level in range(1, procs.shape[1]):
-        known = procs[:, level] != UNKNOWN
-        if known.any():
-          same = ((stacks.procedures[b, :length, level] == procs[:, level])
-                  & (stacks.counters[b, :length, level] == taus[:, level]))
-          agreement[level] = float(same[known].mean())
-          lines.append(f"level {level}: the decoded frame is the demonstration's on {agreement[level]:.3f} of "
+        measured = agreement.stack_agreement(procs, taus, stacks.procedures[b, :length],
+                                             stacks.counters[b, :length], level)
+        if measured:
+          agreed[level] = measured[0]  # exact: the procedure ids of the demonstration's own stack
+          lines.append(f"level {level}: the decoded frame is the demonstration's on {agreed[level]:.3f} of "
                        "its annotated steps")
     shown.append(({"decoded": tree, "supervisor": supervisor, "marginals": [m[b] for m in marginals],
                    "actions": actions, "log_likelihood": log_likelihood if finite else None,
-                   "agreement": agreement}, lines))
+                   "agreement": agreed}, lines))
   return shown
 
 

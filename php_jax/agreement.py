@@ -1,6 +1,6 @@
-"""How well decoded weak views recover the supervisor's hierarchy: per level, the fraction of elementary
-steps whose decoded (procedure, counter) equals the supervisor's, by exact procedure ids and up to a
-renaming of them."""
+"""How well decoded weak views (or decoded stacks) recover the supervisor's hierarchy: per level, the
+fraction of elementary steps whose decoded (procedure, counter) equals the supervisor's, by exact procedure
+ids and up to a renaming of them."""
 from __future__ import annotations
 
 import itertools
@@ -62,3 +62,20 @@ def relabelled_agreement(demos: Demonstration, view: LevelView, level: int, proc
   """agreement() under the renaming of decoded procedures that maximises it: how close the segmentation is
   to the supervisor's when the procedures' ids are arbitrary (weak-only training)."""
   return relabelled_fraction(*agreement_counts(demos, view, level, procedures, counters))
+
+
+def stack_agreement(procedures, counters, decoded_procedures, decoded_counters,
+                    level: int) -> tuple[float, float | None] | None:
+  """(exact, up to renaming) fraction of the annotated steps of given stacks [..., T, d] (UNKNOWN where not
+  annotated, or padding) whose decoded frame at level equals the given one; None if no step is annotated
+  there."""
+  procs, taus = np.asarray(procedures)[..., level], np.asarray(counters)[..., level]
+  decoded_procs, decoded_taus = np.asarray(decoded_procedures)[..., level], np.asarray(decoded_counters)[..., level]
+  known = procs != UNKNOWN
+  if not known.any():
+    return None
+  size = int(max(procs.max(), decoded_procs.max())) + 1
+  counts = np.zeros((size, size), np.int64)
+  same_tau = known & (decoded_taus == taus)
+  np.add.at(counts, (decoded_procs[same_tau], procs[same_tau]), 1)
+  return exact_fraction(counts, known.sum()), relabelled_fraction(counts, known.sum())

@@ -155,8 +155,7 @@ def _finished(workdir: str, experiment: Experiment, config: TrainConfig, flat_ls
   model = "flat_lstm" if flat_lstm_hidden else "php"
   expected = json.loads(json.dumps({"task": experiment.name, "model": model, **experiment.extra}))
   differ = [f"{k}: {results.get(k)!r} there, {v!r} here" for k, v in expected.items() if results.get(k) != v]
-  defaults = {**dataclasses.asdict(TrainConfig()), **train.BEFORE_THEY_EXISTED}  # a setting newer than the run
-  saved_config = json.loads(json.dumps({**defaults, **results["config"]}))
+  saved_config = train.saved_config(results["config"])
   config_json = json.loads(json.dumps(dataclasses.asdict(config)))
   differ += [f"--{k}: {saved_config.get(k)!r} there, {v!r} here" for k, v in config_json.items()
              if saved_config.get(k) != v and not (k == "strong_weight" and differ)]  # it follows num_strong

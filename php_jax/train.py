@@ -156,7 +156,13 @@ def run_settings(spec: HierarchySpec, demos: Demonstration, config: TrainConfig)
   return json.loads(json.dumps(settings))  # as a checkpoint stores it: tuples become lists
 
 
-BEFORE_THEY_EXISTED = {"snapshot": "earliest"}  # settings whose default differs from what runs did before them
+_BEFORE_THEY_EXISTED = {"snapshot": "earliest"}  # settings whose default differs from what runs did before them
+
+
+def saved_config(saved: dict) -> dict:
+  """A config a run recorded (JSON), with every setting it does not name (it predates the setting) as what
+  runs did before it: its default, or _BEFORE_THEY_EXISTED's value."""
+  return json.loads(json.dumps({**dataclasses.asdict(TrainConfig()), **_BEFORE_THEY_EXISTED, **saved}))
 
 
 _WHY = {"demonstrations": " (another seed, number of demonstrations or of annotated ones, or data file; the "
@@ -164,11 +170,9 @@ _WHY = {"demonstrations": " (another seed, number of demonstrations or of annota
 
 
 def check_resumable(path: str, saved_settings: dict, settings: dict) -> None:
-  """Raises CheckpointError naming the settings that differ between a checkpoint and this run. A setting the
-  checkpoint does not name (it predates the setting) counts as what runs did before it: its default, or
-  BEFORE_THEY_EXISTED's value."""
-  defaults = json.loads(json.dumps({**dataclasses.asdict(TrainConfig()), **BEFORE_THEY_EXISTED}))
-  saved_settings = {**saved_settings, "config": {**defaults, **saved_settings.get("config", {})}}
+  """Raises CheckpointError naming the settings that differ between a checkpoint and this run (a setting the
+  checkpoint does not name: `saved_config`)."""
+  saved_settings = {**saved_settings, "config": saved_config(saved_settings.get("config", {}))}
   if saved_settings == settings:
     return
   old_config, new_config = saved_settings["config"], settings["config"]
