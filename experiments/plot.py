@@ -1,23 +1,30 @@
-r"""Figures and tables from the results.json files of training runs (e.g. those of experiments.sweep).
+r"""Figures and tables from the results.json files of training runs (e.g. those of experiments.sweep), or a figure
+redrawn from a table this command wrote before.
 
   python -m experiments.plot --runs=runs/sweep --out=results
+  python -m experiments.plot --tables=results/nanocraft.md --out=results
 
 Per task: OUT/TASK.md, a table with one row per (model, demonstrations, strongly supervised) and, per test set
 (a test length, or "accuracy"), the mean test accuracy over trials with its range and the trials at 100%,
 then the mean decoding agreement with the supervisor at level 1 (the level whose segmentation decides the
-root's training data), by exact procedure ids and up to a renaming of them; and OUT/TASK.png, one panel per
-test set (two to a row): the accuracy against the number of annotated demonstrations (paper Figure 2; log
-scale, ticks at the measured numbers), one line per model and number of demonstrations ("PHP, 64
-demonstrations"; runs trained with --training=joint dash-dotted, runs with a --call_graph other than "all"
-solid with triangles), the mean over trials with min–max bars, and the flat LSTM (which ignores annotations)
-and runs with nothing annotated as levels across the panel, their values in the legend.
+root's training data), by exact procedure ids and up to a renaming of them; and OUT/TASK.png. With
+--against=annotated (the default) the figure has one panel per test set (two to a row): the accuracy against the
+number of annotated demonstrations (paper Figure 2; log scale, ticks at the measured numbers), one line per model
+and number of demonstrations ("PHP, 64 demonstrations"; runs trained with --training=joint dash-dotted, runs with
+a --call_graph other than "all" solid with triangles), the mean over trials with min–max bars, and the flat LSTM
+(which ignores annotations) and runs with nothing annotated as levels across the panel, their values in the
+legend. With --against=test_size it has one panel: the accuracy against the test problems' size, one line per row
+of the table. With --tables the figure is drawn from the table alone (TABLE's name gives the task); the table is
+left as it is.
 """
 from __future__ import annotations
 
 import glob
 import json
 import os
+import re
 from collections import defaultdict
+from typing import NamedTuple
 
 import matplotlib
 import numpy as np
@@ -30,9 +37,30 @@ from experiments import cli  # noqa: E402
 from php_jax import checkpoint  # noqa: E402
 
 _RUNS = flags.DEFINE_multi_string("runs", None, "Directories searched (recursively) for results.json.")
+_TABLES = flags.DEFINE_multi_string("tables", None, "Tables this command wrote (TASK.md) to draw figures from, "
+                                    "instead of --runs.")
 _OUT = flags.DEFINE_string("out", "results", "Output directory for the PNG and Markdown files.")
+_AGAINST = flags.DEFINE_enum("against", "annotated", ["annotated", "test_size"],
+                             "The figure's horizontal axis: the number of annotated demonstrations, one panel per "
+                             "test set; or the test problems' size, one panel.")
 
 Key = tuple[str, int, int]  # (model, demonstrations, strongly supervised)
+
+
+class Accuracy(NamedTuple):
+  """One test set's accuracy over a row's trials; at_one: how many trials scored 1.0 (None: not recorded)."""
+  mean: float
+  low: float
+  high: float
+  at_one: int | None
+  trials: int
+
+
+class Row(NamedTuple):
+  """A table row: the number of trials, the accuracy per test set, the level-1 agreement as written."""
+  trials: int
+  tests: dict[str, Accuracy]
+  agreement: str
 
 
 def load_results(directories: list[str]) -> list[dict]:
@@ -78,9 +106,21 @@ def group_runs(results: list[dict]) -> dict[str, dict[Key, list[dict]]]:
   return {task: dict(sorted(by_key.items())) for task, by_key in sorted(groups.items())}
 
 
-def test_sets(runs: dict[Key, list[dict]]) -> list[str]:
+def summarise(runs: dict[Key, list[dict]]) -> dict[Key, Row]:
+  """Each group of trials as its table row."""
+  table = {}
+  for key, trials in runs.items():
+    tests = {}
+    for name in {name for r in trials for name in r["test"]}:
+      accs = [r["test"][name] for r in trials if name in r["test"]]
+      tests[name] = Accuracy(float(np.mean(accs)), min(accs), max(accs), sum(a == 1.0 for a in accs), len(accs))
+    table[key] = Row(len(trials), tests, _agreement_text(trials))
+  return table
+
+
+def test_sets(table: dict[Key, Row]) -> list[str]:
   """The test sets' names, "accuracy" first, then lengths in increasing order."""
-  names = {name for trials in runs.values() for r in trials for name in r["test"]}
+  names = {name for row in table.values() for name in row.tests}
   return sorted(names, key=lambda n: (n != "accuracy", int(n) if n.isdigit() else 0, n))
 
 
@@ -96,24 +136,76 @@ def _agreement_text(trials: list[dict]) -> str:
   return text + (f" ({len(measured)} of {len(pairs)} trials)" if len(measured) < len(pairs) else "")
 
 
-def markdown(runs: dict[Key, list[dict]]) -> str:
-  names = test_sets(runs)
-  lines = ["| model | demonstrations | strong | trials | " + " | ".join(
-      f"{n}: mean (min–max, trials at 1.0)" for n in names) + " | level-1 agreement: exact, renamed |",
-           "| --- | --- | --- | --- | " + " | ".join("---" for _ in names) + " | --- |"]
-  for (model, total, strong), trials in runs.items():
-    cells = []
-    for name in names:
-      accs = [r["test"][name] for r in trials if name in r["test"]]
-      cells.append(f"{np.mean(accs):.3f} ({min(accs):.3f}–{max(accs):.3f}, {sum(a == 1.0 for a in accs)}/"
-                   f"{len(accs)})" if accs else "–")
-    lines.append(f"| {model} | {total} | {strong} | {len(trials)} | " + " | ".join(cells) +
-                 f" | {_agreement_text(trials)} |")
+_COLUMN = ": mean (min–max, trials at 1.0)"
+_AGREEMENT = "level-1 agreement: exact, renamed"
+
+
+def markdown(table: dict[Key, Row]) -> str:
+  names = test_sets(table)
+  lines = ["| model | demonstrations | strong | trials | " + " | ".join(n + _COLUMN for n in names) +
+           f" | {_AGREEMENT} |", "| --- | --- | --- | --- | " + " | ".join("---" for _ in names) + " | --- |"]
+  for (model, total, strong), row in table.items():
+    cells = [_cell(row.tests[n]) if n in row.tests else "–" for n in names]
+    lines.append(f"| {model} | {total} | {strong} | {row.trials} | " + " | ".join(cells) + f" | {row.agreement} |")
   return "\n".join(lines) + "\n"
+
+
+def _cell(a: Accuracy) -> str:
+  counted = "" if a.at_one is None else f", {a.at_one}/{a.trials}"
+  return f"{a.mean:.3f} ({a.low:.3f}–{a.high:.3f}{counted})"
+
+
+_CELL = re.compile(r"(\d+(?:\.\d+)?) \((\d+(?:\.\d+)?)–(\d+(?:\.\d+)?)(?:, (\d+)/(\d+))?\)")
+
+
+def read_table(path: str) -> dict[Key, Row]:
+  """The rows of a table markdown() wrote (a cell's ", k/n" may be absent); raises ValueError naming the line."""
+  try:
+    with open(path, encoding="utf-8") as f:
+      lines = [line.strip() for line in f if line.strip()]
+  except (OSError, ValueError) as e:
+    raise ValueError(f"{path}: cannot be read ({e})") from None
+  header = [c.strip() for c in lines[0].strip("|").split("|")] if lines else []
+  if header[:4] != ["model", "demonstrations", "strong", "trials"] or header[-1:] != [_AGREEMENT] or not all(
+      c.endswith(_COLUMN) for c in header[4:-1]):
+    raise ValueError(f"{path}:1: not a table experiments.plot wrote (its header is "
+                     f"'| model | demonstrations | strong | trials | NAME{_COLUMN} | ... | {_AGREEMENT} |')")
+  names = [c[:-len(_COLUMN)] for c in header[4:-1]]
+  table = {}
+  for number, line in enumerate(lines[2:], start=3):
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    try:
+      if len(cells) != len(header):
+        raise ValueError(f"{len(cells)} cells, the header has {len(header)}")
+      key = (cells[0], int(cells[1]), int(cells[2]))
+      tests = {name: _read_cell(cell, int(cells[3])) for name, cell in zip(names, cells[4:-1]) if cell != "–"}
+    except ValueError as e:
+      raise ValueError(f"{path}:{number}: {e}") from None
+    table[key] = Row(int(cells[3]), tests, cells[-1])
+  return table
+
+
+def _read_cell(cell: str, trials: int) -> Accuracy:
+  match = _CELL.fullmatch(cell)
+  if not match:
+    raise ValueError(f"cell {cell!r} is not 'mean (min–max, k/n)'")
+  mean, low, high = (float(v) for v in match.groups()[:3])
+  if not 0 <= low <= mean <= high <= 1:
+    raise ValueError(f"cell {cell!r}: needs 0 ≤ min ≤ mean ≤ max ≤ 1")
+  at_one, counted = (None, trials) if match[4] is None else (int(match[4]), int(match[5]))
+  return Accuracy(mean, low, high, at_one, counted)
 
 
 _STYLES = {"php": ("o", "-"), "php-joint": ("s", "-.")}  # (marker, line); with a call graph: triangles, solid
 _MODES = {"joint": "every level at once"}
+_BARS = "mean over trials; bars: min–max"
+_SIZES = {"addition": ("numbers of {} digits", "digits per number"), "bubblesort": ("arrays of {} digits",
+                                                                                  "digits per array")}
+
+
+def _size_words(task: str) -> tuple[str, str]:
+  """A test set's title for its size, and the size axis's label, in the task's own unit."""
+  return _SIZES.get(task, ("test problems of size {}", "test problem size"))
 
 
 def _label(model: str, total: int) -> str:
@@ -125,23 +217,23 @@ def _label(model: str, total: int) -> str:
   return ", ".join([f"PHP, {total} demonstrations", *how])
 
 
-def figure(runs: dict[Key, list[dict]], path: str, task: str = "") -> None:
+def figure(table: dict[Key, Row], path: str, task: str = "") -> None:
   """Per test set one panel: test accuracy against the number of annotated demonstrations (log scale, ticks
   at the measured numbers), a line per model and number of demonstrations, the mean over trials with
   min–max bars; the flat LSTM and runs with nothing annotated as levels across the panel."""
-  names = test_sets(runs)
+  names = test_sets(table)
   columns = min(2, len(names))
   rows = -(-len(names) // columns)
   fig, axes = plt.subplots(rows, columns, figsize=(6.4 * columns, 4.2 * rows + 0.6), squeeze=False)
-  totals = sorted({total for _, total, _ in runs})
+  totals = sorted({total for _, total, _ in table})
   color = {total: f"C{i}" for i, total in enumerate(totals)}  # a data-set size keeps its colour throughout
-  measured = sorted({strong for _, _, strong in runs if strong > 0})
+  measured = sorted({strong for _, _, strong in table if strong > 0})
   for ax, name in zip(axes.flat, names):
     lines = defaultdict(list)
-    for (model, total, strong), trials in runs.items():
-      accs = [r["test"][name] for r in trials if name in r["test"]]
-      if accs:
-        lines[(model, total)].append((strong, np.mean(accs), min(accs), max(accs)))
+    for (model, total, strong), row in table.items():
+      if name in row.tests:
+        a = row.tests[name]
+        lines[(model, total)].append((strong, a.mean, a.low, a.high))
     for (model, total), points in sorted(lines.items()):
       x, mean, low, high = map(np.array, zip(*sorted(points)))
       php, label = model != "flat_lstm", _label(model, total)
@@ -155,44 +247,84 @@ def figure(runs: dict[Key, list[dict]], path: str, task: str = "") -> None:
                    label=f"{label}, none annotated ({mean[0]:.3f})")
       elif not php:  # actions only: one level across the axis
         ax.axhline(mean[0], linestyle="--", linewidth=2, color=color[total], label=f"{label} ({mean[0]:.3f})")
-    ax.set_xscale("log", base=2)
-    if measured:
-      ax.set_xticks(measured, [str(m) for m in measured])
-      ax.minorticks_off()
-    ax.set_xlabel("annotated demonstrations (log scale)")
-    ax.set_ylabel("test accuracy")
-    ax.set_title("fresh test problems" if name == "accuracy" else f"test problems of size {name}", fontsize=10)
-    ax.set_ylim(-0.03, 1.03)  # a level at 0 stays visible
-    ax.legend(loc="lower right", fontsize=8)
-    ax.grid(alpha=0.3)
+    _log_axis(ax, measured, "annotated demonstrations (log scale)")
+    ax.set_title("fresh test problems" if name == "accuracy" else _size_words(task)[0].format(name), fontsize=10)
   for ax in list(axes.flat)[len(names):]:
     ax.set_visible(False)
-  fig.suptitle(f"{task + ': ' if task else ''}test accuracy against the number of annotated demonstrations "
-               "(mean over trials; bars: min–max)", fontsize=11)
+  fig.suptitle(f"{task + ': ' if task else ''}test accuracy against the number of annotated demonstrations\n"
+               f"({_BARS})", fontsize=11)
+  _save(fig, path)
+
+
+def size_figure(table: dict[Key, Row], path: str, task: str = "") -> None:
+  """One panel: test accuracy against the test problems' size (log scale, ticks at the measured sizes), a line
+  per table row, the mean over trials with min–max bars."""
+  sizes = sorted(int(n) for n in test_sets(table) if n.isdigit())
+  fig, ax = plt.subplots(figsize=(7.4, 4.8))
+  for i, ((model, total, strong), row) in enumerate(table.items()):
+    points = [(s, row.tests[str(s)]) for s in sizes if str(s) in row.tests]
+    if not points:
+      continue
+    x = np.array([s for s, _ in points])
+    mean, low, high = (np.array([getattr(a, f) for _, a in points]) for f in ("mean", "low", "high"))
+    annotated = "" if model == "flat_lstm" else f", {strong} annotated"
+    ax.errorbar(x, mean, yerr=[mean - low, high - mean], marker=("o", "s", "^", "D", "v")[i % 5], capsize=3,
+                color=f"C{i}", label=f"{_label(model, total)}{annotated} ({row.trials} trials)")
+  _log_axis(ax, sizes, f"{_size_words(task)[1]} (log scale)")
+  ax.set_title(f"{task + ': ' if task else ''}test accuracy against the test problems' size\n({_BARS})",
+               fontsize=11)
+  _save(fig, path)
+
+
+def _log_axis(ax, ticks: list[int], label: str) -> None:
+  ax.set_xscale("log", base=2)
+  if ticks:
+    ax.set_xticks(ticks, [str(t) for t in ticks])
+    ax.minorticks_off()
+  ax.set_xlabel(label)
+  ax.set_ylabel("test accuracy")
+  ax.set_ylim(-0.03, 1.03)  # a level at 0 stays visible
+  ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, fontsize=8, frameon=False)
+  ax.grid(alpha=0.3)
+
+
+def _save(fig, path: str) -> None:
   fig.tight_layout()
-  fig.savefig(path, dpi=110)
+  fig.savefig(path, dpi=110, bbox_inches="tight")
   plt.close(fig)
 
 
 def main(argv):
   if argv[1:]:
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
+  if bool(_RUNS.value) == bool(_TABLES.value):
+    cli.fail("give either --runs (directories of runs) or --tables (tables this command wrote)")
   if os.path.exists(_OUT.value) and not os.path.isdir(_OUT.value):
     cli.fail(f"--out={_OUT.value} is a file, not a directory")
   try:
-    results = load_results(_RUNS.value)
+    if _TABLES.value:
+      tables = {os.path.splitext(os.path.basename(p))[0]: read_table(p) for p in _TABLES.value}
+    else:
+      results = load_results(_RUNS.value)
+      if not results:
+        cli.fail(f"no results.json under {_RUNS.value}")
+      tables = {task: summarise(runs) for task, runs in group_runs(results).items()}
+    if _AGAINST.value == "test_size" and not all(any(n.isdigit() for n in test_sets(t)) for t in tables.values()):
+      raise ValueError("--against=test_size needs test sets named by their size")
   except ValueError as e:
     cli.fail(str(e))
-  if not results:
-    cli.fail(f"no results.json under {_RUNS.value}")
   os.makedirs(_OUT.value, exist_ok=True)
+  draw = size_figure if _AGAINST.value == "test_size" else figure
   written = []
-  for task, runs in group_runs(results).items():
+  for task, table in tables.items():
     name = task.replace(":", "_").replace("/", "_")
-    checkpoint.write_atomically(os.path.join(_OUT.value, f"{name}.md"), markdown(runs).encode())
-    _draw_atomically(lambda p, runs=runs, task=task: figure(runs, p, task), os.path.join(_OUT.value, f"{name}.png"))
-    written += [f"{name}.md", f"{name}.png"]
-  print(f"{len(results)} runs -> {', '.join(os.path.join(_OUT.value, w) for w in written)}")
+    if not _TABLES.value:
+      checkpoint.write_atomically(os.path.join(_OUT.value, f"{name}.md"), markdown(table).encode())
+      written.append(f"{name}.md")
+    _draw_atomically(lambda p, table=table, task=task: draw(table, p, task), os.path.join(_OUT.value, f"{name}.png"))
+    written.append(f"{name}.png")
+  source = f"{len(tables)} tables" if _TABLES.value else f"{len(results)} runs"
+  print(f"{source} -> {', '.join(os.path.join(_OUT.value, w) for w in written)}")
 
 
 def _draw_atomically(draw, path: str) -> None:
@@ -207,5 +339,4 @@ def _draw_atomically(draw, path: str) -> None:
 
 
 if __name__ == "__main__":
-  flags.mark_flags_as_required(["runs"])
   app.run(main, flags_parser=cli.parse_flags)

@@ -1,6 +1,7 @@
 """The flat LSTM baseline, the sweep runner's grid, the plot command and the segmentation report."""
 import collections
 import json
+import re
 import subprocess
 import sys
 import threading
@@ -142,6 +143,13 @@ def test_plot_draws_the_figure_and_tables(tmp_path):
       out / "addition.md").read_text()  # test sets by increasing length
   for png in ("nanocraft.png", "addition.png"):
     assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+  assert plot.read_table(str(out / "nanocraft.md")) == plot.summarise(plot.group_runs(plot.load_results([str(runs)]))[
+      "nanocraft"])  # a table reads back as the rows it was written from (to 3 decimals: these are)
+  redrawn = tmp_path / "redrawn"
+  proc = subprocess.run([sys.executable, "-m", "experiments.plot", f"--tables={out / 'addition.md'}",
+                         f"--out={redrawn}", "--against=test_size"], capture_output=True, text=True, timeout=300)
+  assert proc.returncode == 0, proc.stderr[-2000:]
+  assert sorted(p.name for p in redrawn.iterdir()) == ["addition.png"]  # the table is not rewritten
   empty = subprocess.run([sys.executable, "-m", "experiments.plot", f"--runs={tmp_path / 'none'}",
                           f"--out={out}"], capture_output=True, text=True, timeout=300)
   assert empty.returncode == 2 and "no results.json" in empty.stderr
@@ -255,6 +263,28 @@ def test_plot_names_a_corrupt_results_file(tmp_path):
   assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
   assert f"{tmp_path / 'bytes' / 'results.json'}: not a training run's results" in proc.stderr
   assert not out.exists()
+
+
+def test_plot_refuses_a_table_it_did_not_write(tmp_path):
+  header = ("| model | demonstrations | strong | trials | accuracy: mean (min–max, trials at 1.0) | "
+            "level-1 agreement: exact, renamed |\n| --- | --- | --- | --- | --- | --- |\n")
+  for text, where in [("| a | b |\n", ":1: not a table"), (header + "| php | 64 | x | 5 | 0.5 (0.1–0.9) | – |\n", ":3: "),
+                      (header + "| php | 64 | 4 | 5 | 0.5 (0.6–0.9) | – |\n", ":3: cell '0.5 (0.6–0.9)': needs"),
+                      (header + "| php | 64 | 4 | 5 | high | – |\n", ":3: cell 'high' is not"),
+                      (header + "| php | 64 | 4 | 5 |\n", ":3: 4 cells, the header has 6")]:
+    (tmp_path / "t.md").write_text(text)
+    with pytest.raises(ValueError, match=re.escape(f"{tmp_path / 't.md'}{where}")):
+      plot.read_table(str(tmp_path / "t.md"))
+  (tmp_path / "t.md").write_text(header + "| php | 64 | 4 | 5 | 0.500 (0.100–0.900) | 0.9, 0.9 |\n")
+  assert plot.read_table(str(tmp_path / "t.md")) == {
+      ("php", 64, 4): plot.Row(5, {"accuracy": plot.Accuracy(0.5, 0.1, 0.9, None, 5)}, "0.9, 0.9")}
+  cases = [([f"--tables={tmp_path / 't.md'}", f"--runs={tmp_path}"], "either --runs"), ([], "either"),
+           ([f"--tables={tmp_path / 't.md'}", "--against=test_size"], "test sets named by their size")]
+  procs = processes.run_all([[sys.executable, "-m", "experiments.plot", f"--out={tmp_path / 'out'}", *args]
+                             for args, _ in cases], capture_output=True, text=True, timeout=300)
+  for proc, (_, message) in zip(procs, cases):
+    assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+  assert not (tmp_path / "out").exists()
 
 
 def test_segmentation_refuses_bad_runs_and_levels(tmp_path):
