@@ -1,11 +1,13 @@
 """Faults injected into every command: SIGKILL at seeded random moments, then the same command again, ends as
 an uninterrupted run would (train, fit, sweep; evaluate, export_demos, decode and show write whole files or
-none); a full disk ends in one line and a rerun that loses and repeats nothing."""
+none); a full disk (a real tmpfs where the tests run as root, else a patched write) ends in one line and a
+rerun that loses and repeats nothing."""
 import errno
 import json
 import os
 import pathlib
 import random
+import shutil
 import subprocess
 import sys
 import time
@@ -18,7 +20,8 @@ from tests.test_task_interface import COUNTDOWN
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 WAREHOUSE = ROOT / "examples" / "warehouse"
-KILLS = 3  # random moments per command
+# Random SIGKILL moments per command: train and fit are killed twice per attempt, the others once.
+MOMENTS = int(os.environ.get("PHP_JAX_KILL_MOMENTS", "6"))
 
 
 def _train(workdir):
@@ -87,7 +90,7 @@ def test_training_killed_at_random_moments_then_rerun_ends_as_uninterrupted(tmp_
   reference = tmp_path / "reference"
   duration = _timed(command(reference))
   rng = random.Random(0)
-  for attempt in range(KILLS):
+  for attempt in range(MOMENTS // 2):
     workdir = tmp_path / f"killed{attempt}"
     for _ in range(2):  # killed twice at random moments, then run to the end
       _kill_after(command(workdir), rng.uniform(0.0, duration))
@@ -103,7 +106,7 @@ def test_outputs_killed_at_random_moments_are_whole_or_absent_and_the_rerun_writ
   reference = tmp_path / "reference.jsonl"
   duration = _timed(command(reference))
   rng = random.Random(1)
-  for attempt in range(KILLS):
+  for attempt in range(MOMENTS):
     out = tmp_path / f"killed{attempt}.jsonl"
     _kill_after(command(out), rng.uniform(0.0, duration))
     assert not out.exists() or out.read_bytes() == reference.read_bytes()  # never part of one
@@ -119,7 +122,7 @@ def test_a_sweep_killed_at_random_moments_leaves_no_run_behind_and_its_rerun_end
   runs = sorted(p.name for p in reference.iterdir())
   assert runs == ["num_strong=1", "num_strong=2"]
   rng = random.Random(2)
-  for attempt in range(KILLS):
+  for attempt in range(MOMENTS):
     workdir = tmp_path / f"killed{attempt}"
     _kill_after(_sweep(workdir), rng.uniform(0.0, duration))
     time.sleep(1)  # the run it was running ends on the SIGTERM its parent's death sends
@@ -151,7 +154,7 @@ def test_decode_and_show_killed_at_random_moments_write_whole_files_or_none(tmp_
   reference = tmp_path / f"reference{suffix}"
   duration = _timed(command(fitted, reference))
   rng = random.Random(3)
-  for attempt in range(KILLS):
+  for attempt in range(MOMENTS):
     out = tmp_path / f"killed{attempt}{suffix}"
     _kill_after(command(fitted, out), rng.uniform(0.0, duration))
     assert not out.exists() or out.read_bytes() == reference.read_bytes()  # never part of one
@@ -186,3 +189,40 @@ def test_a_full_disk_ends_the_run_and_the_rerun_repeats_no_row(tmp_path, monkeyp
   ours, expected = _run_record(tmp_path / "full"), _run_record(tmp_path / "reference")
   assert [r for r in ours["metrics"] if "resumed" not in r] == expected["metrics"]
   assert ours["model"] == expected["model"] and ours["results"] == expected["results"]
+
+
+@pytest.fixture(scope="module")
+def small_filesystem(tmp_path_factory):
+  """Mounts a tmpfs (root on Linux only) and yields a function that sets its size in KiB."""
+  mount = tmp_path_factory.mktemp("tmpfs")
+  if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4k", "tmpfs", str(mount)],
+                                         capture_output=True).returncode != 0:
+    pytest.skip("mounting a tmpfs needs root and the right to mount")
+  try:
+    yield mount, lambda kib: subprocess.run(["mount", "-o", f"remount,size={kib}k", str(mount)], check=True)
+  finally:
+    subprocess.run(["umount", str(mount)], check=False)
+
+
+@pytest.mark.slow
+def test_a_real_full_disk_ends_in_one_line_and_the_rerun_ends_as_uninterrupted(tmp_path, small_filesystem):
+  """The training command on a tmpfs too small for its run, at sizes that fill it at different moments (the first
+  checkpoint, a later one, the saved model): one line, exit 2, nothing half-written; with the space given back,
+  the rerun ends as an uninterrupted run, every metrics row once."""
+  mount, resize = small_filesystem
+  reference = tmp_path / "reference"
+  _timed(_train(reference))
+  for kib in (12, 28, 48):
+    workdir = mount / "run"
+    resize(kib)
+    proc = _python(_train(workdir))
+    assert proc.returncode == 2 and proc.stderr.strip() == f"error: {workdir}: No space left on device", (
+        kib, proc.stderr[-2000:])
+    assert not list(workdir.glob(".*.tmp")), kib
+    resize(1024)
+    proc = _python(_train(workdir))
+    assert proc.returncode == 0, (kib, proc.stderr[-3000:])
+    ours, expected = _run_record(workdir), _run_record(reference)
+    assert [r for r in ours["metrics"] if "resumed" not in r] == expected["metrics"], kib
+    assert ours["model"] == expected["model"] and ours["results"] == expected["results"], kib
+    shutil.rmtree(workdir)
