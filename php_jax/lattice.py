@@ -29,12 +29,14 @@ keyword); results name the frame marginals `marginals`, a path's frames `procedu
 log P(ζ, ξ) `log_prob` (here aliases of v, procedure, counter). `php_jax.TwoLevelLattice(inputs, procedures,
 counters)` (php_jax.lattice_ops) answers the same queries as `php_jax.StackLattice`.
 
-Refused, with a ValueError naming the argument: shapes that do not match, a length that is not an integer
-in 1..T, a temperature that is not a finite number > 0, an annotation that is not an integer array of the
-right shape or, when concrete, has a value outside −1..K−1 / −1..C−1 on a step before length. Under jit or
-vmap only shapes and dtypes are checked: a traced length outside 1..T or a traced temperature ≤ 0 gives a
-meaningless result, and a traced annotation value out of range matches nothing (validate_inputs checks the
-lattice's values before you jit). Arrays of different float dtypes are not refused (Dtypes).
+Refused, with a ValueError naming the argument: an input that is not a float array (None, integer and
+boolean arrays; nested lists of floats are taken), shapes that do not match, a length that is not an integer
+in 1..T, a temperature that is not a finite number > 0, a key that is not one PRNG key, an annotation that is
+not an integer array of the right shape and, when concrete, NaN or +inf in an input or an annotation value
+outside −1..K−1 / −1..C−1 on a step before length. Under jit or vmap only shapes and dtypes are checked: a
+traced length outside 1..T or a traced temperature ≤ 0 gives a meaningless result, NaN or +inf gives NaN,
+and a traced annotation value out of range matches nothing (validate_inputs checks a lattice's values before
+you jit). Arrays of different float dtypes are not refused (Dtypes).
 
 Dtypes: float32 and float64 inputs are computed in their own dtype, arrays of different dtypes in the
 promoted one. float16 and bfloat16 inputs are computed in float32 and the results are float32 (a long
@@ -46,6 +48,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import inspect
+import operator
 from typing import Any, NamedTuple
 
 import jax
@@ -179,15 +182,13 @@ _HALF_PRECISION = (jnp.dtype(jnp.float16), jnp.dtype(jnp.bfloat16))
 
 
 def _in_common_dtype(*arrays):
-  """The arrays cast to their common (promoted) dtype, float16 and bfloat16 to float32 (module docstring,
-  Dtypes): the public E-step functions compute in one dtype of at least float32. The cast's gradient returns
-  cotangents in the caller's dtype."""
-  typed = [x for x in arrays if hasattr(x, "dtype")]
-  if not typed:
-    return arrays
-  dtype = jnp.result_type(*typed)
+  """The arrays (or nested lists) as arrays of their common (promoted) dtype, float16 and bfloat16 as float32
+  (module docstring, Dtypes): the public E-step functions compute in one dtype of at least float32. The
+  cast's gradient returns cotangents in the caller's dtype."""
+  arrays = tuple(x if hasattr(x, "dtype") else jnp.asarray(x) for x in arrays)  # nested lists as arrays
+  dtype = jnp.result_type(*arrays)
   dtype = jnp.dtype(jnp.float32) if dtype in _HALF_PRECISION else dtype
-  return tuple(x.astype(dtype) if hasattr(x, "dtype") and x.dtype != dtype else x for x in arrays)
+  return tuple(x.astype(dtype) if x.dtype != dtype else x for x in arrays)
 
 
 def check_length(length, num_steps: int):
@@ -199,7 +200,7 @@ def check_length(length, num_steps: int):
   integer = (isinstance(length, int) and not isinstance(length, bool)) or (
       dtype is not None and jnp.ndim(length) == 0 and jnp.issubdtype(dtype, jnp.integer))
   if not integer:
-    shown = f"an array of shape {jnp.shape(length)}" if jnp.ndim(length) else repr(length)
+    shown = f"an array of shape {np.shape(length)}" if np.ndim(length) else repr(length)
     raise ValueError(f"length must be an integer in 1..T = 1..{num_steps}; got {shown}")
   if not isinstance(length, jax.core.Tracer) and not 1 <= int(length) <= num_steps:
     raise ValueError(f"length must be in 1..T = 1..{num_steps}; got {int(length)}")
@@ -207,20 +208,83 @@ def check_length(length, num_steps: int):
 
 
 def check_temperature(temperature):
-  """Refuses a temperature that is not a scalar real number or, when concrete, not finite and > 0."""
-  dtype = jnp.result_type(temperature) if not isinstance(temperature, bool) else jnp.dtype(bool)
+  """Refuses a temperature that is not a scalar real number (bool, None and strings are not) or, when
+  concrete, not finite and > 0."""
+  try:
+    dtype = jnp.result_type(temperature)
+  except TypeError:
+    dtype = jnp.dtype(object)
   real = jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)
-  if not real or jnp.ndim(temperature) != 0 or (
+  if temperature is None or isinstance(temperature, bool) or not real or jnp.ndim(temperature) != 0 or (
       not isinstance(temperature, jax.core.Tracer) and not (np.isfinite(temperature) and temperature > 0)):
-    shown = f"an array of shape {jnp.shape(temperature)}" if jnp.ndim(temperature) else repr(temperature)
+    shown = f"an array of shape {np.shape(temperature)}" if np.ndim(temperature) else repr(temperature)
     raise ValueError(f"temperature must be a finite number > 0; got {shown}")
 
 
 def check_k(k) -> int:
-  """k as an int; refuses one that is not an integer ≥ 1 (bool is not)."""
-  if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+  """k as an int; refuses one that is not a concrete integer ≥ 1 (bool is not; a 0-d integer array is)."""
+  try:
+    index = None if isinstance(k, (bool, np.bool_)) else operator.index(k)
+  except TypeError:  # a float, None, or a traced value (k is static)
+    index = None
+  if index is None or index < 1:
     raise ValueError(f"k must be an int ≥ 1; got {k!r}")
-  return int(k)
+  return index
+
+
+def check_key(key, name: str = "key", batched: bool = False):
+  """Refuses a key that is not one PRNG key (batched: a batch [B] of them): a key array of shape [] or [B]
+  (jax.random.key's, jax.random.split's), or a legacy uint32 key [n] or [B, n] (jax.random.PRNGKey's).
+  Static: checked under jit too."""
+  dtype = getattr(key, "dtype", None)
+  typed = dtype is not None and jax.dtypes.issubdtype(dtype, jax.dtypes.prng_key)
+  if not ((typed and jnp.ndim(key) == batched) or (dtype == jnp.uint32 and jnp.ndim(key) == batched + 1)):
+    shown = f"an array of dtype {dtype} and shape {jnp.shape(key)}" if dtype is not None else repr(key)
+    what = ("a batch [B] of PRNG keys (jax.random.split(key, B))" if batched
+            else "one PRNG key (jax.random.key(seed); vmap over keys for many)")
+    raise ValueError(f"{name} must be {what}; got {shown}")
+
+
+def check_log_probs(name: str, x, shape: str):
+  """x as an array (a nested list of floats becomes one); refuses, naming it, anything but a float array
+  (None, integer and boolean arrays). shape: the expected shape in words, for the message."""
+  if not hasattr(x, "dtype"):
+    try:
+      x = jnp.asarray(x)
+    except (TypeError, ValueError):
+      raise ValueError(f"{name} must be a float array {shape}; got {described(x)}") from None
+  if not jnp.issubdtype(x.dtype, jnp.floating):
+    raise ValueError(f"{name} must be a float array {shape} of log-probabilities; got dtype {x.dtype}")
+  return x
+
+
+def check_finite(arrays: dict, length=None):
+  """Refuses NaN or +inf (−inf is a legal zero probability) in any of arrays (name → [T, ...] concrete
+  array) on the steps before length (every step if None), naming the array and the index."""
+  for name, x in arrays.items():
+    values = np.asarray(x)[:None if length is None else int(length)]
+    for bad, what in ((np.isnan(values), "NaN"), (np.isposinf(values), "+inf")):
+      if bad.any():
+        raise ValueError(f"{name} contains {what} at index {tuple(int(i) for i in np.argwhere(bad)[0])}")
+
+
+def as_inputs(name: str, inputs, kind):
+  """inputs as a `kind` (LatticeInputs or StackInputs): one, or a plain tuple or list of its fields (length
+  optional); refuses anything else (None, the other lattice's inputs), naming it."""
+  if isinstance(inputs, kind):
+    return inputs
+  if isinstance(inputs, (tuple, list)) and not hasattr(inputs, "_fields") and len(inputs) in (4, 5):
+    return kind(*inputs)
+  raise ValueError(f"{name} must be a {kind.__name__} ({', '.join(kind._fields)}); got {described(inputs)}")
+
+
+def described(x) -> str:
+  """What x is, for a refusal: "None", "an array of shape (3, 2)", "a tuple of 3", "a str"."""
+  if x is None:
+    return "None"
+  if hasattr(x, "shape"):
+    return f"an array of shape {tuple(x.shape)}"
+  return f"a {type(x).__name__}" + (f" of {len(x)}" if isinstance(x, (tuple, list)) else "")
 
 
 def check_annotation(name: str, values, shape: tuple, bounds, length=None):
@@ -249,17 +313,27 @@ def check_annotation(name: str, values, shape: tuple, bounds, length=None):
 
 
 def _check_inputs(log_root, log_op, log_stop, log_cont, length):
-  """Validates shapes (static) and the length; returns (T, K, C, length as an int32 array)."""
+  """Validates dtypes and shapes (static), the length and, when concrete, the values on the steps before it
+  (no NaN or +inf); returns (T, K, C, length as an int32 array)."""
+  arrays = {"log_root": check_log_probs("log_root", log_root, "[T, K]")}
+  arrays.update((name, check_log_probs(name, x, "[T, K, C]"))
+                for name, x in (("log_op", log_op), ("log_stop", log_stop), ("log_cont", log_cont)))
+  log_root, log_op, log_stop, log_cont = arrays.values()
   if jnp.ndim(log_op) != 3:
     raise ValueError(f"log_op must be [T, K, C]; got shape {jnp.shape(log_op)}")
   num_steps, num_procs, capacity = jnp.shape(log_op)
+  if min(num_steps, num_procs, capacity) < 1:
+    raise ValueError(f"T, K and C must be ≥ 1; log_op has shape {jnp.shape(log_op)}")
   for name, arr in (("log_stop", log_stop), ("log_cont", log_cont)):
     if jnp.shape(arr) != jnp.shape(log_op):
       raise ValueError(f"{name} must have log_op's shape [T, K, C] = {jnp.shape(log_op)}; "
                        f"got {jnp.shape(arr)}")
   if jnp.shape(log_root) != (num_steps, num_procs):
     raise ValueError(f"log_root must be [T, K] = {(num_steps, num_procs)}; got {jnp.shape(log_root)}")
-  return num_steps, num_procs, capacity, check_length(length, num_steps)
+  checked = check_length(length, num_steps)
+  if not any(isinstance(x, jax.core.Tracer) for x in (*arrays.values(), checked)):
+    check_finite(arrays, checked)
+  return num_steps, num_procs, capacity, checked
 
 
 def _annotated(log_op, procedures, counters, length):
@@ -282,8 +356,8 @@ def validate_inputs(log_root, log_op, log_stop, log_cont, length=None) -> Lattic
   Checks: log_op, log_stop, log_cont are float arrays [T, K, C] and log_root [T, K] with T, K, C ≥ 1 (integer
   or boolean arrays and Python lists are refused: pass jnp.asarray(x, jnp.float32)); no NaN and no +inf
   (−inf is a legal zero probability); length, if given, an integer (Python, NumPy or a 0-d integer array)
-  in 1..T. The E-step functions check shapes and a concrete length themselves (under jit or vmap, shapes
-  only), not the values.
+  in 1..T. The E-step functions check the same themselves on concrete values, but take nested lists and look
+  for NaN and +inf only on the steps before length; under jit or vmap they check shapes and dtypes only.
 
   Args:
     log_root: [T, K]. log_op, log_stop, log_cont: [T, K, C]. length: [] int or None (= T). Or one LatticeInputs.
@@ -303,14 +377,8 @@ def validate_inputs(log_root, log_op, log_stop, log_cont, length=None) -> Lattic
       raise ValueError(f"{name} must be a float array; got dtype {x.dtype}")
   if isinstance(length, jax.core.Tracer):
     raise TypeError("validate_inputs needs concrete values; length is traced (call it outside jit/vmap)")
-  num_steps, num_procs, capacity, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
-  if min(num_steps, num_procs, capacity) < 1:
-    raise ValueError(f"T, K and C must be ≥ 1; log_op has shape {jnp.shape(log_op)}")
-  for name, x in arrays.items():
-    values = np.asarray(x)
-    for bad, what in ((np.isnan(values), "NaN"), (np.isposinf(values), "+inf")):
-      if bad.any():
-        raise ValueError(f"{name} contains {what} at index {tuple(int(i) for i in np.argwhere(bad)[0])}")
+  _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
+  check_finite(arrays)
   return LatticeInputs(log_root, log_op, log_stop, log_cont, int(length))
 
 
@@ -519,6 +587,7 @@ def sample_posterior(key, log_root, log_op, log_stop, log_cont, length=None, tem
   Example:
     >>> path = sample_posterior(jax.random.key(0), log_root, log_op, log_stop, log_cont, 5, temperature=0.5)
   """
+  check_key(key)
   _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
   check_temperature(temperature)
   log_op = _annotated(log_op, procedures, counters, length)
@@ -551,12 +620,15 @@ def max_marginal_path(posterior: LatticePosterior, length=None) -> LatticePath:
   """Per step the most probable (h, τ) under v. Not always a valid path; log_prob is not computed (NaN).
 
   Args:
-    posterior: forward_backward's result (v [T, K, C]). length: [] int, default T.
+    posterior: forward_backward's result (v [T, K, C]). length: [] int in 1..T, default T (as
+      forward_backward's: a traced one is not range-checked).
   Returns:
     LatticePath(procedure [T], counter [T], log_prob [] NaN).
   """
+  if not isinstance(posterior, LatticePosterior):
+    raise ValueError(f"posterior must be a LatticePosterior (forward_backward's result); got {described(posterior)}")
   num_steps, _, capacity = posterior.v.shape
-  length = num_steps if length is None else length
+  length = check_length(length, num_steps)
   states = jnp.argmax(posterior.v.reshape(num_steps, -1), axis=1).astype(jnp.int32)
   states = jnp.where(jnp.arange(num_steps) < length, states, NO_FRAME)
   return _path_from_states(states, capacity, jnp.full((), jnp.nan, posterior.v.dtype))
@@ -623,9 +695,12 @@ def annotate(log_op, procedure, counter):
   Returns:
     [T, K, C] log_op with −inf outside the annotation.
   Raises:
-    ValueError for a float or misshapen annotation and, when procedure or counter is concrete (not traced),
-    for a value out of range at any step, naming the step.
+    ValueError for a log_op that is not a float array [T, K, C], for a float or misshapen annotation and,
+    when procedure or counter is concrete (not traced), for a value out of range at any step, naming the step.
   """
+  log_op = check_log_probs("log_op", log_op, "[T, K, C]")
+  if jnp.ndim(log_op) != 3:
+    raise ValueError(f"log_op must be [T, K, C]; got shape {jnp.shape(log_op)}")
   num_steps, num_procs, capacity = log_op.shape
   procedure = check_annotation("procedure", procedure, (num_steps,), [("K", num_procs)])
   counter = check_annotation("counter", counter, (num_steps,), [("C", capacity)])
@@ -633,6 +708,7 @@ def annotate(log_op, procedure, counter):
 
 
 def _mask(log_op, procedure, counter):
+  log_op = log_op if hasattr(log_op, "dtype") else jnp.asarray(log_op)
   _, num_procs, capacity = log_op.shape
   proc_ok = (procedure[:, None] < 0) | (procedure[:, None] == jnp.arange(num_procs)[None, :])
   tau_ok = (counter[:, None] < 0) | (counter[:, None] == jnp.arange(capacity)[None, :])
@@ -643,12 +719,16 @@ def top_level(log_stop, length=None):
   """The top level's lattice (K = 1, called once): no stop before the last step.
 
   Args:
-    log_stop: [T, 1, C]. length: [] int, default T.
+    log_stop: [T, 1, C]. length: [] int in 1..T, default T (as forward_backward's: a traced one is not
+      range-checked).
   Returns:
     [T, 1, C] log_stop with −inf before step length − 1.
   """
+  log_stop = check_log_probs("log_stop", log_stop, "[T, 1, C]")
+  if jnp.ndim(log_stop) != 3 or jnp.shape(log_stop)[1] != 1:
+    raise ValueError(f"log_stop must be [T, 1, C] (the top level has one procedure); got shape {jnp.shape(log_stop)}")
   num_steps = log_stop.shape[0]
-  length = num_steps if length is None else length
+  length = check_length(length, num_steps)
   early = jnp.arange(num_steps) < length - 1
   return jnp.where(early[:, None, None], -jnp.inf, log_stop)
 

@@ -15,8 +15,9 @@ import jax.numpy as jnp
 
 from php_jax.lattice import (NO_FRAME, LatticeInputs, LatticePath, LatticePosterior, LatticeStructure,
                              _annotated, _check_inputs, _expected_log_joint, _finite_or_zero, _in_common_dtype,
-                             _is_push, _path_from_states, _shift, accepts_inputs, check_annotation, check_k,
-                             check_temperature, forward_backward, posterior_entropy, sample_posterior, viterbi)
+                             _is_push, _path_from_states, _shift, accepts_inputs, as_inputs, check_annotation,
+                             check_k, check_key, check_temperature, forward_backward, posterior_entropy,
+                             sample_posterior, viterbi)
 
 
 @accepts_inputs
@@ -124,7 +125,7 @@ def _cross_entropy(post_p, q: LatticeInputs):
 
 def _same_lattice(p: LatticeInputs, q: LatticeInputs):
   """Checks shapes and (concrete) lengths; returns both with the same explicit length."""
-  p, q = LatticeInputs(*p), LatticeInputs(*q)
+  p, q = as_inputs("p", p, LatticeInputs), as_inputs("q", q, LatticeInputs)
   for name, x in (("p", p), ("q", q)):
     try:
       _check_inputs(*x)
@@ -169,6 +170,7 @@ def differentiable_sample(key, log_root, log_op, log_stop, log_cont, length=None
     >>> z = differentiable_sample(jax.random.key(0), log_root, log_op, log_stop, log_cont, 5)
     >>> jax.grad(lambda op: jnp.sum(weights * differentiable_sample(key, log_root, op, log_stop, log_cont, 5)))(log_op)
   """
+  check_key(key)
   _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
   check_temperature(temperature)
   inputs = _in_common_dtype(log_root, log_op, log_stop, log_cont)
@@ -288,8 +290,9 @@ class TwoLevelLattice(LatticeStructure):
   """
 
   def _checked(self):
-    inputs = LatticeInputs(*self.inputs)
+    inputs = as_inputs("inputs", self.inputs, LatticeInputs)
     num_steps, num_procs, capacity, length = _check_inputs(*inputs)
+    inputs = LatticeInputs(*(x if hasattr(x, "dtype") else jnp.asarray(x) for x in inputs[:4]), inputs.length)
     procedures, counters = (None if x is None else check_annotation(name, x, (num_steps,), [(letter, size)], length)
                             for name, x, letter, size in (("procedures", self.procedures, "K", num_procs),
                                                           ("counters", self.counters, "C", capacity)))

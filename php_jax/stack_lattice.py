@@ -40,10 +40,13 @@ The same dialect as php_jax.lattice: every function takes one StackInputs, an an
 `procedures`, `counters`, `log_prob`; top_k, the entropy and KL divergence / cross-entropy come from the same
 recursions (k-best lists per state; the event posteriors above times the log-factors). `StackLattice` is the
 structure answering every query, like php_jax.TwoLevelLattice. Refused with a ValueError naming the argument,
-as in php_jax.lattice: shapes that do not match, a length that is not an integer in 1..T, a temperature that
-is not a finite number > 0, an annotation that is not an integer array [T, d] or, when concrete, has a value
-outside −1..K_i−1 / −1..C_i−1 on a step before length. Under jit or vmap only shapes and dtypes are checked
-(a traced annotation value out of range matches nothing). Arrays of different dtypes are computed in the
+as in php_jax.lattice: inputs that are not a StackInputs (or a plain tuple of its fields), an input that is not
+a float array (nested lists of floats are taken), shapes that do not match, a length that is not an integer in
+1..T, a temperature that is not a finite number > 0, a key that is not one PRNG key, an annotation that is not
+an integer array [T, d] and, when concrete, NaN or +inf in an input or an annotation value outside
+−1..K_i−1 / −1..C_i−1 on a step before length. Under jit or vmap only the structure, shapes and dtypes are
+checked (a traced length or temperature out of range gives a meaningless result, NaN or +inf gives NaN, and
+a traced annotation value out of range matches nothing). Arrays of different dtypes are computed in the
 promoted one; unlike the two-level lattice, float16 and bfloat16 inputs are computed in their own dtype.
 """
 from __future__ import annotations
@@ -54,7 +57,8 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from php_jax.lattice import NO_FRAME, LatticeStructure, check_annotation, check_k, check_length, check_temperature
+from php_jax.lattice import (NO_FRAME, LatticeStructure, as_inputs, check_annotation, check_finite, check_k, check_key,
+                             check_length, check_log_probs, check_temperature, described)
 
 
 class StackInputs(NamedTuple):
@@ -95,13 +99,26 @@ class StackPath(NamedTuple):
   log_prob: jax.Array
 
 
-def _check_inputs(inputs: StackInputs):
-  """Validates shapes (static) and the length (concrete); returns the length as an int32 array."""
+def _check_inputs(inputs: StackInputs, name: str = "inputs"):
+  """Validates the structure, dtypes and shapes (static), the length and, when concrete, the values on the
+  steps before it (no NaN or +inf); returns (inputs as a StackInputs of arrays, the length as an int32 array)."""
+  inputs = as_inputs(name, inputs, StackInputs)
+  for field in ("log_call", "log_stop", "log_cont"):
+    if not isinstance(getattr(inputs, field), (tuple, list)):
+      raise ValueError(f"{field} must be a tuple of arrays, one per level (d−1 in log_call, d in log_stop and "
+                       f"log_cont); got {described(getattr(inputs, field))}")
   log_call, log_act, log_stop, log_cont, length = inputs
   depth = len(log_stop)
   if depth < 2 or len(log_cont) != depth or len(log_call) != depth - 1:
     raise ValueError(f"need d ≥ 2 levels: d arrays in log_stop and log_cont, d-1 in log_call; got "
                      f"{len(log_call)}, {len(log_stop)}, {len(log_cont)}")
+  log_call = tuple(check_log_probs(f"log_call[{i}]", x, "[T, K_i, C_i, K_{i+1}]") for i, x in enumerate(log_call))
+  log_act = check_log_probs("log_act", log_act, "[T, K_{d-1}, C_{d-1}]")
+  log_stop, log_cont = (tuple(check_log_probs(f"{field}[{i}]", x, "[T, K_i, C_i]") for i, x in enumerate(arrays))
+                        for field, arrays in (("log_stop", log_stop), ("log_cont", log_cont)))
+  for field, x in (("log_act", log_act), *((f"log_stop[{i}]", x) for i, x in enumerate(log_stop))):
+    if jnp.ndim(x) != 3 or min(jnp.shape(x)) < 1:
+      raise ValueError(f"{field} must be [T, K, C] with T, K, C ≥ 1; got shape {jnp.shape(x)}")
   num_steps = jnp.shape(log_act)[0]
   sizes = tuple(jnp.shape(x)[1] for x in log_stop)
   capacities = tuple(jnp.shape(x)[2] for x in log_stop)
@@ -110,12 +127,16 @@ def _check_inputs(inputs: StackInputs):
   expected.update({f"log_call[{i}]": (log_call[i], (num_steps, sizes[i], capacities[i], sizes[i + 1]))
                    for i in range(depth - 1)})
   expected["log_act"] = (log_act, (num_steps, sizes[-1], capacities[-1]))
-  for name, (x, shape) in expected.items():
+  for field, (x, shape) in expected.items():
     if jnp.shape(x) != shape:
-      raise ValueError(f"{name} must have shape {shape}; got {jnp.shape(x)}")
+      raise ValueError(f"{field} must have shape {shape}; got {jnp.shape(x)}")
   if sizes[0] != 1:
     raise ValueError(f"the root level has one procedure: log_stop[0] must be [T, 1, C_0]; got {jnp.shape(log_stop[0])}")
-  return check_length(length, num_steps)
+  checked = check_length(length, num_steps)
+  inputs = StackInputs(log_call, log_act, log_stop, log_cont, length)
+  if not any(isinstance(x, jax.core.Tracer) for x in (*jax.tree.leaves(inputs[:4]), checked)):
+    check_finite(dict(_named_arrays(inputs)), checked)
+  return inputs, checked
 
 
 def _check_annotation(inputs: StackInputs, procedures, counters, length):
@@ -128,11 +149,13 @@ def _check_annotation(inputs: StackInputs, procedures, counters, length):
   return checked
 
 
-def _prepared(inputs: StackInputs, procedures=None, counters=None):
+def _prepared(inputs: StackInputs, procedures=None, counters=None, fill_unknown=False, name="inputs"):
   """The public functions' checks (module docstring): (inputs with length None, every array in the promoted
-  dtype; procedures; counters; length [] int32)."""
-  length = _check_inputs(inputs)
+  dtype; procedures; counters; length [] int32). fill_unknown: None annotations as −1 arrays."""
+  inputs, length = _check_inputs(inputs, name)
   procedures, counters = _check_annotation(inputs, procedures, counters, length)
+  if fill_unknown:
+    procedures, counters = _unknown_as_arrays(inputs, procedures, counters)
   fields = tuple(inputs[:4])
   dtype = jnp.result_type(*jax.tree.leaves(fields))
   fields = jax.tree.map(lambda x: x if x.dtype == dtype else x.astype(dtype), fields)
@@ -375,6 +398,7 @@ def sample_posterior(key, inputs: StackInputs, procedures=None, counters=None, t
     StackPath(procedures [T, d], counters [T, d], log_prob [] = log P(ζ, ξ) of the drawn path, untempered);
     meaningless if log P(ξ) is −inf.
   """
+  check_key(key)
   prepared = _prepared(inputs, procedures, counters)
   check_temperature(temperature)
   return _sample_posterior(key, *prepared, temperature)
@@ -450,7 +474,7 @@ def top_k(k: int, inputs: StackInputs, procedures=None, counters=None) -> StackP
     StackPath(procedures [k, T, d], counters [k, T, d], log_prob [k]) descending; entry 0 is viterbi's.
   """
   k = check_k(k)
-  return _top_k(k, *_prepared(inputs, *_unknown_as_arrays(inputs, procedures, counters)))
+  return _top_k(k, *_prepared(inputs, procedures, counters, fill_unknown=True))
 
 
 def _expected_log_joint(events, log_factors):
@@ -498,17 +522,18 @@ def _pair(p, q, p_annotation=(None, None), q_annotation=(None, None)):
   """Checks two lattices of the same shapes and length, and their annotations; returns _entropies' arguments."""
   checked = []
   for name, x, annotation in (("p", p, p_annotation), ("q", q, q_annotation)):
+    as_inputs(name, x, StackInputs)
     try:
-      x, *annotation, length = _prepared(x, *_unknown_as_arrays(x, *annotation))
+      x, *annotation, length = _prepared(x, *annotation, fill_unknown=True, name=name)
     except ValueError as error:
       raise ValueError(f"{name}: {error}") from None
     checked.append((x, tuple(annotation), length))
+  (p, p_annotation, length), (q, q_annotation, q_length) = checked
   if len(p.log_stop) != len(q.log_stop):
     raise ValueError(f"p and q must have the same number of levels; got {len(p.log_stop)} and {len(q.log_stop)}")
   for (name, a), (_, b) in zip(_named_arrays(p), _named_arrays(q)):
     if jnp.shape(a) != jnp.shape(b):
       raise ValueError(f"p.{name} and q.{name} must have the same shape; got {jnp.shape(a)} and {jnp.shape(b)}")
-  (p, p_annotation, length), (q, q_annotation, q_length) = checked
   if not any(isinstance(x, jax.core.Tracer) for x in (length, q_length)) and int(length) != int(q_length):
     raise ValueError(f"p and q must have the same length; got {int(length)} and {int(q_length)}")
   return p, p_annotation, q, q_annotation, length
@@ -522,7 +547,7 @@ def posterior_entropy(inputs: StackInputs, procedures=None, counters=None) -> ja
   Returns:
     [] nats.
   """
-  return _entropy(*_prepared(inputs, *_unknown_as_arrays(inputs, procedures, counters)))
+  return _entropy(*_prepared(inputs, procedures, counters, fill_unknown=True))
 
 
 def cross_entropy(p: StackInputs, q: StackInputs) -> jax.Array:
@@ -567,8 +592,8 @@ class StackLattice(LatticeStructure):
   """
 
   def _checked(self):
-    inputs = StackInputs(*self.inputs)
-    return inputs, *_check_annotation(inputs, self.procedures, self.counters, _check_inputs(inputs))
+    inputs, length = _check_inputs(self.inputs)
+    return inputs, *_check_annotation(inputs, self.procedures, self.counters, length)
 
   def _annotation(self):
     return {"procedures": self.procedures, "counters": self.counters}
