@@ -22,6 +22,7 @@ import numpy as np
 
 from php_jax import decoding
 from php_jax.demos import Demonstration
+from php_jax.hierarchy import check_size
 from php_jax.model import PHPHierarchy
 
 
@@ -56,8 +57,13 @@ def suggest(demos: Demonstration, budget: int, action_name: Callable[[list[int]]
             certainty_of: np.ndarray | None = None) -> list[Suggestion]:
   """Up to budget of the batch's demonstrations [B, ...] not yet annotated (demos.strong), best first
   (module docstring). certainty_of: optional [B] mean uncertainty per step (`uncertainty`); the score is
-  then the summed uncertainty, else the number of steps."""
+  then the summed uncertainty, else the number of steps. Raises ValueError for a budget that is not an
+  integer ≥ 0 or a certainty_of that is not [B]."""
+  check_size("budget", budget, 0)
   length = np.asarray(demos.length)
+  if certainty_of is not None and np.shape(certainty_of) != length.shape:
+    raise ValueError(f"certainty_of must be [B] = {list(length.shape)} (one per demonstration); got shape "
+                     f"{list(np.shape(certainty_of))}")
   shown = [behaviours(a, n) for a, n in zip(np.asarray(demos.actions), length)]
   counts: dict[tuple, int] = {}
   for kinds in shown:

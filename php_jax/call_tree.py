@@ -40,9 +40,18 @@ def call_starts(procedures, counters) -> np.ndarray:
 
 def calls(procedures, counters, length: int | None = None) -> Call:
   """The root's call, holding every call below it, of a stack [T, d] over its first length steps (default
-  T; −1 entries, unknown or padding, are read as procedure −1)."""
-  procedures = np.asarray(procedures)[:length]
-  counters = np.asarray(counters)[:length]
+  T; −1 entries, unknown or padding, are read as procedure −1). Raises ValueError for stacks that are not
+  integer arrays [T, d] of one shape (T ≥ 1), or a length outside 1..T."""
+  procedures, counters = np.asarray(procedures), np.asarray(counters)
+  for name, x in (("procedures", procedures), ("counters", counters)):
+    if x.ndim != 2 or not len(x) or not np.issubdtype(x.dtype, np.integer):
+      raise ValueError(f"{name} must be an integer array [T, d] with T ≥ 1; got {x.dtype} of shape {x.shape}")
+  if counters.shape != procedures.shape:
+    raise ValueError(f"counters must have procedures' shape {procedures.shape}; got {counters.shape}")
+  if length is not None and not (isinstance(length, (int, np.integer)) and not isinstance(length, bool)
+                                 and 1 <= length <= len(procedures)):
+    raise ValueError(f"length must be an integer in 1..T = 1..{len(procedures)}; got {length!r}")
+  procedures, counters = procedures[:length], counters[:length]
   starts = call_starts(procedures, counters)
   depth = procedures.shape[1]
 

@@ -5,6 +5,7 @@ import jax
 import numpy as np
 
 from php_jax import demos, executor
+from php_jax.hierarchy import check_size
 from php_jax.task import Task
 
 
@@ -28,7 +29,8 @@ def problem_demonstrations(task: Task, problems: list, num_strong: int) -> demos
 
 def strong_mask(num_demos: int, num_strong: int, seed: int) -> np.ndarray:
   """[num_demos] bool: which demonstrations are strongly supervised, num_strong chosen at random (seeded)."""
-  if not 0 <= num_strong <= num_demos:
+  num_demos, num_strong = check_size("num_demos", num_demos, 0), check_size("num_strong", num_strong, 0)
+  if not num_strong <= num_demos:
     raise ValueError(f"num_strong must be in 0..{num_demos}; got {num_strong}")
   mask = np.zeros(num_demos, bool)
   mask[np.random.default_rng(seed).permutation(num_demos)[:num_strong]] = True

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from php_jax.executor import Rollout
+from php_jax.hierarchy import HierarchySpec
 
 UNKNOWN = -1  # procedure / counter value where the stack is not annotated, and on padding.
 
@@ -35,9 +36,15 @@ class Demonstration(NamedTuple):
 def from_rollouts(rollouts: Rollout, strong) -> Demonstration:
   """A batch of recorded rollouts [B, S, ...] → demonstrations trimmed to the longest episode (host side).
 
-  Raises ValueError if an episode did not terminate or took an invalid action.
+  Raises ValueError if the rollouts were not recorded, strong is neither one bool nor [B] bools, or an episode
+  did not terminate or took an invalid action.
   """
+  if rollouts.observations is None:
+    raise ValueError("rollouts must be recorded (executor.rollout_batch(..., record=True)); got rollouts without "
+                     "observations")
   length = np.asarray(rollouts.length)
+  if np.shape(strong) not in ((), length.shape):
+    raise ValueError(f"strong must be one bool or [B] = {list(length.shape)} bools; got shape {list(np.shape(strong))}")
   bad = np.flatnonzero(~np.asarray(rollouts.terminated))
   if bad.size:
     raise ValueError(f"rollouts {bad.tolist()} did not end with the root returning; cannot demonstrate")
@@ -77,6 +84,8 @@ def validate(batch: Demonstration, spec) -> None:
   actions or procedure ids out of range, or annotated stacks that break the call-stack semantics. A strong
   demonstration may leave stack entries UNKNOWN (partial annotation).
   """
+  if not isinstance(spec, HierarchySpec):
+    raise ValueError(f"spec must be a HierarchySpec; got {spec!r}")
   actions = np.asarray(batch.actions)
   procs, taus = np.asarray(batch.procedures), np.asarray(batch.counters)
   lengths, strong = np.asarray(batch.length), np.asarray(batch.strong)

@@ -13,7 +13,8 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from php_jax.hierarchy import HierarchySpec, Policy
+from php_jax.hierarchy import HierarchySpec, Policy, check_size
+from php_jax.lattice import check_key
 
 
 class Rollout(NamedTuple):
@@ -105,7 +106,6 @@ def _advance(policy: Policy, spec: HierarchySpec, env, machine: _Machine):
   return _Machine(state, new_procs, new_taus, key), (obs, action, procs, taus), returned
 
 
-@functools.partial(jax.jit, static_argnames=("spec", "env", "max_steps", "record"))
 def rollout_batch(policy: Policy, spec: HierarchySpec, env, states, keys, max_steps: int,
                   record: bool = True) -> Rollout:
   """Runs the hierarchy from the root on a batch of start states [B, ...] until each root returns, takes an
@@ -120,9 +120,27 @@ def rollout_batch(policy: Policy, spec: HierarchySpec, env, states, keys, max_st
     env: an environment module with observe(state) and step(state, action); states have `.failed`.
     states: batched start states.
     keys: [B] PRNG keys handed to the policy (used when it samples).
-    max_steps: static step budget.
+    max_steps: static step budget, an int ≥ 1.
     record: whether to return observations, actions and stacks.
+  Raises:
+    ValueError naming the argument: spec not a HierarchySpec, max_steps not an int ≥ 1, keys not a batch
+    [B] of PRNG keys (legacy uint32 keys: [B, 2]), or states whose leading axis is not B (static checks: the
+    same under jit).
   """
+  if not isinstance(spec, HierarchySpec):
+    raise ValueError(f"spec must be a HierarchySpec; got {spec!r}")
+  max_steps = check_size("max_steps", max_steps)
+  check_key(keys, "keys", batched=True)
+  batch = jnp.shape(keys)[0]
+  for path, leaf in jax.tree_util.tree_leaves_with_path(states):
+    if jnp.ndim(leaf) == 0 or jnp.shape(leaf)[0] != batch:
+      raise ValueError(f"states{jax.tree_util.keystr(path)} must have a leading batch axis of B = {batch}, the "
+                       f"number of keys; got shape {jnp.shape(leaf)}")
+  return _rollout_batch(policy, spec, env, states, keys, max_steps, record)
+
+
+@functools.partial(jax.jit, static_argnames=("spec", "env", "max_steps", "record"))
+def _rollout_batch(policy: Policy, spec: HierarchySpec, env, states, keys, max_steps: int, record: bool) -> Rollout:
   batch = keys.shape[0]
   depth, num_factors = spec.num_levels, len(spec.action_sizes)
   machines = jax.vmap(lambda s, k: _start(policy, spec, env, s, k))(states, keys)

@@ -53,8 +53,31 @@ def observation_size(space: spaces.Space) -> int:
   return int(spaces.flatdim(space))
 
 
+def _check_observation(space: spaces.Space, observation, where: str = "observation") -> None:
+  """Refuses an observation that space cannot flatten: a Discrete, MultiDiscrete or MultiBinary value the
+  space does not contain, a Box value of another shape (values outside its bounds are taken), a Dict without
+  one of its keys or a Tuple of another length, naming where."""
+  if isinstance(space, spaces.Dict):
+    if not (isinstance(observation, dict) and set(space.spaces) <= set(observation)):
+      raise GymError(f"{where} must be a dict with the keys {sorted(space.spaces)}; got {observation!r}")
+    for key, sub in space.spaces.items():
+      _check_observation(sub, observation[key], f"{where}[{key!r}]")
+  elif isinstance(space, spaces.Tuple):
+    if not (isinstance(observation, (tuple, list)) and len(observation) == len(space.spaces)):
+      raise GymError(f"{where} must be a tuple of {len(space.spaces)} values; got {observation!r}")
+    for i, (sub, value) in enumerate(zip(space.spaces, observation)):
+      _check_observation(sub, value, f"{where}[{i}]")
+  elif isinstance(space, spaces.Box):
+    if np.shape(observation) != space.shape:
+      raise GymError(f"{where} must have the shape {space.shape} of {space}; got shape {np.shape(observation)}")
+  elif not space.contains(np.asarray(observation) if isinstance(observation, list) else observation):
+    raise GymError(f"{where} {observation!r} is not in {space}")
+
+
 def flatten_observation(space: spaces.Space, observation) -> np.ndarray:
-  """An observation of space as a float32 vector [observation_size(space)]."""
+  """An observation of space as a float32 vector [observation_size(space)]. Raises GymError for an observation
+  the space does not hold (Box values outside its bounds are taken)."""
+  _check_observation(space, observation)
   return np.asarray(spaces.flatten(space, observation), np.float32)
 
 
@@ -86,8 +109,17 @@ def action_sizes(space: spaces.Space) -> tuple[int, ...]:
 
 
 def env_actions(space: spaces.Space, factors: np.ndarray) -> np.ndarray:
-  """A vector environment's actions [M, ...] for M actions' factors [M, F] (int)."""
-  factors = np.asarray(factors, np.int64)
+  """A vector environment's actions [M, ...] for M actions' factors [M, F] (int, each in its factor's range;
+  GymError otherwise)."""
+  sizes, given = action_sizes(space), np.asarray(factors)
+  if given.ndim != 2 or given.shape[1] != len(sizes) or not np.issubdtype(given.dtype, np.integer):
+    raise GymError(f"factors must be [M, {len(sizes)}] integers (one row per action); got {given.dtype} of shape "
+                   f"{given.shape}")
+  bad = np.argwhere((given < 0) | (given >= np.array(sizes)))
+  if bad.size:
+    m, f = bad[0]
+    raise GymError(f"factors[{m}, {f}] = {given[m, f]} is outside 0..{sizes[f] - 1}")
+  factors = given.astype(np.int64)
   if isinstance(space, spaces.Discrete):
     return int(space.start) + factors[:, 0]
   shape = (len(factors),) + space.nvec.shape
@@ -95,7 +127,11 @@ def env_actions(space: spaces.Space, factors: np.ndarray) -> np.ndarray:
 
 
 def action_factors(space: spaces.Space, action) -> list[int]:
-  """An environment action's factors (int), each counted from 0."""
+  """An environment action's factors (int), each counted from 0. Raises GymError for an action the space does
+  not contain."""
+  action_sizes(space)  # refuses other spaces
+  if not space.contains(np.asarray(action) if isinstance(action, list) else action):
+    raise GymError(f"action {action!r} is not in the action space {space}")
   if isinstance(space, spaces.Discrete):
     return [int(action) - int(space.start)]
   return (np.ravel(np.asarray(action, np.int64)) - np.ravel(space.start)).tolist()
@@ -171,7 +207,7 @@ def _stack_spec(stacks: list, sizes: tuple[int, ...], episode: int) -> Hierarchy
   depth = depths.pop()
   widths = [1] * depth
   for frames in given:
-    for level, frame in enumerate(frames):
+    for level, frame in enumerate(frames[1:], 1):  # the root level has one procedure
       if isinstance(frame, list) and frame and isinstance(frame[0], int):
         widths[level] = max(widths[level], frame[0] + 1)
   return HierarchySpec("expert", tuple(("p",) * w for w in widths), sizes, 0)

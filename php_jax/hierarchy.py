@@ -6,6 +6,15 @@ import dataclasses
 from typing import Protocol
 
 import jax
+import numpy as np
+
+
+def check_size(name: str, value, least: int = 1) -> int:
+  """value as an int; refuses, naming it, one that is not an integer ≥ least (bool and float are not, a NumPy
+  integer is)."""
+  if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < least:
+    raise ValueError(f"{name} must be an integer ≥ {least}; got {value!r}")
+  return int(value)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -21,12 +30,28 @@ class HierarchySpec:
     allowed_ops: the call graph the hierarchy declares (a hierarchy file's "calls"): per level, root first,
       None or `[K_i][Σ op_sizes(i)]` bools, which operations each procedure may take (`php_jax.call_graph`);
       None: any, at every level.
+  Raises:
+    ValueError naming the field: no levels, a level without procedures, a root level of more than one,
+    no action factors or one of size < 1, or a negative obs_dim (0: not known yet).
   """
   name: str
   levels: tuple[tuple[str, ...], ...]
   action_sizes: tuple[int, ...]
   obs_dim: int
   allowed_ops: tuple | None = None
+
+  def __post_init__(self):
+    if not (isinstance(self.levels, tuple) and self.levels
+            and all(isinstance(level, tuple) and level for level in self.levels)):
+      raise ValueError(f"levels must be a non-empty tuple of non-empty tuples of procedure names, root first; "
+                       f"got {self.levels!r}")
+    if len(self.levels[0]) != 1:
+      raise ValueError(f"levels: the root level has one procedure; got {self.levels[0]!r}")
+    if not (isinstance(self.action_sizes, tuple) and self.action_sizes):
+      raise ValueError(f"action_sizes must be a non-empty tuple of factor sizes; got {self.action_sizes!r}")
+    for f, size in enumerate(self.action_sizes):
+      check_size(f"action_sizes[{f}]", size)
+    check_size("obs_dim", self.obs_dim, 0)
 
   @property
   def num_levels(self) -> int:

@@ -9,7 +9,14 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from php_jax.hierarchy import HierarchySpec
+from php_jax.hierarchy import HierarchySpec, check_size
+
+def _check_sizes(name: str, sizes, least: int = 1) -> tuple[int, ...]:
+  """sizes (a sequence of ints, each ≥ least) as a tuple; refuses anything else naming it."""
+  if not isinstance(sizes, (tuple, list)):
+    raise ValueError(f"{name} must be a tuple of integers; got {sizes!r}")
+  return tuple(check_size(f"{name}[{i}]", n, least) for i, n in enumerate(sizes))
+
 
 _he_init = nnx.initializers.variance_scaling(2.0, "fan_in", "normal", in_axis=-2, out_axis=-1,
                                              batch_axis=(0,))
@@ -62,11 +69,20 @@ class PHPLevel(nnx.Module):
     allowed_ops: `[K][Σ op_sizes]` bools: per procedure, which value of each operation factor it may take
       (which callee, or which value of each elementary action factor; the others get probability 0); None:
       any.
+  Raises ValueError naming the argument: num_procs < 1, obs_dim < 0, no op_sizes or one < 1, a hidden size
+  < 1, tau_limit < 0, allowed_ops of another shape.
   """
 
   def __init__(self, num_procs: int, obs_dim: int, op_sizes: tuple[int, ...], hidden=(64, 64),
                tau_in_termination: bool = True, tau_limit: int | None = None,
                allowed_ops: tuple[tuple[bool, ...], ...] | None = None, *, rngs: nnx.Rngs):
+    check_size("num_procs", num_procs)
+    check_size("obs_dim", obs_dim, 0)
+    if not _check_sizes("op_sizes", op_sizes):
+      raise ValueError("op_sizes must name at least one operation factor; got ()")
+    _check_sizes("hidden", hidden)
+    if tau_limit is not None:
+      check_size("tau_limit", tau_limit, 0)
     self.op_sizes = tuple(op_sizes)
     self.tau_in_termination = tau_in_termination
     self.tau_limit = tau_limit
@@ -115,6 +131,9 @@ class RootMLP(nnx.Module):
   """η_⊥(h | o_t): a ReLU MLP over each observation. [T, obs_dim] → [T, K] log-probabilities."""
 
   def __init__(self, obs_dim: int, num_children: int, hidden=(64, 64), *, rngs: nnx.Rngs):
+    check_size("obs_dim", obs_dim, 0)
+    check_size("num_children", num_children)
+    _check_sizes("hidden", hidden)
     sizes = (obs_dim, *hidden)
     self.layers = nnx.List([nnx.Linear(a, b, rngs=rngs) for a, b in zip(sizes[:-1], sizes[1:])])
     self.head = nnx.Linear(sizes[-1], num_children, rngs=rngs)
@@ -130,6 +149,9 @@ class RootLSTM(nnx.Module):
   """η_⊥^LSTM(h | o_0..o_t): an LSTM over the observation sequence. [T, obs_dim] → [T, K] log-probabilities."""
 
   def __init__(self, obs_dim: int, num_children: int, hidden: int = 64, *, rngs: nnx.Rngs):
+    check_size("obs_dim", obs_dim, 0)
+    check_size("num_children", num_children)
+    check_size("hidden", hidden)
     self.hidden = hidden
     self.cell = nnx.LSTMCell(obs_dim, hidden, rngs=rngs)
     self.head = nnx.Linear(hidden, num_children, rngs=rngs)
@@ -147,6 +169,8 @@ class PHPHierarchy(nnx.Module):
                tau_limit=None, allowed_ops=None, *, rngs: nnx.Rngs):
     """tau_in_termination, tau_limit, allowed_ops: per level, root first (PHPLevel); None: τ everywhere,
     unlimited, every operation allowed."""
+    if not isinstance(spec, HierarchySpec):
+      raise ValueError(f"spec must be a HierarchySpec; got {spec!r}")
     tau_in_termination = tau_in_termination or (True,) * spec.num_levels
     tau_limit = tau_limit or (None,) * spec.num_levels
     allowed_ops = allowed_ops or (None,) * spec.num_levels

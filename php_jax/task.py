@@ -121,5 +121,7 @@ class Task:
 
   def states_and_budget(self, problems: list) -> tuple[Any, int]:
     """Start states of problems of any sizes on the largest one's bucket, and that bucket's step budget."""
+    if not problems:
+      raise ValueError("problems must list at least one problem")
     bucket = max(self.bucket(p) for p in problems)
     return self.make_states(problems, bucket), self.step_budget(bucket)

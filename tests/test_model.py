@@ -75,7 +75,7 @@ def test_root_networks_give_distributions_and_lstm_is_causal():
 
 def test_random_php_hierarchies_run_in_the_executor_without_retracing():
   task = tasks.get("addition")
-  traced = jax.jit(chex.assert_max_traces(executor.rollout_batch.__wrapped__, n=1),
+  traced = jax.jit(chex.assert_max_traces(executor.rollout_batch, n=1),
                    static_argnames=("spec", "env", "max_steps", "record"))
   keys = jax.random.split(jax.random.key(0), 8)
   for seed in range(3):

@@ -38,6 +38,10 @@ def width_for(num_digits: int) -> int:
 
 def make_problem(a: str, b: str, width: int | None = None) -> State:
   """The start state for a + b, two decimal strings of equal length (most significant digit first)."""
+  if not (isinstance(a, str) and isinstance(b, str)):
+    raise ValueError(f"a and b must be decimal strings (not numbers: leading zeros count); got {a!r}, {b!r}")
+  if width is not None and (isinstance(width, bool) or not isinstance(width, (int, np.integer))):
+    raise ValueError(f"width must be an integer; got {width!r}")
   if len(a) != len(b) or not a or not (a + b).isdigit() or not (a + b).isascii():
     raise ValueError(f"a and b must be non-empty decimal strings of equal length; got {a!r}, {b!r}")
   width = width_for(len(a)) if width is None else width

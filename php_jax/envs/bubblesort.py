@@ -34,7 +34,12 @@ class State:
 
 
 def make_problem(array, width: int | None = None) -> State:
-  """The start state for a list of n ≥ 2 digits, on a tape of width ≥ n + 1 (default n + 1)."""
+  """The start state for a list of n ≥ 2 digits (integers, bool not), on a tape of width ≥ n + 1 (default
+  n + 1)."""
+  if any(isinstance(d, (bool, np.bool_)) or not isinstance(d, (int, np.integer)) for d in array):
+    raise ValueError(f"an array must hold integer digits 0-9; got {list(array)}")
+  if width is not None and (isinstance(width, bool) or not isinstance(width, (int, np.integer))):
+    raise ValueError(f"width must be an integer; got {width!r}")
   array = [int(d) for d in array]
   if len(array) < 2 or not all(0 <= d <= 9 for d in array):
     raise ValueError(f"an array must hold at least 2 digits 0-9; got {array}")

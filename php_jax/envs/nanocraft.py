@@ -51,7 +51,11 @@ def check_spec(x: int, y: int, w: int, h: int) -> None:
 
 
 def make_problem(x: int, y: int, w: int, h: int, preplaced=()) -> State:
-  """The start state for a building and its pre-placed [row, column] cells (each on the perimeter)."""
+  """The start state for a building and its pre-placed [row, column] cells (each on the perimeter). Raises
+  ValueError naming a field that is not an integer (bool is not) or a building or cell that does not fit."""
+  for name, value in zip("xywh", (x, y, w, h)):
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+      raise ValueError(f"{name} must be an integer; got {value!r}")
   check_spec(x, y, w, h)
   spec = np.array([x, y, w, h], np.int32)
   target = np.asarray(perimeter(jnp.asarray(spec)))
