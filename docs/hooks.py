@@ -19,8 +19,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PAGES_FROM_ROOT = ("RESULTS.md", "BUILD.md")
 _FLAGS_MARK = re.compile(r"^<!-- flags: (experiments\.\w+) -->$", re.MULTILINE)
 _COMMAND = re.compile(r"python -m (experiments\.[a-z_]+)\b((?:[^\n`&;|]|\\\n)*)")
-_GROUPS = {"experiments.config_flags": "training settings", "experiments.training": "the run and its workdir",
-           "experiments.environment_flags": "the environment"}
+sys.path.insert(0, ROOT)  # the documentation build runs from mkdocs's script, not from the repository
+from experiments.flag_groups import GROUPS  # noqa: E402  (after the path it is found on)
 
 
 def on_files(files, config):
@@ -52,16 +52,16 @@ def command_flags(module: str) -> tuple[tuple[str, str, str, str], ...]:
   flags = []
   for flag in ElementTree.fromstring(proc.stdout).iter("flag"):
     source = flag.findtext("file") or ""
-    if flag.findtext("key") != "yes" and source not in _GROUPS:
+    if flag.findtext("key") != "yes" and source not in GROUPS:
       continue
-    group = _GROUPS.get(source, "the command's own")
+    group = GROUPS.get(source, "the command's own")
     flags.append((group, flag.findtext("name"), flag.findtext("default") or "", flag.findtext("meaning") or ""))
   return tuple(flags)
 
 
 def flag_table(module: str) -> str:
   """A Markdown table of the command's flags, its own first."""
-  order = ["the command's own", *_GROUPS.values()]
+  order = ["the command's own", *GROUPS.values()]
   rows = sorted(command_flags(module), key=lambda f: (order.index(f[0]), f[1]))
   lines = [f"Every flag of `python -m {module}` (its `--help` says the same):", "",
            "| flag | default | what it sets |", "| --- | --- | --- |"]

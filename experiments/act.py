@@ -29,8 +29,10 @@ import numpy as np
 from absl import app, flags
 
 from experiments import cli, environment_flags, progress
-from php_jax import checkpoint, gym
+from php_jax.data import files
+from php_jax.envs import gym
 from php_jax.model import PHPHierarchy
+from php_jax.training import checkpoint
 
 _POLICY = flags.DEFINE_string("policy", None, "Workdir of experiments.fit holding the policy.")
 _EPISODES = flags.DEFINE_integer("episodes", 100, "Episodes to run.", lower_bound=1)
@@ -67,7 +69,7 @@ def main(argv):
                        environment_flags.MAX_STEPS.value, on_episode)
   seconds = time.perf_counter() - start
   with cli.output_errors("out", _OUT.value):
-    checkpoint.write_atomically(_OUT.value, "".join(json.dumps(e) + "\n" for e in episodes).encode())
+    files.write_atomically(_OUT.value, "".join(json.dumps(e) + "\n" for e in episodes).encode())
   steps = sum(e["steps"] for e in episodes)
   print(f"{len(episodes)} episodes, {steps} steps in {seconds:.1f} s -> {_OUT.value}")
   print(f"success {np.mean([e['success'] for e in episodes]):.3f}, "

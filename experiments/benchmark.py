@@ -25,7 +25,10 @@ from absl import app, flags
 from flax import nnx
 
 import php_jax
-from php_jax import datasets, executor, joint, objective, sharding, tasks, train, views
+from php_jax import executor, sharding
+from php_jax.data import views
+from php_jax.envs import datasets, tasks
+from php_jax.training import joint, objective, train
 
 _SIZES = flags.DEFINE_string(
     "sizes", "160x80x3x8,160x200x6x16,32x400x6x32,16x10000x3x8,4096x200x6x16",
@@ -317,7 +320,8 @@ def bench_scaling():
 def bench_act():
   """Steps per second of `gym.act` (compiled beforehand) against the same vector environment stepped alone
   with actions drawn in advance, in the same process."""
-  from php_jax import checkpoint, gym  # gymnasium is an optional extra
+  from php_jax.envs import gym  # gymnasium is an optional extra
+  from php_jax.training import checkpoint
   if not (_POLICY.value and _ENV.value):
     raise app.UsageError("--policy and --env are required for act")
   _, policy = checkpoint.load_policy(_POLICY.value)

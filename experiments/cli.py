@@ -12,7 +12,9 @@ from typing import NoReturn
 
 from absl import flags, logging
 
-from php_jax import checkpoint
+from experiments.flag_groups import GROUPS
+from php_jax.data import files
+from php_jax.training import checkpoint
 
 
 def fail(message: str) -> NoReturn:
@@ -25,7 +27,7 @@ def fail(message: str) -> NoReturn:
 def exit_on_interrupt(message: str) -> None:
   """From now on, SIGINT (Ctrl-C) or SIGTERM ends the command within moments, even inside a long compiled
   computation (which Python's own handling would wait out): "interrupted: message" on stderr, exit status 130.
-  A file being written (`checkpoint.write_atomically`) is first put in place. Call it from the main thread.
+  A file being written (`files.write_atomically`) is first put in place. Call it from the main thread.
 
   The signals' handlers only wake a watcher thread through the wakeup fd, which the kernel-level handler
   writes to in whichever thread receives the signal; the watcher ends the process."""
@@ -37,7 +39,7 @@ def exit_on_interrupt(message: str) -> None:
 
   def watch():
     os.read(read, 1)
-    with checkpoint.WRITING:
+    with files.WRITING:
       if sys.stdout.isatty():  # a live progress display hid the cursor
         print("\x1b[?25h", flush=True)
       print(f"interrupted: {message}", file=sys.stderr, flush=True)
@@ -63,7 +65,7 @@ def check_outputs(outputs: dict[str, str | None], inputs: dict[str, str | None])
       raise ValueError(f"--{flag}: must name a file; got ''")
     if os.path.isdir(path):
       raise ValueError(f"--{flag}={path} is a directory")
-    directory = os.path.dirname(os.path.abspath(path))
+    directory = os.path.dirname(os.path.realpath(path))  # a symbolic link writes the file it names
     if not os.path.isdir(directory):
       raise ValueError(f"--{flag}={path}: directory {directory} does not exist")
     if not os.access(directory, os.W_OK | os.X_OK):
@@ -85,7 +87,7 @@ def _same_file(a: str, b: str) -> bool:
 @contextlib.contextmanager
 def output_errors(flag: str, path: str):
   """Ends the command in one line naming the flag (exit status 2) if writing its file fails in the block (a
-  full disk, a file system made read-only); `checkpoint.write_atomically` leaves nothing behind."""
+  full disk, a file system made read-only); `files.write_atomically` leaves nothing behind."""
   try:
     yield
   except OSError as e:
@@ -100,10 +102,6 @@ def seed_list(values: list[str]) -> list[int]:
 
 
 _HELP = {"--help", "-help", "-h", "-?", "--helpshort", "--helpfull", "--helpxml"}
-_GROUPS = {"experiments.config_flags": "training settings", "experiments.training": "the run and its workdir",
-           "experiments.environment_flags": "the environment"}
-
-
 def parse_flags(argv: list[str]) -> list[str]:
   """absl's flag parsing, with a bad flag reported in one line and exit status 2 (for app.run's flags_parser),
   and --help or -h printing the command's usage and its flags grouped by what they set, exit status 0
@@ -132,8 +130,8 @@ def grouped_help(program: str) -> str:
   defined = {}
   for flag in flags.FLAGS.get_key_flags_for_module(program):
     source = flags.FLAGS.find_module_defining_flag(flag.name, default=program)
-    defined.setdefault(_GROUPS.get(source, "flags of this command"), []).append(flag)
-  order = ["flags of this command", *_GROUPS.values()]
+    defined.setdefault(GROUPS.get(source, "flags of this command"), []).append(flag)
+  order = ["flags of this command", *GROUPS.values()]
   parts = [(module.__doc__ or "").strip(), ""]
   for group in sorted(defined, key=order.index):
     parts.append(f"{group[0].upper()}{group[1:]}:")

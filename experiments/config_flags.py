@@ -1,4 +1,4 @@
-"""Training settings on the command line: one flag per field of `php_jax.config.TrainConfig` (its name, help,
+"""Training settings on the command line: one flag per field of `php_jax.training.config.TrainConfig` (its name, help,
 choices and default), parsed into the TrainConfig the flags ask for. Defines no flag of its own: each
 command calls `define_config_flags`."""
 from __future__ import annotations
@@ -7,7 +7,7 @@ from typing import Callable
 
 from absl import flags
 
-from php_jax import config as config_lib
+from php_jax.training import config as config_lib
 
 
 class UsageError(ValueError):
@@ -15,7 +15,7 @@ class UsageError(ValueError):
 
 
 def define_config_flags(defaults: Callable[[str, object], str], flag_values: flags.FlagValues = flags.FLAGS) -> None:
-  """One flag per TrainConfig field (`php_jax.config`), with the field's name, help and choices; its help ends
+  """One flag per TrainConfig field (`php_jax.training.config`), with the field's name, help and choices; its help ends
   with defaults(name, TrainConfig's default), the command's own words for the default (a task's or a
   hierarchy file's may differ; none where empty). Unset flags are None."""
   for field in config_lib.fields():

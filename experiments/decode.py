@@ -24,8 +24,11 @@ import numpy as np
 from absl import app, flags
 
 from experiments import cli
-from php_jax import agreement, checkpoint, decoding, demo_files, replay
+from php_jax.analysis import decoding
+from php_jax.data import agreement, demo_files, files
+from php_jax.envs import replay
 from php_jax.model import PHPHierarchy
+from php_jax.training import checkpoint
 
 _POLICY = flags.DEFINE_string("policy", None, "Workdir holding a fitted hierarchy.")
 _DEMOS = flags.DEFINE_string("demos", None, "Demonstrations to decode, JSON lines.")
@@ -63,7 +66,7 @@ def main(argv):
     cli.fail(str(e))
   lines, decoded = decode_lines(hierarchy, capacity, batch)
   with cli.output_errors("out", _OUT.value):
-    checkpoint.write_atomically(_OUT.value, "".join(json.dumps(line) + "\n" for line in lines).encode())
+    files.write_atomically(_OUT.value, "".join(json.dumps(line) + "\n" for line in lines).encode())
   replayed = sum(line["replayed"] for line in lines)
   print(f"{hierarchy.spec.name}: {replayed}/{len(lines)} replayed -> {_OUT.value}")
   for level in range(1, hierarchy.spec.num_levels):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from absl import flags
 
-from php_jax import gym
+from php_jax.envs import gym
 
 ENV = flags.DEFINE_string("env", None, "A registered Gymnasium id, or module:attribute of a callable returning a "
                           "gymnasium.Env.")

@@ -16,11 +16,13 @@ from absl import app, flags
 
 from experiments import cli
 from experiments import problems as problem_files
-from php_jax import checkpoint, evaluation, tasks
-from php_jax.task import Task
+from php_jax.data import files
+from php_jax.envs import evaluation, tasks
+from php_jax.envs.task import Task
+from php_jax.training import checkpoint
 
 _TASK = flags.DEFINE_string("task", None, f"The task: one of {', '.join(tasks.TASKS)}, or module:attribute of "
-                            "a php_jax.task.Task defined elsewhere.")
+                            "a php_jax.envs.task.Task defined elsewhere.")
 _POLICY = flags.DEFINE_string("policy", "oracle", "'oracle' or a workdir with a trained model.")
 _PROBLEMS = flags.DEFINE_string("problems", None, "Input JSON-lines file of problems.")
 _OUT = flags.DEFINE_string("out", None, "Output JSON-lines file of outcomes.")
@@ -50,7 +52,7 @@ def main(argv):
     cli.fail(str(e))
   outcomes = evaluation.solve(task, policy, problems, batch_size=_BATCH_SIZE.value)
   with cli.output_errors("out", _OUT.value):
-    checkpoint.write_atomically(_OUT.value, "".join(json.dumps(o) + "\n" for o in outcomes).encode())
+    files.write_atomically(_OUT.value, "".join(json.dumps(o) + "\n" for o in outcomes).encode())
   correct = sum(o["correct"] for o in outcomes)
   print(f"{task.name}: {correct}/{len(outcomes)} correct -> {_OUT.value}")
 

@@ -15,8 +15,9 @@ from __future__ import annotations
 from absl import app, flags
 
 from experiments import cli
-from php_jax import checkpoint, datasets, demo_files, tasks
-from php_jax.config import MAX_SEED
+from php_jax.data import demo_files, files
+from php_jax.envs import datasets, tasks
+from php_jax.training.config import MAX_SEED
 
 _TASK = flags.DEFINE_string("task", None, f"The task: one of {', '.join(tasks.TASKS)}, or module:attribute.")
 _SPLIT = flags.DEFINE_enum("split", "training", ["training", "validation", "test"], "Which problems.")
@@ -67,7 +68,7 @@ def main(argv):
   annotated = datasets.strong_mask(len(problems), _NUM_STRONG.value, _SEED.value)
   lines = demo_files.demonstration_lines(batch, annotated)
   with cli.output_errors("out", _OUT.value):
-    checkpoint.write_atomically(_OUT.value, "".join(line + "\n" for line in lines).encode())
+    files.write_atomically(_OUT.value, "".join(line + "\n" for line in lines).encode())
   if _HIERARCHY_OUT.value:
     with cli.output_errors("hierarchy_out", _HIERARCHY_OUT.value):
       demo_files.write_hierarchy(_HIERARCHY_OUT.value, task.spec)

@@ -3,7 +3,7 @@ r"""Fits a PHP hierarchy to your own demonstrations: no environment code needed.
   python -m experiments.fit --demos=TRAIN.jsonl --hierarchy=H.json --workdir=DIR [--validation=VAL.jsonl]
 
 Reads the hierarchy file and the demonstrations (JSON lines; annotated ones carry their call stack, fully or
-partly: see php_jax.demo_files or README), trains every level from the lowest up to the root (level 0), and
+partly: see php_jax.data.demo_files or README), trains every level from the lowest up to the root (level 0), and
 keeps the root level's snapshot that replays the most held-out demonstrations (--validation, or else
 --validation_fraction of TRAIN, held out at random by --seed). A demonstration is replayed when the learned
 hierarchy's argmax policy, run on its recorded observations, takes every recorded action and returns from
@@ -16,9 +16,11 @@ import numpy as np
 from absl import app, flags
 
 from experiments import cli, config_flags, progress, training
-from php_jax import call_graph, demo_files, replay
-from php_jax.run import Experiment, train_and_evaluate
+from php_jax.data import demo_files
 from php_jax.demos import Demonstration
+from php_jax.envs import replay
+from php_jax.training import call_graph
+from php_jax.training.run import Experiment, train_and_evaluate
 
 _DEMOS = flags.DEFINE_string("demos", None, "Training demonstrations, JSON lines.")
 _HIERARCHY = flags.DEFINE_string("hierarchy", None, "Hierarchy file (JSON): procedure names per level, root "

@@ -12,7 +12,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
-from php_jax.call_tree import Call, level_calls
+from php_jax.data.call_tree import Call, level_calls
 
 _COLOURS = matplotlib.colormaps["tab10"]
 _UNKNOWN_COLOUR = "#d0d0d0"

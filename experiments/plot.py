@@ -34,7 +34,7 @@ matplotlib.use("Agg")
 from matplotlib import pyplot as plt  # noqa: E402  (after choosing the file-only backend)
 
 from experiments import cli  # noqa: E402
-from php_jax import checkpoint  # noqa: E402
+from php_jax.data import files
 
 _RUNS = flags.DEFINE_multi_string("runs", None, "Directories searched (recursively) for results.json.")
 _TABLES = flags.DEFINE_multi_string("tables", None, "Tables this command wrote (TASK.md) to draw figures from, "
@@ -319,7 +319,7 @@ def main(argv):
   for task, table in tables.items():
     name = task.replace(":", "_").replace("/", "_")
     if not _TABLES.value:
-      checkpoint.write_atomically(os.path.join(_OUT.value, f"{name}.md"), markdown(table).encode())
+      files.write_atomically(os.path.join(_OUT.value, f"{name}.md"), markdown(table).encode())
       written.append(f"{name}.md")
     _draw_atomically(lambda p, table=table, task=task: draw(table, p, task), os.path.join(_OUT.value, f"{name}.png"))
     written.append(f"{name}.png")

@@ -1,8 +1,8 @@
 """Problem files (JSON lines) for `experiments.evaluate`: parsing with line-numbered errors."""
 from __future__ import annotations
 
-from php_jax import json_lines
-from php_jax.task import Task
+from php_jax.data import json_lines
+from php_jax.envs.task import Task
 
 
 class ProblemFileError(ValueError):
@@ -11,7 +11,7 @@ class ProblemFileError(ValueError):
 
 def read_problems(path: str, task: Task) -> list:
   """All problems of a JSON-lines file (blank lines skipped), parsed by the task. Raises ProblemFileError
-  at the first bad line (not UTF-8, not JSON within php_jax.json_lines' bounds, not a problem), or naming the
+  at the first bad line (not UTF-8, not JSON within php_jax.data.json_lines' bounds, not a problem), or naming the
   file if it holds no problem."""
   problems = []
   with open(path, "rb") as f:

@@ -1,7 +1,7 @@
 """What a person at a terminal sees while a command works: for training, a live display (rich) of each phase
 (level k of n, lowest first, or every level at once), its iterations done of total, the last loss and best
 validation, elapsed time and time left, then a table of the test results and where the model is (away from
-a terminal the logged rows as JSON lines instead, `php_jax.run.print_row`); for commands that go through
+a terminal the logged rows as JSON lines instead, `php_jax.training.run.print_row`); for commands that go through
 episodes (`act`, `record`), a bar of episodes done of total with the time left (nothing away from a
 terminal, where their closing lines say it all)."""
 from __future__ import annotations
@@ -14,8 +14,8 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from php_jax import run
-from php_jax.config import TrainConfig
+from php_jax.training import run
+from php_jax.training.config import TrainConfig
 
 
 @contextlib.contextmanager
@@ -32,7 +32,7 @@ def counting(total: int, what: str) -> Iterator[Callable[[], None]]:
 
 @contextlib.contextmanager
 def shown(config: TrainConfig, num_levels: int | None, workdir: str) -> Iterator[Callable[[dict], None]]:
-  """The echo a training command gives `php_jax.run`: a TrainingProgress on a terminal (ended when the block
+  """The echo a training command gives `php_jax.training.run`: a TrainingProgress on a terminal (ended when the block
   ends, however it ends), else JSON lines."""
   if not sys.stdout.isatty():
     yield run.print_row
@@ -45,7 +45,7 @@ def shown(config: TrainConfig, num_levels: int | None, workdir: str) -> Iterator
 
 
 class TrainingProgress:
-  """echo for `php_jax.run`: fed each logged row (and last the test results), it draws the run's progress.
+  """echo for `php_jax.training.run`: fed each logged row (and last the test results), it draws the run's progress.
 
   num_levels: the hierarchy's levels (None for the flat LSTM); with several seeds trained together, the
   first seed's rows stand for all."""

@@ -6,7 +6,7 @@ r"""Records an expert's episodes in a Gymnasium environment as a demonstration f
 ENV is a registered Gymnasium id (`Taxi-v3`) or MODULE:ATTR, a callable returning a gymnasium.Env. The
 expert's MODULE:ATTR is a callable that takes the environment and returns an object with
 `act(observation, info)` (an action, or `(action, stack)` with the call stack that chose it) and optionally
-`reset(observation, info)`; see php_jax.gym. Episode i is reset with seed S + i; the first K episodes keep
+`reset(observation, info)`; see php_jax.envs.gym. Episode i is reset with seed S + i; the first K episodes keep
 their call stacks, the others are actions only. A stack that breaks the call-stack rules (or, with
 --hierarchy, names a procedure the hierarchy does not have) is refused naming the episode and step; every
 refusal is one line with exit status 2 and nothing written.
@@ -18,7 +18,8 @@ import json
 from absl import app, flags
 
 from experiments import cli, environment_flags, progress
-from php_jax import checkpoint, demo_files, gym
+from php_jax.data import demo_files, files
+from php_jax.envs import gym
 
 _EXPERT = flags.DEFINE_string("expert", None, "module:attribute of a callable that takes the environment and "
                               "returns the expert.")
@@ -53,7 +54,7 @@ def main(argv):
   except (OSError, ValueError) as e:  # GymError and DemoFileError are ValueErrors
     cli.fail(str(e))
   with cli.output_errors("out", _OUT.value):
-    checkpoint.write_atomically(_OUT.value, "".join(json.dumps(line) + "\n" for line in lines).encode())
+    files.write_atomically(_OUT.value, "".join(json.dumps(line) + "\n" for line in lines).encode())
   steps = sum(len(line["actions"]) for line in lines)
   print(f"{len(lines)} episodes ({_ANNOTATED.value} annotated), {steps} steps -> {_OUT.value}")
 

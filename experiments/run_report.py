@@ -11,10 +11,10 @@ import jax
 import numpy as np
 
 from experiments import pictures, run_view
-from php_jax import checkpoint, json_lines
+from php_jax.data import files, json_lines
 from php_jax.demos import Demonstration
 from php_jax.model import PHPHierarchy
-from php_jax.run import METRICS_FILE, REPORT_FILE, RESULTS_FILE
+from php_jax.training.run import METRICS_FILE, REPORT_FILE, RESULTS_FILE
 
 NUM_DRAWN = 3
 
@@ -47,7 +47,7 @@ def write(workdir: str, demos: Demonstration | None = None) -> str:
       parts += [f"<h3>{html.escape(caption)}</h3>", pictures.svg(run_view.figure(run, drawn, caption)),
                 f"<details><summary>call trees</summary><pre>{html.escape(chr(10).join(lines))}</pre></details>"]
   path = os.path.join(workdir, REPORT_FILE)
-  checkpoint.write_atomically(path, pictures.page(title, parts).encode())
+  files.write_atomically(path, pictures.page(title, parts).encode())
   return path
 
 

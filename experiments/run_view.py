@@ -12,10 +12,13 @@ from typing import Callable
 import numpy as np
 
 from experiments import pictures
-from php_jax import agreement, call_tree, checkpoint, datasets, decoding, demo_files, tasks
+from php_jax.analysis import decoding
+from php_jax.data import agreement, call_tree, demo_files
 from php_jax.demos import UNKNOWN, Demonstration
+from php_jax.envs import datasets, tasks
 from php_jax.model import PHPHierarchy
-from php_jax.run import RESULTS_FILE
+from php_jax.training import checkpoint
+from php_jax.training.run import RESULTS_FILE
 
 
 @dataclasses.dataclass(frozen=True)

@@ -20,7 +20,10 @@ import numpy as np
 from absl import app, flags
 
 from experiments import cli
-from php_jax import agreement, checkpoint, datasets, decoding, tasks, views
+from php_jax.analysis import decoding
+from php_jax.data import agreement, views
+from php_jax.envs import datasets, tasks
+from php_jax.training import checkpoint
 
 _RUN = flags.DEFINE_string("run", None, "A training run's workdir (results.json, checkpoint.msgpack).")
 _LEVEL = flags.DEFINE_integer("level", None, "Level to report (default: every level below the root).")

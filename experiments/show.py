@@ -17,7 +17,7 @@ from __future__ import annotations
 from absl import app, flags
 
 from experiments import cli, pictures, run_view
-from php_jax import checkpoint
+from php_jax.data import files
 
 _POLICY = flags.DEFINE_string("policy", None, "Workdir of a trained hierarchy's run.")
 _DEMOS = flags.DEFINE_string("demos", None, "Demonstrations (JSON lines). Default: the run's training "
@@ -52,7 +52,7 @@ def main(argv):
   if out is not None:
     data = pictures.save(run_view.figure(run, drawn, title), out, title, "\n".join(lines))
     with cli.output_errors("out", out):
-      checkpoint.write_atomically(out, data)
+      files.write_atomically(out, data)
     print(f"-> {out}")
 
 

@@ -9,7 +9,7 @@ the --budget chosen demonstrations, best first, is one output line {"index": its
 index in the task's training set), "score": its number of steps (with --policy: the model's summed
 uncertainty over them), "why": in words}. While some behaviour the demonstrations show (the action values
 and pairs of consecutive actions they take) is shown by no annotated or earlier chosen one, the next is the
-longest that shows some of it; then the longest of the others (`php_jax.annotation_choice`). With --policy,
+longest that shows some of it; then the longest of the others (`php_jax.analysis.annotation_choice`). With --policy,
 a trained hierarchy's uncertainty about each demonstration's segmentation ranks instead of its length.
 Annotate the chosen ones (in your file), or give the output to `experiments.train --annotate=OUT.jsonl`.
 """
@@ -21,8 +21,10 @@ import json
 from absl import app, flags
 
 from experiments import cli, run_view
-from php_jax import annotation_choice, checkpoint, datasets, demo_files, tasks
-from php_jax.config import MAX_SEED
+from php_jax.analysis import annotation_choice
+from php_jax.data import demo_files, files
+from php_jax.envs import datasets, tasks
+from php_jax.training.config import MAX_SEED
 
 _DEMOS = flags.DEFINE_string("demos", None, "Demonstrations (JSON lines), some perhaps annotated.")
 _HIERARCHY = flags.DEFINE_string("hierarchy", None, "Their hierarchy file (with --demos).")
@@ -89,7 +91,7 @@ def main(argv):
   chosen = annotation_choice.suggest(demos, _BUDGET.value, action_name, doubt)
   lines = "".join(json.dumps(dataclasses.asdict(s)) + "\n" for s in chosen)
   with cli.output_errors("out", _OUT.value):
-    checkpoint.write_atomically(_OUT.value, lines.encode())
+    files.write_atomically(_OUT.value, lines.encode())
   for s in chosen:
     print(f"{s.index}: {s.why}")
   print(f"{len(chosen)} of {int((~demos.strong).sum())} actions-only demonstrations chosen -> {_OUT.value}")

@@ -38,7 +38,7 @@ from typing import Callable, Iterator, TypeVar
 from absl import app, flags
 
 from experiments import cli
-from php_jax import tasks
+from php_jax.envs import tasks
 
 _TASK = flags.DEFINE_string("task", None, "The task trained (what experiments.train --task takes).")
 _WORKDIR = flags.DEFINE_string("workdir", None, "Parent directory of the runs' workdirs.")

@@ -11,7 +11,7 @@ the same command to resume an interrupted run. Flags left unset take the task's 
 
 With --seeds, each seed's run (its own training set, initialisation, snapshot and test) goes to
 WORKDIR/seed=S, with the files `--seed=S --workdir=WORKDIR/seed=S` would write; the seeds' updates run as one
-vmapped program per level (`php_jax.train.train_seeds`).
+vmapped program per level (`php_jax.training.train.train_seeds`).
 """
 from __future__ import annotations
 
@@ -22,8 +22,10 @@ import numpy as np
 from absl import app, flags
 
 from experiments import cli, config_flags, progress, training
-from php_jax import datasets, demo_files, evaluation, tasks, train
-from php_jax.run import Experiment, train_and_evaluate, train_and_evaluate_seeds
+from php_jax.data import demo_files
+from php_jax.envs import datasets, evaluation, tasks
+from php_jax.training import train
+from php_jax.training.run import Experiment, train_and_evaluate, train_and_evaluate_seeds
 
 NUM_STRONG = flags.DEFINE_integer("num_strong", 1, "Strongly supervised (call-stack annotated) demonstrations.")
 NUM_VALIDATION = flags.DEFINE_integer("num_validation", 50, "Validation problems (training distribution).")
@@ -33,7 +35,7 @@ _ANNOTATE = flags.DEFINE_string("annotate", None, "Which training demonstrations
 SEEDS = flags.DEFINE_list("seeds", None, "Several seeds (e.g. 1,2,3,4,5) trained as one program, level-wise: "
                           "each seed's run, the same as with --seed, goes to WORKDIR/seed=S.")
 _TASK = flags.DEFINE_string("task", None, f"The task: one of {', '.join(tasks.TASKS)}, or module:attribute "
-                            "of a php_jax.task.Task defined elsewhere.")
+                            "of a php_jax.envs.task.Task defined elsewhere.")
 
 
 def _per_task(value) -> str:

@@ -10,7 +10,7 @@ from absl import flags
 
 from experiments import cli, progress, run_report
 from experiments.config_flags import UsageError
-from php_jax import checkpoint, run
+from php_jax.training import checkpoint, run
 
 WORKDIR = flags.DEFINE_string("workdir", None, "Directory for results.json, metrics.jsonl and the model.")
 DISTRIBUTED = flags.DEFINE_bool("distributed", False, "One of several processes (a multi-host run): "

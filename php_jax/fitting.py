@@ -1,7 +1,7 @@
 """Full-batch Adam with the project's snapshot rule and resumable progress: the loop that the PHP levels
-(php_jax.train), joint training (php_jax.joint) and the flat LSTM baseline (php_jax.flat_lstm) train with
+(php_jax.training.train), joint training (php_jax.training.joint) and the flat LSTM baseline (php_jax.flat_lstm) train with
 (`fit`), and the same loop and update step for several seeds' models at once, vmapped (`fit_seeds`, for
-php_jax.train.train_seeds)."""
+php_jax.training.train.train_seeds)."""
 from __future__ import annotations
 
 import functools

@@ -28,7 +28,7 @@ class HierarchySpec:
     action_sizes: elementary action factor sizes, e.g. (2, 4, 10): three factors.
     obs_dim: observation size.
     allowed_ops: the call graph the hierarchy declares (a hierarchy file's "calls"): per level, root first,
-      None or `[K_i][Σ op_sizes(i)]` bools, which operations each procedure may take (`php_jax.call_graph`);
+      None or `[K_i][Σ op_sizes(i)]` bools, which operations each procedure may take (`php_jax.training.call_graph`);
       None: any, at every level.
   Raises:
     ValueError naming the field: no levels, a level without procedures, a root level of more than one,

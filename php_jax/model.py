@@ -11,6 +11,7 @@ from flax import nnx
 
 from php_jax.hierarchy import HierarchySpec, check_size
 
+
 def _check_sizes(name: str, sizes, least: int = 1) -> tuple[int, ...]:
   """sizes (a sequence of ints, each ≥ least) as a tuple; refuses anything else naming it."""
   if not isinstance(sizes, (tuple, list)):

@@ -11,10 +11,12 @@ from flax import nnx
 from gymnasium import spaces
 
 import php_jax
-from php_jax import annotation_choice, call_tree, datasets, demos, executor, gym
-from php_jax import stack_lattice as sl
-from php_jax.envs import addition, bubblesort, nanocraft, nanocraft_task
+from php_jax import demos, executor
+from php_jax.analysis import annotation_choice
+from php_jax.data import call_tree
+from php_jax.envs import addition, bubblesort, datasets, gym, nanocraft, nanocraft_task
 from php_jax.hierarchy import HierarchySpec
+from php_jax.inference import stack_lattice as sl
 from php_jax.model import PHPHierarchy, PHPLevel, RootLSTM, RootMLP
 
 T, K, C = 3, 2, 2
@@ -214,7 +216,7 @@ def test_lists_and_numpy_values_are_taken_where_arrays_would_do():
   np.testing.assert_array_equal(listed.v, php_jax.forward_backward(ROOT, OP, STOP, CONT, 2).v)
   stacked = sl.log_likelihood(STACK._replace(log_cont=[x.tolist() for x in STACK.log_cont]))
   np.testing.assert_array_equal(stacked, sl.log_likelihood(STACK))
-  assert php_jax.lattice.check_k(jnp.array(2)) == 2
+  assert php_jax.inference.lattice.check_k(jnp.array(2)) == 2
   assert datasets.strong_mask(4, np.int64(2), 0).sum() == 2
   assert gym.action_factors(spaces.Discrete(3, start=1), 3) == [2]
   assert nanocraft.make_problem(*np.array([1, 1, 2, 2])).spec.tolist() == [1, 1, 2, 2]

@@ -6,8 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from php_jax import executor, tasks
-from php_jax.envs import addition
+from php_jax import executor
+from php_jax.envs import addition, tasks
 from php_jax.model import PHPHierarchy, PHPLevel, RootLSTM, RootMLP
 
 

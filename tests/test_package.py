@@ -7,8 +7,8 @@ import jax
 import pytest
 
 import php_jax
-from php_jax import provenance
-from php_jax import checkpoint
+from php_jax.data import files
+from php_jax.training import provenance
 
 
 def test_version_is_the_installed_metadata_version():
@@ -38,18 +38,29 @@ def set_umask():
 def test_write_atomically_gives_the_mode_open_would(tmp_path, set_umask, mask, mode):
   set_umask(mask)
   path = tmp_path / "sub" / "results.json"
-  checkpoint.write_atomically(str(path), b"{}")
+  files.write_atomically(str(path), b"{}")
   assert path.read_bytes() == b"{}" and stat.S_IMODE(path.stat().st_mode) == mode
-  checkpoint.write_atomically(str(path), b"[]")  # replacing an existing file
+  files.write_atomically(str(path), b"[]")  # replacing an existing file
   assert path.read_bytes() == b"[]" and stat.S_IMODE(path.stat().st_mode) == mode
   assert os.listdir(path.parent) == ["results.json"]
+
+
+@pytest.mark.parametrize("exists", [True, False], ids=["to_a_file", "dangling"])
+def test_write_atomically_through_a_symbolic_link_writes_the_file_it_names(tmp_path, exists):
+  (tmp_path / "real").mkdir()
+  target, link = tmp_path / "real" / "out.jsonl", tmp_path / "link.jsonl"
+  if exists:
+    target.write_bytes(b"old")
+  link.symlink_to(target)
+  files.write_atomically(str(link), b"new")
+  assert link.is_symlink() and target.read_bytes() == b"new" and os.listdir(tmp_path / "real") == ["out.jsonl"]
 
 
 def test_write_atomically_removes_its_temporary_file_when_the_write_fails(tmp_path):
   path = tmp_path / "model.msgpack"
   path.write_bytes(b"old")
   with pytest.raises(TypeError):
-    checkpoint.write_atomically(str(path), object())  # not bytes: the write itself raises
+    files.write_atomically(str(path), object())  # not bytes: the write itself raises
   assert os.listdir(tmp_path) == ["model.msgpack"] and path.read_bytes() == b"old"
 
 
@@ -60,5 +71,5 @@ def test_write_atomically_removes_its_temporary_file_when_the_rename_fails(tmp_p
     raise error
   monkeypatch.setattr(os, "replace", fail)
   with pytest.raises(type(error)):
-    checkpoint.write_atomically(str(tmp_path / "results.json"), b"{}")
+    files.write_atomically(str(tmp_path / "results.json"), b"{}")
   assert os.listdir(tmp_path) == []

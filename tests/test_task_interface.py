@@ -14,11 +14,13 @@ import numpy as np
 import pytest
 from flax import struct
 
-from php_jax import checkpoint, datasets, demos, evaluation, fitting, objective, tasks, train, views
-from php_jax import config as config_lib
-from php_jax import run
+from php_jax import demos, fitting
+from php_jax.data import views
+from php_jax.envs import datasets, evaluation, tasks
+from php_jax.envs.task import Task, TrainingDefaults
 from php_jax.hierarchy import HierarchySpec
-from php_jax.task import Task, TrainingDefaults
+from php_jax.training import checkpoint, objective, run, train
+from php_jax.training import config as config_lib
 from tests import processes
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]

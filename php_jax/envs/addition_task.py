@@ -9,9 +9,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from php_jax.data.json_lines import check_keys, shown
 from php_jax.envs import addition, addition_oracle
-from php_jax.json_lines import shown
-from php_jax.task import Task, TrainingDefaults, check_keys
+from php_jax.envs.task import Task, TrainingDefaults
 
 TRAINING_LENGTHS = tuple(range(1, 11))
 

@@ -1,0 +1,1 @@
+"""What a trained model says about demonstrations: decoded stacks, which demonstrations to annotate."""

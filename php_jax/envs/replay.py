@@ -1,0 +1,71 @@
+"""Replaying demonstrations: does a hierarchy's argmax policy, run on a demonstration's recorded
+observations, take every recorded action and return from its root right after the last one?
+
+The recorded demonstration is an environment (`Recording`) for the executor: its state is the demonstration
+and a step index; observe gives the recorded observation, and an action other than the recorded one (or any
+action after the last) fails. The hierarchy then runs in the executor unchanged.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from php_jax.demos import Demonstration
+from php_jax.envs import evaluation
+from php_jax.hierarchy import HierarchySpec
+
+
+class RecordingState(NamedTuple):
+  """One demonstration being replayed. observations [T+1, D], actions [T, F], length [], step [], failed []."""
+  observations: jax.Array
+  actions: jax.Array
+  length: jax.Array
+  step: jax.Array
+  failed: jax.Array
+
+
+class Recording:
+  """The executor's environment for replay (stateless: the demonstration lives in the state)."""
+
+  @staticmethod
+  def observe(state: RecordingState) -> jax.Array:
+    return state.observations[state.step]
+
+  @staticmethod
+  def step(state: RecordingState, action: jax.Array) -> RecordingState:
+    index = jnp.minimum(state.step, state.actions.shape[0] - 1)
+    wrong = (state.step >= state.length) | jnp.any(action != state.actions[index])
+    return state._replace(step=state.step + 1, failed=state.failed | wrong)
+
+
+RECORDING = Recording()  # one instance: the executor compiles once per shape, not once per call
+
+
+class Replay(NamedTuple):
+  """Per demonstration [B]: replayed (bool) and first_mismatch (int32: the first step whose action differs
+  from the recorded one, or that comes after the last, or where the root returned too early; −1 if none)."""
+  replayed: np.ndarray
+  first_mismatch: np.ndarray
+
+
+def replay(policy, spec: HierarchySpec, batch: Demonstration, key: jax.Array | None = None) -> Replay:
+  """Runs policy (an argmax hierarchy, or a flat LSTM, whose root returning is its stopping) on each
+  demonstration of batch [B, ...]; see the module docstring."""
+  num = batch.length.shape[0]
+  states = RecordingState(jnp.asarray(batch.observations), jnp.asarray(batch.actions), jnp.asarray(batch.length),
+                          jnp.zeros(num, jnp.int32), jnp.zeros(num, bool))
+  keys = jax.random.split(jax.random.key(0) if key is None else key, num)
+  rollout = evaluation.rollout(policy, spec, RECORDING, states, keys, int(batch.actions.shape[1]) + 1)
+  steps, length = np.asarray(rollout.length), np.asarray(batch.length)
+  replayed = np.asarray(rollout.terminated) & (steps == length)
+  # A failed step is the episode's last; a root returning early ends the episode at `steps` < length.
+  first = np.where(np.asarray(rollout.valid), steps, steps - 1)
+  return Replay(replayed, np.where(replayed, -1, first).astype(np.int32))
+
+
+def replayed_fraction(policy, spec: HierarchySpec, batch: Demonstration) -> float:
+  """Fraction of batch's demonstrations that policy replays."""
+  return float(np.mean(replay(policy, spec, batch).replayed))

@@ -1,0 +1,141 @@
+"""Training settings, written once: every setting's default, meaning and check live on `TrainConfig`'s fields.
+
+A task contributes only overrides (`task.TrainingDefaults`); the training commands generate one flag per field
+(`experiments.training`), with the field's help and default. `TrainConfig(...)` validates itself and raises
+ConfigError naming the field of the first value it refuses; `check_levels` checks the per-level settings
+against a hierarchy.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+from php_jax import fitting
+from php_jax.hierarchy import HierarchySpec
+from php_jax.training import call_graph, objective
+
+ROOTS = ("lstm", "mlp")
+TRAININGS = ("levelwise", "joint")  # one level at a time (the paper), or every level at once (php_jax.training.joint)
+
+
+class ConfigError(ValueError):
+  """A setting that is not allowed; `field` names it (a flag of the same name on the commands)."""
+
+  def __init__(self, field: str, message: str):
+    super().__init__(f"{field}: {message}")
+    self.field, self.message = field, message
+
+
+def _setting(default: Any, help: str, kind: str, choices: tuple[str, ...] = (), levelwise_only: bool = False):
+  """A TrainConfig field. kind says how a flag spells it: int, float, str (one of choices), or a per-level list
+  (root first) of ints, floats, bools or ints_or_none ('none' for no value)."""
+  return dataclasses.field(default=default, metadata={"help": help, "kind": kind, "choices": choices,
+                                                      "levelwise_only": levelwise_only})
+
+
+MAX_SEED = 2**31 - 1
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+  """Hyper-parameters of Expectation–Gradient training; the defaults follow the paper where it says."""
+  iterations: int = _setting(2000, "Adam iterations per level (level-wise) or in all (joint).", "int")
+  learning_rate: float = _setting(3e-3, "Adam learning rate.", "float")
+  hidden: tuple[int, ...] = _setting((64, 64), "Hidden layer sizes of every operation and termination network.",
+                                     "ints")
+  root: str = _setting("lstm", "Network standing in, below the root level, for the levels above while they are "
+                       "untrained: the paper's LSTM, or an MLP on each observation.", "str", ROOTS, True)
+  root_hidden: int = _setting(64, "Hidden units of that stand-in root network.", "int", levelwise_only=True)
+  tau_in_termination: tuple[bool, ...] | None = _setting(
+      None, "Per level, root first, whether the termination network sees the counter τ (e.g. 0,1,1); unset: "
+      "every level.", "bools")
+  tau_limit: tuple[int | None, ...] | None = _setting(
+      None, "Per level, root first, the networks see min(τ, limit) instead of τ ('none': τ itself), e.g. "
+      "0,1,none; unset: τ itself everywhere.", "ints_or_none")
+  strong_weight: float | None = _setting(
+      None, "Weight on the annotated demonstrations' loss; unset: balanced, num_weak / num_strong (at least 1), "
+      "so that a few annotated ones are not outvoted.", "float")
+  root_strong_weight: float | None = _setting(
+      None, "The same weight at the root level, whose weak views have no latent choice; unset: --strong_weight's.",
+      "float", levelwise_only=True)
+  strong_warmup: int = _setting(0, "Per level below the root, Adam iterations on the annotated demonstrations "
+                                "alone before --iterations on all of them.", "int", levelwise_only=True)
+  call_penalty: tuple[float, ...] | None = _setting(
+      None, "Per level, root first (the root's 0), a log-prior cost of each call the stand-in root pushes: weak "
+      "views' posteriors then favour fewer, longer calls; unset: 0 everywhere.", "floats", levelwise_only=True)
+  decode: str = _setting("sample", "How weak views are decoded for the level above (the paper sampled).", "str",
+                         objective.DECODERS, True)
+  capacity: int = _setting(8, "Counter capacity below the root level where no call is annotated.", "int")
+  min_capacity: tuple[int, ...] | None = _setting(
+      None, "Per level, root first, the least counter capacity (for calls longer than the annotated ones; the "
+      "root's is used by joint training only); unset: the longest annotated call decides.", "ints")
+  eval_every: int = _setting(100, "Iterations between logged losses, checkpoints and validated snapshots.", "int")
+  snapshot: str = _setting("latest", "Which of the equally best-validated snapshots is kept.", "str",
+                           fitting.SNAPSHOT_RULES)
+  length_buckets: int = _setting(4, "Demonstrations are batched by length into this many buckets.", "int")
+  seed: int = _setting(0, "Seed for data, initialisation and decoding.", "int")
+  training: str = _setting("levelwise", "levelwise: one level at a time from the lowest, a stand-in root for the "
+                           "levels above (the paper); joint: every level at once by exact inference over the "
+                           "whole call stack.", "str", TRAININGS)
+  call_graph: str = _setting("all", "Which operations each procedure may take. all: any; calls: a procedure the "
+                             "annotated demonstrations show calling may call only what they show it calling; "
+                             "operations: also, a lowest-level procedure only the elementary action values they "
+                             "show it taking (a procedure or value they never show is unrestricted).", "str",
+                             call_graph.CALL_GRAPHS)
+
+  def __post_init__(self):
+    """Raises ConfigError naming the first setting that is not allowed."""
+    for name in ("root_hidden", "capacity", "eval_every", "length_buckets"):
+      if not (_is_int(getattr(self, name)) and getattr(self, name) >= 1):
+        raise ConfigError(name, f"must be a positive integer; got {getattr(self, name)!r}")
+    for name in ("iterations", "strong_warmup", "seed"):  # 0 iterations: a warm-up alone
+      if not (_is_int(getattr(self, name)) and getattr(self, name) >= 0):
+        raise ConfigError(name, f"must be a non-negative integer; got {getattr(self, name)!r}")
+    if self.seed > MAX_SEED:
+      raise ConfigError("seed", f"must be at most {MAX_SEED} (a 32-bit seed); got {self.seed}")
+    for name in ("learning_rate", "strong_weight", "root_strong_weight"):
+      value = getattr(self, name)
+      if (value is not None or name == "learning_rate") and not (_is_number(value) and value > 0):
+        raise ConfigError(name, f"must be a positive finite number; got {value!r}")
+    if not (isinstance(self.hidden, tuple) and self.hidden and all(_is_int(h) and h >= 1 for h in self.hidden)):
+      raise ConfigError("hidden", f"must list positive layer sizes; got {self.hidden!r}")
+    for name, (allowed, what) in _PER_LEVEL.items():
+      values = getattr(self, name)
+      if values is not None and not (isinstance(values, tuple) and values and all(map(allowed, values))):
+        raise ConfigError(name, f"must list one {what} per level, root first; got {values!r}")
+    for field in dataclasses.fields(self):
+      choices = field.metadata["choices"]
+      if choices and getattr(self, field.name) not in choices:
+        raise ConfigError(field.name, f"must be one of {', '.join(choices)}; got {getattr(self, field.name)!r}")
+
+
+def _is_int(x) -> bool:
+  return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _is_number(x) -> bool:
+  return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+_PER_LEVEL = {  # the per-level settings: each value's check, and its words in a refusal
+    "tau_in_termination": (lambda v: isinstance(v, bool), "boolean"),
+    "tau_limit": (lambda v: v is None or (_is_int(v) and v >= 0), "non-negative integer or None"),
+    "min_capacity": (lambda v: _is_int(v) and v >= 0, "non-negative integer"),
+    "call_penalty": (lambda v: _is_number(v) and v >= 0, "finite non-negative number")}
+
+
+def fields() -> tuple[dataclasses.Field, ...]:
+  """TrainConfig's fields, each with metadata help, kind, choices and levelwise_only (`_setting`)."""
+  return dataclasses.fields(TrainConfig)
+
+
+def check_levels(spec: HierarchySpec, config: TrainConfig) -> None:
+  """Raises ConfigError naming the first per-level setting that does not fit the hierarchy's levels."""
+  for name in ("tau_in_termination", "tau_limit", "min_capacity"):
+    values = getattr(config, name)
+    if values is not None and len(values) != spec.num_levels:
+      raise ConfigError(name, f"needs one value per level, root first ({spec.num_levels}); got {list(values)}")
+  if config.call_penalty is not None and (len(config.call_penalty) != spec.num_levels or config.call_penalty[0]):
+    raise ConfigError("call_penalty", f"needs one value per level, root first, the root's 0 (it has no stand-in "
+                      f"root); got {list(config.call_penalty)} for {spec.num_levels} levels")

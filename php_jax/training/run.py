@@ -1,0 +1,311 @@
+"""A training run in a workdir, from start to results: the workdir's files, the metrics log, resuming, the
+saved model and results.json, whichever model and training mode the settings ask for.
+
+A run writes workdir/metrics.jsonl (one JSON row per logged event, each with "seconds" since the run
+started), workdir/checkpoint.msgpack while it trains (a rerun resumes from it, ending as an uninterrupted
+run would: rows logged after the checkpoint are dropped and logged again), the model (model.json and
+model.msgpack, which `checkpoint.load_policy` reads) and results.json (settings, training summary, test
+results, wall time, the code's commit and the package versions). Several seeds trained as one program
+(`train_and_evaluate_seeds`) write one such run per seed, in workdir/seed=S, and their common progress in
+workdir/seeds_checkpoint.msgpack. Of several processes (jax.distributed), only the first writes files.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import fcntl
+import glob
+import json
+import os
+import time
+from typing import Any, Callable
+
+import jax
+from flax import nnx
+from jax.experimental import multihost_utils
+
+from php_jax import fitting, flat_lstm
+from php_jax.data import files
+from php_jax.demos import Demonstration
+from php_jax.hierarchy import HierarchySpec
+from php_jax.training import checkpoint, joint, provenance, train
+from php_jax.training.config import TrainConfig
+
+METRICS_FILE, RESULTS_FILE, SEEDS_CHECKPOINT = "metrics.jsonl", "results.json", "seeds_checkpoint.msgpack"
+REPORT_FILE = "report.html"  # the training commands write it (`experiments.run_report`); --overwrite clears it
+RUN_FILES = (checkpoint.TRAINING_FILE, METRICS_FILE, RESULTS_FILE, checkpoint.ARCHITECTURE_FILE,
+             checkpoint.MODEL_FILE, REPORT_FILE)
+
+
+class WorkdirError(ValueError):
+  """A workdir that cannot hold a run; the message names it."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Experiment:
+  """What one run trains on and how it is judged.
+
+  Attributes:
+    name: the task's name (model.json records it, for `experiments.evaluate`).
+    spec: the hierarchy's levels, action factor sizes and observation size.
+    demos: the training demonstrations [B, ...].
+    validate: model → validation score (the kept snapshot has the best).
+    test: model → the test results (results.json's "test").
+    extra: more entries for results.json (e.g. the seed and the data set's sizes).
+  """
+  name: str
+  spec: HierarchySpec
+  demos: Demonstration
+  validate: Callable[[Any], float]
+  test: Callable[[Any], dict]
+  extra: dict
+
+
+def print_row(row: dict) -> None:
+  """A logged row (or the final test results) as one JSON line on stdout: what a run shows by default."""
+  print(json.dumps(row), flush=True)
+
+
+def train_and_evaluate(experiment: Experiment, config: TrainConfig, workdir: str, overwrite: bool = False,
+                       flat_lstm_hidden: int | None = None, wait: bool = False,
+                       echo: Callable[[dict], None] = print_row) -> dict:
+  """Trains a PHP hierarchy by config.training (resuming the workdir's checkpoint if an earlier run was
+  interrupted), or with flat_lstm_hidden the flat LSTM baseline of that many units; saves it, tests it,
+  writes results.json; returns the results. overwrite: delete an earlier run's files first (else it is
+  resumed, or refused with CheckpointError if its settings differ; a finished run with the same settings is
+  not trained again: its results are shown and returned). The run holds the workdir's lock
+  throughout (`workdir_lock`; wait: for another run holding it to end). echo(row) shows each logged row and
+  last the test results."""
+  config = train.with_strong_weight(config, experiment.demos)  # resolved here so that results.json records it
+  commit = provenance.code_version()  # the code as it was when the run started
+  spec = experiment.spec
+  with workdir_lock(workdir, wait):
+    clear_workdir(workdir, RUN_FILES, overwrite)
+    finished = _finished(workdir, experiment, config, flat_lstm_hidden)
+    if finished:
+      echo({"test": finished["test"], "wall_seconds": finished["wall_seconds"], "finished_before": True})
+      return finished
+    with MetricsLog(workdir, echo=echo) as log:
+      if flat_lstm_hidden:
+        model, trained = _train_flat_lstm(experiment, config, flat_lstm_hidden, log)
+        checkpoint.save_flat_lstm(workdir, experiment.name, model, spec)
+      else:
+        model, trained, capacity = _train_php(experiment, config, log,
+                                              os.path.join(workdir, checkpoint.TRAINING_FILE))
+        checkpoint.save_hierarchy(workdir, experiment.name, model, config.hidden, capacity)
+    results = {"task": experiment.name, "model": "flat_lstm" if flat_lstm_hidden else "php",
+               "config": dataclasses.asdict(config), **experiment.extra, **trained}
+    log.echo({"phase": "testing"})
+    return _write_results(workdir, results, experiment.test(model), log, commit)
+
+
+def train_and_evaluate_seeds(experiments: list[Experiment], configs: list[TrainConfig], workdir: str,
+                             overwrite: bool = False, wait: bool = False,
+                             echo: Callable[[dict], None] = print_row) -> list[dict]:
+  """train_and_evaluate for several seeds' PHP hierarchies (experiments[s] with configs[s]), trained
+  level-wise as one program (`train.train_seeds`): seed s's run goes to workdir/seed=S with the files its
+  separate run would write, its results.json also naming the seeds trained with it ("trained_with_seeds":
+  its wall time and per-level seconds are those of the shared program); the progress of all is checkpointed
+  in workdir/seeds_checkpoint.msgpack and resumed from there. The run holds the locks of workdir and of every
+  seed's workdir throughout."""
+  workdirs = [os.path.join(workdir, f"seed={c.seed}") for c in configs]
+  configs = [train.with_strong_weight(c, e.demos) for c, e in zip(configs, experiments)]
+  commit, spec = provenance.code_version(), experiments[0].spec
+  with contextlib.ExitStack() as stack:
+    for locked in (workdir, *workdirs):  # each seed's workdir too, as its separate run would
+      stack.enter_context(workdir_lock(locked, wait))
+    clear_workdir(workdir, (SEEDS_CHECKPOINT,), overwrite)
+    for run_dir in workdirs:
+      clear_workdir(run_dir, RUN_FILES, overwrite)
+    finished = [_finished(run_dir, e, c, None) for run_dir, e, c in zip(workdirs, experiments, configs)]
+    if all(finished):
+      for c, results in zip(configs, finished):
+        echo({"seed": c.seed, "test": results["test"], "wall_seconds": results["wall_seconds"],
+              "finished_before": True})
+      return finished
+    logs = [stack.enter_context(MetricsLog(run_dir, {"seed": c.seed}, echo)) for run_dir, c in zip(workdirs, configs)]
+    trained = train.train_seeds(spec, [e.demos for e in experiments], configs, [e.validate for e in experiments],
+                                log=lambda s, row: logs[s](row),
+                                checkpoint_path=os.path.join(workdir, SEEDS_CHECKPOINT),
+                                seed_checkpoint_paths=[os.path.join(w, checkpoint.TRAINING_FILE) for w in workdirs])
+    for run_dir, e, (hierarchy, report) in zip(workdirs, experiments, trained):
+      checkpoint.save_hierarchy(run_dir, e.name, hierarchy, configs[0].hidden,
+                                [report[level]["capacity"] for level in range(spec.num_levels)])
+    for log in logs:
+      log.close()
+    together = {"trained_with_seeds": [c.seed for c in configs]}  # its times are the shared program's
+    echo({"phase": "testing"})
+    return [_write_results(run_dir, {"task": e.name, "model": "php", "config": dataclasses.asdict(c), **e.extra,
+                                     **together, **_levels(report)}, e.test(hierarchy), log, commit)
+            for run_dir, c, e, (hierarchy, report), log in zip(workdirs, configs, experiments, trained, logs)]
+
+
+def _finished(workdir: str, experiment: Experiment, config: TrainConfig, flat_lstm_hidden: int | None) -> dict | None:
+  """The results.json of a run that finished in workdir with these settings; None if no run finished there
+  (or its results.json cannot be read: the run then resumes and writes it again). Raises WorkdirError (or
+  CheckpointError, for other demonstrations) naming the settings that differ if it was made with others."""
+  paths = [os.path.join(workdir, name) for name in (RESULTS_FILE, checkpoint.ARCHITECTURE_FILE, checkpoint.MODEL_FILE)]
+  if not all(map(os.path.isfile, paths)):
+    return None
+  try:
+    with open(paths[0], encoding="utf-8") as f:
+      results = json.load(f)
+  except (OSError, ValueError):
+    return None
+  if not isinstance(results, dict) or not isinstance(results.get("config"), dict) or "test" not in results:
+    return None
+  model = "flat_lstm" if flat_lstm_hidden else "php"
+  expected = json.loads(json.dumps({"task": experiment.name, "model": model, **experiment.extra}))
+  differ = [f"{k}: {results.get(k)!r} there, {v!r} here" for k, v in expected.items() if results.get(k) != v]
+  saved_config = train.saved_config(results["config"])
+  config_json = json.loads(json.dumps(dataclasses.asdict(config)))
+  differ += [f"--{k}: {saved_config.get(k)!r} there, {v!r} here" for k, v in config_json.items()
+             if saved_config.get(k) != v and not (k == "strong_weight" and differ)]  # it follows num_strong
+  if flat_lstm_hidden and (results.get("flat_lstm") or {}).get("hidden") != flat_lstm_hidden:
+    differ.append(f"--lstm_hidden: {(results.get('flat_lstm') or {}).get('hidden')!r} there, {flat_lstm_hidden} here")
+  if differ:
+    raise WorkdirError(f"{workdir} holds a finished run made with other settings ({'; '.join(differ)}); use a "
+                       "fresh workdir, or --overwrite to train again")
+  saved = checkpoint.read_training(os.path.join(workdir, checkpoint.TRAINING_FILE))
+  if saved is not None and model == "php":  # the demonstrations' digest: another data file, say
+    train.check_resumable(os.path.join(workdir, checkpoint.TRAINING_FILE), saved[0].get("settings", {}),
+                          train.run_settings(experiment.spec, experiment.demos, config))
+  return results
+
+
+LOCK_FILE = ".lock"
+
+
+@contextlib.contextmanager
+def workdir_lock(workdir: str, wait: bool = False):
+  """Makes workdir (WorkdirError if a file has that name) and holds its lock while the block runs: an
+  exclusive `fcntl.flock` on workdir/.lock, which the kernel releases when the process ends, however it
+  ends, so a lock left by a killed run never blocks. If another run holds it: WorkdirError naming that run's
+  pid, or with wait, waiting for it to end. Of several processes (jax.distributed), process 0 takes it."""
+  if os.path.exists(workdir) and not os.path.isdir(workdir):
+    raise WorkdirError(f"{workdir} is a file, not a directory")
+  if jax.process_index() != 0:
+    yield
+    return
+  os.makedirs(workdir, exist_ok=True)
+  with open(os.path.join(workdir, LOCK_FILE), "a+") as lock:
+    try:
+      fcntl.flock(lock, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+    except BlockingIOError:
+      lock.seek(0)
+      holder = lock.read().strip() or "unknown"
+      raise WorkdirError(f"{workdir} is in use by another run (pid {holder}); wait for it to end, or give "
+                         "--wait to wait for it") from None
+    lock.truncate(0)
+    lock.write(str(os.getpid()))
+    lock.flush()
+    try:
+      yield
+    finally:
+      fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def clear_workdir(workdir: str, files: tuple[str, ...], overwrite: bool = False) -> None:
+  """In a workdir `workdir_lock` holds: with overwrite, deletes `files` there first; removes temporary files
+  a SIGKILL left."""
+  if jax.process_index() == 0:  # of several processes (jax.distributed), the one that writes files
+    if overwrite:
+      for name in files:
+        if os.path.exists(os.path.join(workdir, name)):
+          os.remove(os.path.join(workdir, name))
+    for leftover in glob.glob(os.path.join(workdir, ".*.tmp")):  # a write cut off by SIGKILL
+      os.remove(leftover)
+  if jax.process_count() > 1:  # the others read the workdir (to resume) once process 0 has cleared it
+    multihost_utils.sync_global_devices("workdir ready")
+
+
+class MetricsLog:
+  """A run's metrics.jsonl (process 0's) and clock: each row logged gets "seconds" since the run started, is
+  appended and shown by echo (with `label` added to the shown copy). A {"resumed": True, "logged": n} row keeps
+  the file's first n rows, and the clock goes on from the last of them; a run whose first row is another
+  (it resumes nothing) starts the file afresh, so that rows of an attempt killed before its first checkpoint
+  are not kept twice."""
+
+  def __init__(self, workdir: str, label: dict | None = None, echo: Callable[[dict], None] = print_row):
+    self.path, self.label, self.start = os.path.join(workdir, METRICS_FILE), label or {}, time.time()
+    self.file, self.first, self.echo = None, True, echo
+
+  def __enter__(self):
+    if jax.process_index() == 0:
+      self.file = open(self.path, "a")
+    return self
+
+  def __exit__(self, *exc):
+    self.close()
+
+  def close(self) -> None:
+    if self.file:
+      self.file.close()
+      self.file = None
+
+  def __call__(self, row: dict) -> None:
+    if row.get("resumed"):
+      self.start -= _keep_rows(self.file, self.path, row["logged"])
+    else:
+      if self.first and self.file:
+        self.file.truncate(0)
+      row = {**row, "seconds": round(time.time() - self.start, 2)}
+      if self.file:
+        self.file.write(json.dumps(row) + "\n")
+        self.file.flush()
+    self.first = False
+    self.echo({**self.label, **row})
+
+
+def _keep_rows(metrics, path: str, count: int) -> float:
+  """Truncates the open metrics file (None: only reads it) to its first `count` rows; returns the last kept
+  row's "seconds"."""
+  with open(path, "rb") as f:
+    rows = f.read().splitlines(keepends=True)[:count]
+  if metrics:
+    metrics.truncate(sum(map(len, rows)))
+  return json.loads(rows[-1])["seconds"] if rows else 0.0
+
+
+def _write_results(workdir: str, results: dict, test_results: dict, log: MetricsLog, commit) -> dict:
+  """results.json: `results` with the test results, wall time (on log's clock), commit and versions; returns
+  it. Shows the test results and wall time through log's echo (with its label)."""
+  results = {**results, "test": test_results, "wall_seconds": round(time.time() - log.start, 1), "commit": commit,
+             "versions": provenance.environment_versions()}
+  files.write_atomically(os.path.join(workdir, RESULTS_FILE), json.dumps(results, indent=1).encode())
+  log.echo({**log.label, "test": test_results, "wall_seconds": results["wall_seconds"]})
+  return results
+
+
+def _train_php(experiment: Experiment, config: TrainConfig, log, path: str):
+  """(hierarchy, its results.json entries, capacity per level) by config.training: {"levels": {level: summary}}
+  level-wise, {"joint": summary} joint."""
+  spec, demos, validate = experiment.spec, experiment.demos, experiment.validate
+  if config.training == "joint":
+    hierarchy, report = joint.train_joint(spec, demos, config, validate, log=log, checkpoint_path=path)
+    return hierarchy, {"joint": _summary(report)}, report["capacity"]
+  hierarchy, report = train.train_hierarchy(spec, demos, config, validate, log=log, checkpoint_path=path)
+  return hierarchy, _levels(report), [report[level]["capacity"] for level in range(spec.num_levels)]
+
+
+def _levels(report: dict) -> dict:
+  """results.json's entry of a level-wise report."""
+  return {"levels": {str(level): _summary(entry) for level, entry in report.items()}}
+
+
+def _summary(entry: dict) -> dict:
+  """A training report entry without its loss curve (metrics.jsonl has it), with the final loss."""
+  return {k: v for k, v in entry.items() if k != "losses"} | {
+      "final_loss": entry["losses"][-1][1] if entry["losses"] else None}
+
+
+def _train_flat_lstm(experiment: Experiment, config: TrainConfig, hidden: int, log):
+  """The baseline on the same demonstrations' elementary actions (annotations unused), same iterations,
+  learning rate, seed and snapshot rule."""
+  spec = experiment.spec
+  policy = flat_lstm.FlatLSTMPolicy(spec.obs_dim, spec.action_sizes, hidden, rngs=nnx.Rngs(config.seed))
+  schedule = fitting.Schedule(config.iterations, config.learning_rate, config.eval_every, config.snapshot)
+  report = flat_lstm.train(policy, experiment.demos, schedule,
+                           fitting.Hooks(lambda iteration, loss: experiment.validate(policy), log))
+  return policy, {"flat_lstm": {"hidden": hidden, "best_iteration": report["best_iteration"],
+                                "validation": report["validation"], "final_loss": report["losses"][-1][1]}}

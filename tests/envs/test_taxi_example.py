@@ -1,0 +1,43 @@
+"""examples/taxi: the expert solves Taxi by MAXQ's hierarchy, and its stacks are ones the hierarchy file admits."""
+import json
+
+from examples.taxi import taxi
+from php_jax.data import demo_files
+from php_jax.envs import gym
+from php_jax.training import call_graph
+
+
+def _fewest_steps(env, start: int) -> int:
+  """Fewest actions from state start to a delivery: breadth first over Taxi's transition table."""
+  table, frontier, seen = env.unwrapped.P, [start], {start}
+  for steps in range(1, 100):
+    successors = set()
+    for state in frontier:
+      for (_, nxt, _, done), in table[state].values():
+        if done:
+          return steps
+        successors.add(nxt)
+    frontier = successors - seen
+    seen |= frontier
+  raise AssertionError("no delivery reachable")
+
+
+def test_the_maxq_expert_delivers_every_passenger_along_shortest_paths_within_its_declared_calls(tmp_path):
+  env, spec = taxi.make_env(), demo_files.read_hierarchy("examples/taxi/taxi.json").spec
+  lines = gym.record(env, taxi.MaxqExpert(env), episodes=60, seed=7, annotated=60, spec=spec)
+  for i, line in enumerate(lines):
+    env.reset(seed=7 + i)
+    assert len(line["actions"]) == _fewest_steps(env, env.unwrapped.s)
+    returns, terminated = 0.0, False
+    for (action,) in line["actions"]:
+      _, reward, terminated, _, _ = env.step(action)
+      returns += reward
+    assert terminated and returns == 20 - (len(line["actions"]) - 1)  # no illegal pickup or dropoff
+    row, col, passenger, destination = (int(x) for x in env.unwrapped.decode(env.unwrapped.s))
+    assert (row, col) == env.unwrapped.locs[destination] and passenger == destination
+  path = tmp_path / "taxi.jsonl"
+  path.write_text("".join(json.dumps(line) + "\n" for line in lines))
+  demos, _ = demo_files.read_demonstrations(str(path), spec)
+  call_graph.check(demos, spec, spec.allowed_ops)  # every step within the file's "calls"
+  navigate = {tuple(frames[2]) for line in lines for frames in line["stack"] if frames[2][0] < 4}
+  assert {h for h, _ in navigate} == {0, 1, 2, 3} and max(t for _, t in navigate) <= 7

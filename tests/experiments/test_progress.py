@@ -1,0 +1,55 @@
+"""The live progress display a person sees at a terminal, fed the rows a run logs."""
+import io
+
+from rich.console import Console
+
+from experiments import progress
+from php_jax.training.config import TrainConfig
+
+
+def _display(config, num_levels, rows):
+  console = Console(file=io.StringIO(), force_terminal=True, width=140, record=True)
+  shown = progress.TrainingProgress(config, num_levels, "runs/w", console)
+  for row in rows:
+    shown(row)
+  shown.close()
+  return console.export_text()
+
+
+def test_each_level_shows_its_iterations_loss_validation_and_the_end_a_table():
+  config = TrainConfig(iterations=200, strong_warmup=50)
+  text = _display(config, 3, [
+      {"level": 2, "capacity": 4, "view_length": 30, "seconds": 1.0},
+      {"level": 2, "iteration": 100, "loss": 1.2345, "seconds": 2.0},
+      {"level": 1, "capacity": 3, "view_length": 10, "seconds": 3.0},
+      {"level": 1, "iteration": 250, "loss": 0.5, "seconds": 4.0},
+      {"level": 0, "capacity": 9, "view_length": 9, "seconds": 5.0},
+      {"level": 0, "iteration": 200, "loss": 0.1, "validation": 0.96, "seconds": 6.0},
+      {"phase": "testing"},
+      {"test": {"20": 1.0, "50": 0.98}, "wall_seconds": 61.0}])
+  assert "level 2 (1 of 3)" in text and "100/250" in text and "loss 1.234" in text  # warm-up counted below the root
+  assert "level 1 (2 of 3)" in text and "250/250" in text
+  assert "level 0 (3 of 3)" in text and "200/200" in text and "best validation 0.960" in text
+  assert "testing" in text and "test results" in text and "0.980" in text and "61 s in all" in text
+  assert "are in runs/w" in text
+
+
+def test_a_finished_run_shows_its_results_and_says_it_trained_nothing():
+  text = _display(TrainConfig(), 3, [{"test": {"accuracy": 1.0}, "wall_seconds": 61.0, "finished_before": True}])
+  assert "1.000" in text and "had already finished in runs/w (61 s); --overwrite trains it again" in text
+
+
+def test_joint_and_flat_runs_and_other_seeds():
+  config = TrainConfig(iterations=60)
+  text = _display(config, 3, [{"training": "joint", "capacity": [9, 4, 3], "seconds": 1.0},
+                              {"iteration": 30, "loss": 2.0, "seconds": 2.0}])
+  assert "every level at once" in text and "30/60" in text
+  text = _display(config, None, [{"iteration": 60, "loss": 0.3, "seconds": 2.0}])
+  assert "flat LSTM" in text and "60/60" in text
+  text = _display(config, 3, [{"seed": 1, "level": 2, "capacity": 4, "seconds": 1.0},
+                              {"seed": 2, "level": 2, "iteration": 60, "loss": 9.0, "seconds": 2.0},
+                              {"seed": 1, "level": 2, "iteration": 30, "loss": 1.0, "seconds": 2.0},
+                              {"seed": 1, "test": {"accuracy": 1.0}, "wall_seconds": 5.0},
+                              {"seed": 2, "test": {"accuracy": 0.5}, "wall_seconds": 5.0}])
+  assert "30/60" in text and "loss 9" not in text  # the first seed's rows stand for all
+  assert "seed 1: test results" in text and "seed 2: test results" in text and "runs/w/seed=2" in text

@@ -1,0 +1,156 @@
+"""What a person sees of a run: a demonstration's decoded call stack and posterior (run_view), its picture,
+the run's report page, and a finished run that is not trained again. (The commands themselves, end to end:
+the slow test in test_own_demos.py; the report in a browser: test_report_browser.py.)"""
+import dataclasses
+import json
+import os
+import pathlib
+import shutil
+
+import numpy as np
+import pytest
+from flax import nnx
+
+from experiments import pictures, run_report, run_view
+from php_jax.analysis import decoding
+from php_jax.data import demo_files
+from php_jax.model import PHPHierarchy
+from php_jax.training import checkpoint, run
+from php_jax.training.config import TrainConfig
+
+WAREHOUSE = pathlib.Path(__file__).resolve().parents[2] / "examples" / "warehouse"
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+  """A warehouse 'fit' workdir: an untrained hierarchy saved with results pointing at 5 annotated
+  demonstrations, and a metrics log of two levels."""
+  workdir = tmp_path_factory.mktemp("fit")
+  demos = workdir / "demos.jsonl"
+  demos.write_text("".join((WAREHOUSE / "held_out.jsonl").read_text().splitlines(keepends=True)[:5]))
+  hierarchy_file = str(WAREHOUSE / "warehouse.json")
+  spec = dataclasses.replace(demo_files.read_hierarchy(hierarchy_file).spec, obs_dim=6)
+  hierarchy = PHPHierarchy(spec, hidden=(8,), rngs=nnx.Rngs(0))
+  checkpoint.save_hierarchy(str(workdir), spec.name, hierarchy, (8,), [1, 8, 8])
+  (workdir / run.RESULTS_FILE).write_text(json.dumps({
+      "task": "warehouse", "model": "php", "demos": str(demos), "hierarchy": hierarchy_file, "num_demos": 5,
+      "config": {"training": "levelwise", "iterations": 10}, "test": {"held_out_replayed": 0.25}}))
+  (workdir / run.METRICS_FILE).write_text("".join(json.dumps(row) + "\n" for row in [
+      {"level": 2, "capacity": 8, "seconds": 1}, {"level": 2, "iteration": 5, "loss": 3.0, "seconds": 2},
+      {"level": 2, "iteration": 10, "loss": 2.0, "seconds": 3},
+      {"level": 0, "iteration": 10, "loss": 1.0, "validation": 0.5, "seconds": 4}]))
+  return workdir
+
+
+def test_a_shown_demonstration_is_its_decoded_stack_with_names_and_a_posterior_per_level(fitted):
+  view = run_view.load(str(fitted))
+  batch, source = run_view.demonstrations(view, None)
+  assert source.endswith("demos.jsonl") and len(batch.length) == 5
+  (drawn, lines), = run_view.decoded(view, batch, [3])
+  decoded = decoding.decode(view.hierarchy, view.capacity, batch)
+  n = int(batch.length[3])
+  assert drawn["decoded"].end == n and drawn["actions"][0] in ("left", "right", "pick", "drop")
+  lowest = [c for c in drawn["decoded"].callees for c in c.callees]
+  assert [c.procedure for c in lowest] == [int(decoded.procedures[3, c.start, 2]) for c in lowest]
+  for level, marginal in enumerate(drawn["marginals"]):  # each step's procedures: a distribution
+    np.testing.assert_allclose(marginal[:n].sum(-1), 1.0, atol=1e-4)
+    assert marginal.shape[1] == view.hierarchy.spec.num_procs(level)
+  assert lines[0].startswith("decoded call stack (log-likelihood ") and lines[1] == "  fulfil"
+  assert "the demonstration's own call stack:" in lines and set(drawn["agreement"]) == {1, 2}
+  figure = run_view.figure(view, drawn, "demonstration 3")
+  assert pictures.save(figure, "x.png", "t")[:4] == b"\x89PNG"
+  assert pictures.save(figure, "x.html", "t", "\n".join(lines)).decode().count("<svg") == 1
+
+
+def test_the_report_holds_settings_results_curves_call_graph_and_three_drawn_demonstrations(fitted):
+  path = run_report.write(str(fitted))
+  page = pathlib.Path(path).read_text()
+  assert page.count("<svg") == 4 and "<script" not in page and " src=" not in page
+  assert "held_out_replayed" in page and "0.250" in page and "Learning curves" in page
+  assert page.count("<td>fetch</td>") == 1 and "<td>any</td>" in page  # the call graph, every procedure once
+  assert page.count("<h3>demonstration ") == 3
+  assert run_report.write_if_stale(str(fitted)) is None  # newer than results.json: left as it is
+  os.utime(path, (0, 0))
+  assert run_report.write_if_stale(str(fitted)) == path
+
+
+def test_a_flat_lstm_is_refused_by_show_and_reported_without_stacks(tmp_path):
+  workdir = str(tmp_path / "flat")
+  experiment = _flat_experiment()
+  run.train_and_evaluate(experiment, TrainConfig(iterations=2, eval_every=1), workdir, flat_lstm_hidden=4,
+                         echo=lambda row: None)
+  with pytest.raises(ValueError, match="holds a flat LSTM, which has no call stack to show"):
+    run_view.load(workdir)
+  page = pathlib.Path(run_report.write(workdir)).read_text()
+  assert "No call stack to show" in page and page.count("<svg") == 1 and "flat LSTM</text>" in page
+
+
+def test_a_finished_run_is_not_trained_again_and_other_settings_are_named(tmp_path):
+  workdir, experiment, config = str(tmp_path / "flat"), _flat_experiment(), TrainConfig(iterations=2, eval_every=1)
+  rows = []
+  first = run.train_and_evaluate(experiment, config, workdir, flat_lstm_hidden=4, echo=rows.append)
+  written = [tmp_path / "flat" / name for name in run.RUN_FILES if (tmp_path / "flat" / name).exists()]
+  files = {path.name: path.read_bytes() for path in written}
+  rows.clear()
+  again = run.train_and_evaluate(experiment, config, workdir, flat_lstm_hidden=4, echo=rows.append)
+  assert again == json.loads(json.dumps(first))  # as results.json holds it
+  assert rows == [{"test": first["test"], "wall_seconds": first["wall_seconds"], "finished_before": True}]
+  assert {name: (tmp_path / "flat" / name).read_bytes() for name in files} == files
+  results_path = tmp_path / "flat" / run.RESULTS_FILE
+  older = json.loads(results_path.read_text())
+  del older["config"]["length_buckets"]  # a run made before that setting existed ran with its default
+  results_path.write_text(json.dumps(older))
+  assert run.train_and_evaluate(experiment, config, workdir, flat_lstm_hidden=4, echo=rows.append) == older
+  with pytest.raises(run.WorkdirError, match=r"other settings \(--iterations: 2 there, 3 here\); use a fresh"):
+    run.train_and_evaluate(experiment, dataclasses.replace(config, iterations=3), workdir, flat_lstm_hidden=4)
+  with pytest.raises(run.WorkdirError, match=r"--lstm_hidden: 4 there, 5 here"):
+    run.train_and_evaluate(experiment, config, workdir, flat_lstm_hidden=5)
+
+
+def _flat_experiment() -> run.Experiment:
+  spec = demo_files.read_hierarchy(str(WAREHOUSE / "warehouse.json")).spec
+  demos, spec = demo_files.read_demonstrations(str(WAREHOUSE / "held_out.jsonl"), spec)
+  demos = type(demos)(*(np.asarray(x)[:4] for x in demos))
+  return run.Experiment("warehouse", spec, demos, validate=lambda model: 0.5, test=lambda model: {"replayed": 0.5},
+                        extra={"num_demos": 4})
+
+
+def test_a_model_or_run_that_cannot_be_read_is_refused_not_reported(fitted, tmp_path):
+  """Hostile workdirs (a model.json edited, even signed anew; no results; a metrics row of strings) are
+  refused in one ValueError naming the file."""
+  bad = tmp_path / "bad"
+  shutil.copytree(fitted, bad)
+  (bad / run.REPORT_FILE).unlink(missing_ok=True)  # an earlier test's
+  architecture = json.loads((bad / checkpoint.ARCHITECTURE_FILE).read_text())
+  for capacity in ([8], [0, 0, 0], ["a", "b", "c"], [11, 10_000_000, 8]):
+    (bad / checkpoint.ARCHITECTURE_FILE).write_text(json.dumps({**architecture, "capacity": capacity}))
+    with pytest.raises(checkpoint.CheckpointError, match='"capacity" must give one integer in 1..4096 per level'):
+      checkpoint.saved_capacity(str(bad))
+  spec = {**architecture["spec"], "obs_dim": -1}
+  edited = {**architecture, "spec": spec}
+  params = (bad / checkpoint.MODEL_FILE).read_bytes()
+  edited["sha256"] = checkpoint._model_digest(params, edited)  # signed anew, as an editor could
+  (bad / checkpoint.ARCHITECTURE_FILE).write_text(json.dumps(edited))
+  with pytest.raises(checkpoint.CheckpointError, match="malformed hierarchy spec"):
+    checkpoint.load_policy(str(bad))
+  with pytest.raises(ValueError, match="malformed hierarchy spec"):
+    run_report.write(str(bad))  # a report of a model that cannot be read is refused, not written
+  assert not (bad / run.REPORT_FILE).exists()
+  empty = tmp_path / "empty"
+  empty.mkdir()
+  with pytest.raises(ValueError, match="not a finished run's results"):
+    run_report.write(str(empty))
+  rows = tmp_path / "rows"
+  shutil.copytree(fitted, rows)
+  (rows / run.METRICS_FILE).write_text('{"level": 2, "iteration": "ten", "loss": 1.0}\n')
+  with pytest.raises(ValueError, match=r"metrics.jsonl:1: not a metrics row"):
+    run_report.write(str(rows))
+
+
+def test_a_run_whose_task_is_not_its_models_hierarchy_is_refused(fitted, tmp_path):
+  other = tmp_path / "other"
+  shutil.copytree(fitted, other)
+  (other / run.RESULTS_FILE).write_text(json.dumps({"task": "bubblesort", "seed": 0, "num_demos": 128,
+                                                    "num_strong": 0, "config": {}, "test": {}}))
+  with pytest.raises(ValueError, match="its model is not a hierarchy of task 'bubblesort'"):
+    run_view.demonstrations(run_view.load(str(other)), None)

@@ -1,0 +1,100 @@
+"""Training settings written once: TrainConfig's checks, the flags generated from its fields, task overrides."""
+import dataclasses
+import pathlib
+import subprocess
+import sys
+
+import pytest
+from absl import flags
+
+from experiments import config_flags
+from php_jax.envs import tasks
+from php_jax.training import config as config_lib
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+
+
+def _flags(*argv: str, defaults=lambda name, default: config_flags.default_text(default)) -> flags.FlagValues:
+  values = flags.FlagValues()
+  config_flags.define_config_flags(defaults, values)
+  values(["prog", *argv])
+  return values
+
+
+def test_every_field_has_a_flag_with_its_help_and_default():
+  values = _flags()
+  for field in config_lib.fields():
+    flag = values[field.name]
+    assert flag.value is None and field.metadata["help"] in flag.help
+  assert "Default: 2000." in values["iterations"].help
+  assert "Default:" not in values["strong_weight"].help  # unset: its help says what that means
+
+
+def test_help_shows_the_tasks_overrides():
+  overrides = {task.name: task.defaults.overrides()["iterations"] for task in tasks.TASKS.values()
+               if "iterations" in task.defaults.overrides()}
+  assert overrides == {"bubblesort": 1000}
+  assert config_flags.default_text(2000, overrides) == "2000 (bubblesort: 1000)"
+  assert config_flags.default_text(None, {"bubblesort": (0, 1, None)}) == "unset (bubblesort: 0,1,none)"
+
+
+def test_flags_override_the_task_which_overrides_the_defaults():
+  nanocraft = tasks.get("nanocraft").defaults.overrides()
+  config = config_flags.config_from_flags(nanocraft, _flags("--iterations=7", "--tau_in_termination=1,0,1"))
+  assert (config.iterations, config.tau_in_termination, config.hidden, config.training) == (
+      7, (True, False, True), (32,), "joint")
+  assert config.learning_rate == config_lib.TrainConfig().learning_rate  # neither the task nor a flag set it
+  assert config_flags.config_from_flags({}, _flags("--tau_limit=0,none,3")).tau_limit == (0, None, 3)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--hidden="], "--hidden must list integers; got ''"),
+    (["--hidden=8,x"], "--hidden must list integers; got '8,x'"),
+    (["--tau_in_termination=1,maybe"], "--tau_in_termination must list 0/1 (or true/false)"),
+    (["--call_penalty=0,nan"], "--call_penalty: must list one finite non-negative number per level"),
+    (["--seed=-1"], "--seed: must be a non-negative integer; got -1"),
+    (["--iterations=0"], "--iterations: must be a positive integer; got 0"),
+    (["--learning_rate=inf"], "--learning_rate: must be a positive finite number"),
+    (["--eval_every=0"], "--eval_every: must be a positive integer"),
+    (["--capacity=0"], "--capacity: must be a positive integer"),
+    (["--length_buckets=-1"], "--length_buckets: must be a positive integer"),
+    (["--root_hidden=0"], "--root_hidden: must be a positive integer"),
+    (["--strong_weight=-2"], "--strong_weight: must be a positive finite number"),
+    (["--training=joint", "--root=mlp"], "--root: applies to level-wise training only; this run trains jointly "
+                                          "(--training=joint): add --training=levelwise or drop --root"),
+])
+def test_bad_flags_are_refused_naming_the_flag(argv, message):
+  with pytest.raises(config_flags.UsageError) as refused:
+    config_flags.config_from_flags({}, _flags(*argv))
+  assert str(refused.value).startswith(message), str(refused.value)
+
+
+def test_config_errors_name_the_field():
+  for changes, field in [({"hidden": ()}, "hidden"), ({"capacity": 0}, "capacity"), ({"snapshot": "best"}, "snapshot"),
+                         ({"seed": True}, "seed"), ({"min_capacity": (0, -1)}, "min_capacity"),
+                         ({"call_graph": "some"}, "call_graph")]:
+    with pytest.raises(config_lib.ConfigError) as refused:
+      config_lib.TrainConfig(**changes)
+    assert refused.value.field == field
+  config = config_lib.TrainConfig(min_capacity=(0, 4))
+  with pytest.raises(config_lib.ConfigError, match="min_capacity: needs one value per level") as refused:
+    config_lib.check_levels(tasks.get("addition").spec, config)
+  assert refused.value.field == "min_capacity"
+  assert dataclasses.replace(config, min_capacity=(0, 4, 4)).min_capacity == (0, 4, 4)
+
+
+def test_help_exits_0_and_shows_every_setting_grouped_with_its_default():
+  proc = subprocess.run([sys.executable, "-m", "experiments.train", "--help"], capture_output=True, text=True,
+                        timeout=120, cwd=ROOT)
+  assert proc.returncode == 0, proc.stderr[-2000:]
+  for field in config_lib.fields():
+    assert f"--{field.name}:" in proc.stdout or f"--[no]{field.name}:" in proc.stdout, field.name
+  text = " ".join(proc.stdout.split())  # the help is wrapped at 100 columns
+  assert "Default: 2000 (bubblesort: 1000)" in text and "Default: the task's (addition: 160, fixed;" in text
+  groups = [line for line in proc.stdout.splitlines() if line.endswith(":") and not line.startswith(" ")]
+  assert groups == ["Flags of this command:", "Training settings:", "The run and its workdir:"]
+
+
+def test_a_seed_beyond_32_bits_is_refused():
+  with pytest.raises(config_lib.ConfigError, match=r"seed: must be at most 2147483647 \(a 32-bit seed\)"):
+    config_lib.TrainConfig(seed=2**31)

@@ -1,0 +1,65 @@
+"""A run's workdir: one run at a time (its lock), and a metrics log with every row once whatever was killed when."""
+import json
+import os
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from php_jax.training import run
+
+HOLD = """
+import sys, time
+from php_jax import run
+with run.workdir_lock(sys.argv[1]):
+  print("held", flush=True)
+  time.sleep(60)
+"""
+
+
+def _holder(workdir):
+  proc = subprocess.Popen([sys.executable, "-c", HOLD, str(workdir)], stdout=subprocess.PIPE, text=True)
+  assert proc.stdout.readline().strip() == "held"
+  return proc
+
+
+def test_a_second_run_is_refused_naming_the_holder_and_a_killed_one_blocks_nothing(tmp_path):
+  holder = _holder(tmp_path / "w")
+  try:
+    with pytest.raises(run.WorkdirError, match=rf"in use by another run \(pid {holder.pid}\)"):
+      with run.workdir_lock(str(tmp_path / "w")):
+        pass
+  finally:
+    os.kill(holder.pid, signal.SIGKILL)
+    holder.wait()
+  with run.workdir_lock(str(tmp_path / "w")):  # the kernel released the killed run's lock
+    assert (tmp_path / "w" / run.LOCK_FILE).read_text() == str(os.getpid())
+
+
+def test_waiting_takes_the_lock_once_the_holder_ends(tmp_path):
+  holder = _holder(tmp_path / "w")
+  subprocess.Popen(["sh", "-c", f"sleep 1; kill {holder.pid}"])
+  with run.workdir_lock(str(tmp_path / "w"), wait=True):
+    assert holder.wait() == -signal.SIGTERM
+
+
+def test_a_workdir_that_is_a_file_is_refused(tmp_path):
+  (tmp_path / "f").write_text("")
+  with pytest.raises(run.WorkdirError, match="is a file, not a directory"):
+    with run.workdir_lock(str(tmp_path / "f")):
+      pass
+
+
+def test_metrics_start_afresh_unless_resumed(tmp_path, capsys):
+  path = tmp_path / run.METRICS_FILE
+  path.write_text('{"level": 2, "seconds": 1.0}\n{"level": 2, "iteration": 10, "seconds": 2.0}\n')
+  with run.MetricsLog(str(tmp_path)) as log:  # killed before its first checkpoint: nothing to resume
+    log({"level": 2})
+  assert [json.loads(line)["level"] for line in path.read_text().splitlines()] == [2]
+  path.write_text('{"a": 1, "seconds": 1.0}\n{"b": 2, "seconds": 5.0}\n{"c": 3, "seconds": 9.0}\n')
+  with run.MetricsLog(str(tmp_path)) as log:  # the checkpoint was taken after two rows
+    log({"resumed": True, "logged": 2})
+    log({"d": 4})
+  rows = [json.loads(line) for line in path.read_text().splitlines()]
+  assert [list(row)[0] for row in rows] == ["a", "b", "d"] and rows[-1]["seconds"] >= 5.0
