@@ -11,7 +11,7 @@ from php_jax.training import run
 
 HOLD = """
 import sys, time
-from php_jax import run
+from php_jax.training import run
 with run.workdir_lock(sys.argv[1]):
   print("held", flush=True)
   time.sleep(60)

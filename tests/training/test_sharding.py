@@ -34,7 +34,10 @@ import json
 import jax
 import numpy as np
 from flax import nnx
-from php_jax import datasets, fitting, joint, objective, sharding, tasks, train, views
+from php_jax import fitting, sharding
+from php_jax.data import views
+from php_jax.envs import datasets, tasks
+from php_jax.training import joint, objective, train
 
 task = tasks.get("nanocraft")
 demos = datasets.training_demos(task, seed=3, num_demos=7, num_strong=3)
