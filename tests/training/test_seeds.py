@@ -1,4 +1,4 @@
-"""Seeds trained as one program (php_jax.seeds) give each seed's separate run, and resume."""
+"""Seeds trained as one program (php_jax.training.train.train_seeds) give each seed's separate run, and resume."""
 import dataclasses
 import json
 import os
