@@ -234,7 +234,7 @@ def write_training(path: str, hierarchy: PHPHierarchy, meta: dict, progress: fit
 
 def write_training_seeds(path: str, states: list[tuple]) -> None:
   """One file holding several seeds' training states, each (hierarchy, meta, progress, decoded) as
-  write_training takes them (`php_jax.seeds`): written at once, so the seeds never disagree on where they
+  write_training takes them (`train.train_seeds`): written at once, so the seeds never disagree on where they
   stand."""
   write_atomically(path, serialization.msgpack_serialize({"seeds": [_training_bytes(*state) for state in states]}))
 
