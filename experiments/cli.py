@@ -108,7 +108,10 @@ def parse_flags(argv: list[str]) -> list[str]:
   (--helpfull: absl's own list, with its logging flags). Log messages below warnings (JAX's start-up notes)
   are not shown unless --verbosity asks for them."""
   if set(argv[1:]) & {"--help", "-help", "-h", "-?", "--helpshort"}:
-    print(grouped_help(argv[0]))
+    try:
+      print(grouped_help(argv[0]), flush=True)
+    except BrokenPipeError:  # a reader that stopped early (`| head`): the rest goes nowhere, quietly
+      os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     sys.exit(0)
   try:
     argv = flags.FLAGS(argv)

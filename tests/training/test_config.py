@@ -95,6 +95,13 @@ def test_help_exits_0_and_shows_every_setting_grouped_with_its_default():
   assert groups == ["Flags of this command:", "Training settings:", "The run and its workdir:"]
 
 
+def test_help_read_in_part_ends_quietly():
+  proc = subprocess.Popen([sys.executable, "-m", "experiments.fit", "--help"], stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, cwd=ROOT)
+  proc.stdout.close()  # as `... --help | head -1` does, but before the first line: the write always fails
+  assert proc.wait(timeout=120) == 0 and proc.stderr.read() == b""
+
+
 def test_a_seed_beyond_32_bits_is_refused():
   with pytest.raises(config_lib.ConfigError, match=r"seed: must be at most 2147483647 \(a 32-bit seed\)"):
     config_lib.TrainConfig(seed=2**31)
