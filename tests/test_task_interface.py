@@ -120,6 +120,7 @@ def test_a_task_path_that_does_not_load_or_is_no_task_is_refused_naming_it():
       tasks.get(path)
 
 
+@pytest.mark.slow  # about 40 s; the default suite trains this task in process (above) and refuses bad paths
 def test_the_training_command_and_evaluate_run_a_task_given_by_import_path(tmp_path):
   name = "--task=tests.test_task_interface:COUNTDOWN"
   workdir = tmp_path / "run"
