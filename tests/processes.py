@@ -5,6 +5,7 @@ from __future__ import annotations
 import concurrent.futures
 import os
 import subprocess
+import sys
 from typing import Sequence
 
 
@@ -13,3 +14,13 @@ def run_all(commands: Sequence[Sequence[str]], **kwargs) -> list[subprocess.Comp
   completed processes, in the order of commands."""
   with concurrent.futures.ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
     return list(pool.map(lambda command: subprocess.run(command, **kwargs), commands))
+
+
+def assert_refused(cases: Sequence[tuple[Sequence[str], str]], timeout: float = 600) -> None:
+  """Runs `python -m ARGS` for each (ARGS, message) of cases, as run_all does, and asserts each was refused:
+  exit status 2 and one line on stderr holding message."""
+  procs = run_all([[sys.executable, "-m", *args] for args, _ in cases], capture_output=True, text=True,
+                  timeout=timeout)
+  for (args, message), proc in zip(cases, procs):
+    assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, (
+        args, proc.stderr)

@@ -335,9 +335,5 @@ def test_record_and_act_refusals_end_in_one_line_and_exit_2(tmp_path):
       (("experiments.act", f"--policy={flat}", env, "--sample", f"--out={out}"),
        f"--sample: --policy={flat} is a flat LSTM, which acts greedily"),
   ]
-  procs = processes.run_all([[sys.executable, "-m", *args] for args, _ in cases], capture_output=True, text=True,
-                            timeout=600)
-  for (args, message), proc in zip(cases, procs):
-    assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, (
-        args, proc.stderr)
+  processes.assert_refused(cases)
   assert not out.exists()

@@ -231,12 +231,8 @@ def test_sweep_command_refuses_bad_flags_and_writes_nothing(tmp_path):
            (["--seeds=1,x"], "distinct non-negative integers"), (["--seeds=1,2", "--grid=seed=3"], "give one of them"),
            (["--task=sorting"], "--task: unknown task 'sorting'"), (["--workdir="], "--workdir: must name a directory")]
   # Run at the same time, each with its own workdir.
-  procs = processes.run_all([[sys.executable, "-m", "experiments.sweep", "--task=nanocraft",
-                              f"--workdir={tmp_path / f'sweep{i}'}", *flags] for i, (flags, _) in enumerate(cases)],
-                            capture_output=True, text=True, timeout=300)
-  for (flags, message), proc in zip(cases, procs):
-    assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, (
-        flags, proc.stderr)
+  processes.assert_refused([(["experiments.sweep", "--task=nanocraft", f"--workdir={tmp_path / f'sweep{i}'}", *flags],
+                             message) for i, (flags, message) in enumerate(cases)], timeout=300)
   assert list(tmp_path.iterdir()) == []
 
 
@@ -283,10 +279,8 @@ def test_plot_refuses_a_table_it_did_not_write(tmp_path):
       ("php", 64, 4): plot.Row(5, {"accuracy": plot.Accuracy(0.5, 0.1, 0.9, None, 5)}, "0.9, 0.9")}
   cases = [([f"--tables={tmp_path / 't.md'}", f"--runs={tmp_path}"], "either --runs"), ([], "either"),
            ([f"--tables={tmp_path / 't.md'}", "--against=test_size"], "test sets named by their size")]
-  procs = processes.run_all([[sys.executable, "-m", "experiments.plot", f"--out={tmp_path / 'out'}", *args]
-                             for args, _ in cases], capture_output=True, text=True, timeout=300)
-  for proc, (_, message) in zip(procs, cases):
-    assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+  processes.assert_refused([(["experiments.plot", f"--out={tmp_path / 'out'}", *args], message)
+                            for args, message in cases], timeout=300)
   assert not (tmp_path / "out").exists()
 
 
