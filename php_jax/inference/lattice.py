@@ -259,8 +259,11 @@ def check_log_probs(name: str, x, shape: str):
 
 
 def check_finite(arrays: dict, length=None):
-  """Refuses NaN or +inf (−inf is a legal zero probability) in any of arrays (name → [T, ...] concrete
-  array) on the steps before length (every step if None), naming the array and the index."""
+  """Refuses NaN or +inf (−inf is a legal zero probability) in any of arrays (name → [T, ...] array) on the
+  steps before length (every step if None), naming the array and the index; nothing is checked when any of
+  them or length is traced (under jit or vmap)."""
+  if any(isinstance(x, jax.core.Tracer) for x in (*arrays.values(), length)):
+    return
   for name, x in arrays.items():
     values = np.asarray(x)[:None if length is None else int(length)]
     for bad, what in ((np.isnan(values), "NaN"), (np.isposinf(values), "+inf")):
@@ -331,8 +334,7 @@ def _check_inputs(log_root, log_op, log_stop, log_cont, length):
   if jnp.shape(log_root) != (num_steps, num_procs):
     raise ValueError(f"log_root must be [T, K] = {(num_steps, num_procs)}; got {jnp.shape(log_root)}")
   checked = check_length(length, num_steps)
-  if not any(isinstance(x, jax.core.Tracer) for x in (*arrays.values(), checked)):
-    check_finite(arrays, checked)
+  check_finite(arrays, checked)
   return num_steps, num_procs, capacity, checked
 
 

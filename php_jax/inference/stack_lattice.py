@@ -145,8 +145,7 @@ def _check_inputs(inputs: StackInputs, name: str = "inputs"):
     raise ValueError(f"the root level has one procedure: log_stop[0] must be [T, 1, C_0]; got {jnp.shape(log_stop[0])}")
   checked = check_length(length, num_steps)
   inputs = StackInputs(log_call, log_act, log_stop, log_cont, length)
-  if not any(isinstance(x, jax.core.Tracer) for x in (*jax.tree.leaves(inputs[:4]), checked)):
-    check_finite(dict(_named_arrays(inputs)), checked)
+  check_finite(dict(_named_arrays(inputs)), checked)
   return inputs, checked
 
 
