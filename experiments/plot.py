@@ -20,6 +20,7 @@ left as it is.
 from __future__ import annotations
 
 import glob
+import io
 import json
 import os
 import re
@@ -217,10 +218,11 @@ def _label(model: str, total: int) -> str:
   return ", ".join([f"PHP, {total} demonstrations", *how])
 
 
-def figure(table: dict[Key, Row], path: str, task: str = "") -> None:
+def figure(table: dict[Key, Row], task: str = "") -> bytes:
   """Per test set one panel: test accuracy against the number of annotated demonstrations (log scale, ticks
   at the measured numbers), a line per model and number of demonstrations, the mean over trials with
-  min–max bars; the flat LSTM and runs with nothing annotated as levels across the panel."""
+  min–max bars; the flat LSTM and runs with nothing annotated as levels across the panel. Returns the PNG's
+  bytes."""
   names = test_sets(table)
   columns = min(2, len(names))
   rows = -(-len(names) // columns)
@@ -253,12 +255,12 @@ def figure(table: dict[Key, Row], path: str, task: str = "") -> None:
     ax.set_visible(False)
   fig.suptitle(f"{task + ': ' if task else ''}test accuracy against the number of annotated demonstrations\n"
                f"({_BARS})", fontsize=11)
-  _save(fig, path)
+  return _png(fig)
 
 
-def size_figure(table: dict[Key, Row], path: str, task: str = "") -> None:
+def size_figure(table: dict[Key, Row], task: str = "") -> bytes:
   """One panel: test accuracy against the test problems' size (log scale, ticks at the measured sizes), a line
-  per table row, the mean over trials with min–max bars."""
+  per table row, the mean over trials with min–max bars. Returns the PNG's bytes."""
   sizes = sorted(int(n) for n in test_sets(table) if n.isdigit())
   fig, ax = plt.subplots(figsize=(7.4, 4.8))
   for i, ((model, total, strong), row) in enumerate(table.items()):
@@ -273,7 +275,7 @@ def size_figure(table: dict[Key, Row], path: str, task: str = "") -> None:
   _log_axis(ax, sizes, f"{_size_words(task)[1]} (log scale)")
   ax.set_title(f"{task + ': ' if task else ''}test accuracy against the test problems' size\n({_BARS})",
                fontsize=11)
-  _save(fig, path)
+  return _png(fig)
 
 
 def _log_axis(ax, ticks: list[int], label: str) -> None:
@@ -288,10 +290,13 @@ def _log_axis(ax, ticks: list[int], label: str) -> None:
   ax.grid(alpha=0.3)
 
 
-def _save(fig, path: str) -> None:
+def _png(fig) -> bytes:
+  """The figure as a PNG file's bytes; the figure is closed."""
   fig.tight_layout()
-  fig.savefig(path, dpi=110, bbox_inches="tight")
+  buffer = io.BytesIO()
+  fig.savefig(buffer, format="png", dpi=110, bbox_inches="tight")
   plt.close(fig)
+  return buffer.getvalue()
 
 
 def main(argv):
@@ -321,21 +326,10 @@ def main(argv):
     if not _TABLES.value:
       files.write_atomically(os.path.join(_OUT.value, f"{name}.md"), markdown(table).encode())
       written.append(f"{name}.md")
-    _draw_atomically(lambda p, table=table, task=task: draw(table, p, task), os.path.join(_OUT.value, f"{name}.png"))
+    files.write_atomically(os.path.join(_OUT.value, f"{name}.png"), draw(table, task))
     written.append(f"{name}.png")
   source = f"{len(tables)} tables" if _TABLES.value else f"{len(results)} runs"
   print(f"{source} -> {', '.join(os.path.join(_OUT.value, w) for w in written)}")
-
-
-def _draw_atomically(draw, path: str) -> None:
-  temporary = path + ".tmp.png"
-  try:
-    draw(temporary)
-    os.replace(temporary, path)
-  except BaseException:
-    if os.path.exists(temporary):
-      os.remove(temporary)
-    raise
 
 
 if __name__ == "__main__":
