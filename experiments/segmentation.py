@@ -25,7 +25,7 @@ from php_jax.data import agreement, views
 from php_jax.envs import datasets, tasks
 from php_jax.training import checkpoint
 
-_RUN = flags.DEFINE_string("run", None, "A training run's workdir (results.json, checkpoint.msgpack).")
+_RUN = flags.DEFINE_string("run", None, "A training run's workdir (results.json, checkpoint/).")
 _LEVEL = flags.DEFINE_integer("level", None, "Level to report (default: every level below the root).")
 _SHOW = flags.DEFINE_integer("show", 3, "Wrong demonstrations printed side by side, per level.", lower_bound=0)
 
@@ -89,9 +89,9 @@ def _read_results(path: str) -> dict:
 def report(run: str, level: int | None, show: int) -> None:
   """Prints the report of the run's workdir for one level (None: every level below the root). Raises
   ValueError naming the file or flag at fault before printing anything."""
-  paths = [os.path.join(run, name) for name in ("results.json", checkpoint.TRAINING_FILE)]
+  paths = [os.path.join(run, name) for name in ("results.json", checkpoint.TRAINING_DIR)]
   for path in paths:
-    if not os.path.isfile(path):
+    if not os.path.exists(path):
       raise ValueError(f"{path} does not exist: --run must be a finished training run's workdir")
   results = _read_results(paths[0])
   try:

@@ -57,11 +57,11 @@ def test_write_atomically_through_a_symbolic_link_writes_the_file_it_names(tmp_p
 
 
 def test_write_atomically_removes_its_temporary_file_when_the_write_fails(tmp_path):
-  path = tmp_path / "model.msgpack"
+  path = tmp_path / "results.json"
   path.write_bytes(b"old")
   with pytest.raises(TypeError):
     files.write_atomically(str(path), object())  # not bytes: the write itself raises
-  assert os.listdir(tmp_path) == ["model.msgpack"] and path.read_bytes() == b"old"
+  assert os.listdir(tmp_path) == ["results.json"] and path.read_bytes() == b"old"
 
 
 @pytest.mark.parametrize("error", [OSError("disk full"), KeyboardInterrupt()])

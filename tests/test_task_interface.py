@@ -22,6 +22,7 @@ from php_jax.hierarchy import HierarchySpec
 from php_jax.training import checkpoint, objective, run, train
 from php_jax.training import config as config_lib
 from tests import processes
+from tests.saved import leftovers, saved_model
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DEC, REST = 0, 1  # elementary actions: decrement the counter, or do nothing
@@ -153,11 +154,11 @@ def test_the_training_command_and_evaluate_run_a_task_given_by_import_path(tmp_p
 
 @pytest.mark.slow
 def test_a_checkpoint_made_with_other_settings_or_data_is_refused(tmp_path):
-  path = str(tmp_path / "checkpoint.msgpack")
+  path = str(tmp_path / "checkpoint")
   batch = datasets.training_demos(COUNTDOWN, seed=0, num_demos=4, num_strong=2)
   config = train.TrainConfig(iterations=2, eval_every=1, hidden=(4,), root="mlp", root_hidden=4)
   train.train_hierarchy(SPEC, batch, config, log=lambda row: None, checkpoint_path=path)
-  saved = pathlib.Path(path).read_bytes()
+  saved = {p: p.read_bytes() for p in pathlib.Path(path).rglob("*") if p.is_file()}
   other_data = datasets.training_demos(COUNTDOWN, seed=1, num_demos=4, num_strong=2)
   for demos_, config_, message in [
       (batch, dataclasses.replace(config, hidden=(5,)), r"hidden: \[4\] there, \[5\] here"),
@@ -166,7 +167,7 @@ def test_a_checkpoint_made_with_other_settings_or_data_is_refused(tmp_path):
       (batch._replace(strong=np.array([True, False, False, False])), config, "demonstrations differ")]:
     with pytest.raises(checkpoint.CheckpointError, match=message):
       train.train_hierarchy(SPEC, demos_, config_, log=lambda row: None, checkpoint_path=path)
-  assert pathlib.Path(path).read_bytes() == saved
+  assert {p: p.read_bytes() for p in pathlib.Path(path).rglob("*") if p.is_file()} == saved
 
 
 @pytest.mark.slow
@@ -176,8 +177,8 @@ def test_a_workdir_made_with_other_settings_is_refused_until_overwrite(tmp_path)
           f"--workdir={workdir}", "--num_strong=2", "--root=mlp", "--iterations=20", "--eval_every=10"]
   first = subprocess.run(base, capture_output=True, text=True, timeout=600, cwd=ROOT)
   assert first.returncode == 0, first.stderr[-3000:]
-  def files():  # but the lock, which the refused run held (its pid in it)
-    return {p.name: p.read_bytes() for p in workdir.iterdir() if p.name != run.LOCK_FILE}
+  def files():  # every file, those of its Orbax directories included, but the lock (the refused run's pid)
+    return {p: p.read_bytes() for p in workdir.rglob("*") if p.is_file() and p.name != run.LOCK_FILE}
 
   before = files()
   proc = subprocess.run(base + ["--iterations=30"], capture_output=True, text=True, timeout=600, cwd=ROOT)
@@ -204,15 +205,15 @@ def test_sigterm_keeps_the_checkpoint_says_how_to_resume_and_the_rerun_continues
              f"--workdir={workdir}", "--num_strong=2", "--root=mlp", "--iterations=1000", "--eval_every=20"]
   proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT)
   deadline = time.time() + 300
-  while not (workdir / "checkpoint.msgpack").exists() and time.time() < deadline and proc.poll() is None:
+  while not (workdir / "checkpoint" / "state.json").exists() and time.time() < deadline and proc.poll() is None:
     time.sleep(0.1)
   proc.send_signal(signal.SIGTERM)
   stderr = proc.communicate(timeout=120)[1]
   assert proc.returncode == 130 and "Traceback" not in stderr, stderr[-2000:]
   assert stderr.strip().splitlines()[-1].startswith("interrupted:") and "rerun the same command" in stderr
-  saved = checkpoint.read_training(str(workdir / "checkpoint.msgpack"))
+  saved = checkpoint.read_training(str(workdir / "checkpoint"))
   assert saved[0]["level"] == 2 and saved[0]["progress"]["iteration"] >= 20
-  assert not list(workdir.glob(".*.tmp"))
+  assert not leftovers(workdir)
   before = [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
   rerun = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=ROOT)
   assert rerun.returncode == 0, rerun.stderr[-3000:]
@@ -227,9 +228,10 @@ def test_sigterm_keeps_the_checkpoint_says_how_to_resume_and_the_rerun_continues
 
 
 def _checkpoint_meta(workdir):
-  """The training checkpoint's metadata (level, progress), or None before the first one."""
-  saved = checkpoint.read_training(str(workdir / checkpoint.TRAINING_FILE))
-  return saved and saved[0]
+  """The training checkpoint's metadata (level, progress), or None before the first one: its state.json
+  (read while the run saves, it is the old one or the new one)."""
+  path = workdir / checkpoint.TRAINING_DIR / checkpoint.STATE_FILE
+  return json.loads(path.read_text())["states"][0] if path.exists() else None
 
 
 def _kill_when(command, log, ready, moment, timeout=300):
@@ -268,7 +270,7 @@ def test_sigkill_at_any_moment_then_a_rerun_ends_as_an_uninterrupted_run(tmp_pat
   for moment, ready, left in moments:
     _kill_when(command(workdir), tmp_path / "stderr", lambda: ready(_checkpoint_meta(workdir)), moment)
     assert left(_checkpoint_meta(workdir)), (moment, _checkpoint_meta(workdir))
-  _kill_when(command(workdir), tmp_path / "stderr", (workdir / checkpoint.MODEL_FILE).exists, "the model's write")
+  _kill_when(command(workdir), tmp_path / "stderr", (workdir / checkpoint.MODEL_DIR).exists, "the model's write")
   assert _checkpoint_meta(workdir)["level"] == -1 and not (workdir / "results.json").exists()
   # What a kill inside a write leaves beside the files: a partly written temporary file (the target is whole).
   for name in ("results.json", checkpoint.ARCHITECTURE_FILE):
@@ -277,8 +279,7 @@ def test_sigkill_at_any_moment_then_a_rerun_ends_as_an_uninterrupted_run(tmp_pat
   assert rerun.returncode == 0, rerun.stderr[-3000:]
 
   assert sorted(p.name for p in workdir.iterdir()) == sorted(p.name for p in reference.iterdir())  # no .tmp left
-  for name in (checkpoint.MODEL_FILE, checkpoint.ARCHITECTURE_FILE):
-    assert (workdir / name).read_bytes() == (reference / name).read_bytes(), name
+  assert saved_model(workdir) == saved_model(reference)
   results, expected = (json.loads((d / "results.json").read_text()) for d in (workdir, reference))
   for entry in (*results["levels"].values(), *expected["levels"].values()):
     del entry["seconds"]

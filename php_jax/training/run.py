@@ -2,12 +2,12 @@
 saved model and results.json, whichever model and training mode the settings ask for.
 
 A run writes workdir/metrics.jsonl (one JSON row per logged event, each with "seconds" since the run
-started), workdir/checkpoint.msgpack while it trains (a rerun resumes from it, ending as an uninterrupted
+started), workdir/checkpoint/ while it trains (a rerun resumes from it, ending as an uninterrupted
 run would: rows logged after the checkpoint are dropped and logged again), the model (model.json and
-model.msgpack, which `checkpoint.load_policy` reads) and results.json (settings, training summary, test
+model/, which `checkpoint.load_policy` reads) and results.json (settings, training summary, test
 results, wall time, the code's commit and the package versions). Several seeds trained as one program
 (`train_and_evaluate_seeds`) write one such run per seed, in workdir/seed=S, and their common progress in
-workdir/seeds_checkpoint.msgpack. Of several processes (jax.distributed), only the first writes files.
+workdir/seeds_checkpoint/. Of several processes (jax.distributed), only the first writes files.
 """
 from __future__ import annotations
 
@@ -31,10 +31,10 @@ from php_jax.hierarchy import HierarchySpec
 from php_jax.training import checkpoint, joint, provenance, train
 from php_jax.training.config import TrainConfig
 
-METRICS_FILE, RESULTS_FILE, SEEDS_CHECKPOINT = "metrics.jsonl", "results.json", "seeds_checkpoint.msgpack"
+METRICS_FILE, RESULTS_FILE, SEEDS_CHECKPOINT = "metrics.jsonl", "results.json", "seeds_checkpoint"
 REPORT_FILE = "report.html"  # the training commands write it (`experiments.run_report`); --overwrite clears it
-RUN_FILES = (checkpoint.TRAINING_FILE, METRICS_FILE, RESULTS_FILE, checkpoint.ARCHITECTURE_FILE,
-             checkpoint.MODEL_FILE, REPORT_FILE)
+RUN_FILES = (checkpoint.TRAINING_DIR, METRICS_FILE, RESULTS_FILE, checkpoint.ARCHITECTURE_FILE,
+             checkpoint.MODEL_DIR, REPORT_FILE)
 
 
 class WorkdirError(ValueError):
@@ -91,7 +91,7 @@ def train_and_evaluate(experiment: Experiment, config: TrainConfig, workdir: str
         checkpoint.save_flat_lstm(workdir, experiment.name, model, spec)
       else:
         model, trained, capacity = _train_php(experiment, config, log,
-                                              os.path.join(workdir, checkpoint.TRAINING_FILE))
+                                              os.path.join(workdir, checkpoint.TRAINING_DIR))
         checkpoint.save_hierarchy(workdir, experiment.name, model, config.hidden, capacity)
     results = {"task": experiment.name, "model": "flat_lstm" if flat_lstm_hidden else "php",
                "config": dataclasses.asdict(config), **experiment.extra, **trained}
@@ -106,7 +106,7 @@ def train_and_evaluate_seeds(experiments: list[Experiment], configs: list[TrainC
   level-wise as one program (`train.train_seeds`): seed s's run goes to workdir/seed=S with the files its
   separate run would write, its results.json also naming the seeds trained with it ("trained_with_seeds":
   its wall time and per-level seconds are those of the shared program); the progress of all is checkpointed
-  in workdir/seeds_checkpoint.msgpack and resumed from there. The run holds the locks of workdir and of every
+  in workdir/seeds_checkpoint/ and resumed from there. The run holds the locks of workdir and of every
   seed's workdir throughout."""
   workdirs = [os.path.join(workdir, f"seed={c.seed}") for c in configs]
   configs = [train.with_strong_weight(c, e.demos) for c, e in zip(configs, experiments)]
@@ -127,7 +127,7 @@ def train_and_evaluate_seeds(experiments: list[Experiment], configs: list[TrainC
     trained = train.train_seeds(spec, [e.demos for e in experiments], configs, [e.validate for e in experiments],
                                 log=lambda s, row: logs[s](row),
                                 checkpoint_path=os.path.join(workdir, SEEDS_CHECKPOINT),
-                                seed_checkpoint_paths=[os.path.join(w, checkpoint.TRAINING_FILE) for w in workdirs])
+                                seed_checkpoint_paths=[os.path.join(w, checkpoint.TRAINING_DIR) for w in workdirs])
     for run_dir, e, (hierarchy, report) in zip(workdirs, experiments, trained):
       checkpoint.save_hierarchy(run_dir, e.name, hierarchy, configs[0].hidden,
                                 [report[level]["capacity"] for level in range(spec.num_levels)])
@@ -144,8 +144,8 @@ def _finished(workdir: str, experiment: Experiment, config: TrainConfig, flat_ls
   """The results.json of a run that finished in workdir with these settings; None if no run finished there
   (or its results.json cannot be read: the run then resumes and writes it again). Raises WorkdirError (or
   CheckpointError, for other demonstrations) naming the settings that differ if it was made with others."""
-  paths = [os.path.join(workdir, name) for name in (RESULTS_FILE, checkpoint.ARCHITECTURE_FILE, checkpoint.MODEL_FILE)]
-  if not all(map(os.path.isfile, paths)):
+  paths = [os.path.join(workdir, name) for name in (RESULTS_FILE, checkpoint.ARCHITECTURE_FILE, checkpoint.MODEL_DIR)]
+  if not all(map(os.path.exists, paths)):
     return None
   try:
     with open(paths[0], encoding="utf-8") as f:
@@ -166,9 +166,9 @@ def _finished(workdir: str, experiment: Experiment, config: TrainConfig, flat_ls
   if differ:
     raise WorkdirError(f"{workdir} holds a finished run made with other settings ({'; '.join(differ)}); use a "
                        "fresh workdir, or --overwrite to train again")
-  saved = checkpoint.read_training(os.path.join(workdir, checkpoint.TRAINING_FILE))
+  saved = checkpoint.read_training(os.path.join(workdir, checkpoint.TRAINING_DIR))
   if saved is not None and model == "php":  # the demonstrations' digest: another data file, say
-    train.check_resumable(os.path.join(workdir, checkpoint.TRAINING_FILE), saved[0].get("settings", {}),
+    train.check_resumable(os.path.join(workdir, checkpoint.TRAINING_DIR), saved[0].get("settings", {}),
                           train.run_settings(experiment.spec, experiment.demos, config))
   return results
 
@@ -206,15 +206,18 @@ def workdir_lock(workdir: str, wait: bool = False):
 
 
 def clear_workdir(workdir: str, files: tuple[str, ...], overwrite: bool = False) -> None:
-  """In a workdir `workdir_lock` holds: with overwrite, deletes `files` there first; removes temporary files
-  a SIGKILL left."""
+  """In a workdir `workdir_lock` holds: with overwrite, deletes `files` there first (and files of an older
+  php_jax, which without overwrite raise WorkdirError); removes what a write cut off by SIGKILL left."""
   if jax.process_index() == 0:  # of several processes (jax.distributed), the one that writes files
-    if overwrite:
-      for name in files:
-        if os.path.exists(os.path.join(workdir, name)):
-          os.remove(os.path.join(workdir, name))
-    for leftover in glob.glob(os.path.join(workdir, ".*.tmp")):  # a write cut off by SIGKILL
-      os.remove(leftover)
+    older = [name for name in checkpoint.OLDER_FILES if os.path.exists(os.path.join(workdir, name))]
+    if older and not overwrite:
+      raise WorkdirError(f"{os.path.join(workdir, older[0])} was saved by an older php_jax; use a fresh workdir, "
+                         "or --overwrite to train again")
+    for name in (*files, *older) if overwrite else ():
+      checkpoint.remove_saved(os.path.join(workdir, name))
+    for pattern in (".*.tmp", checkpoint.TEMPORARY, os.path.join("*", checkpoint.TEMPORARY)):  # checkpoint/'s too
+      for leftover in glob.glob(os.path.join(glob.escape(workdir), pattern)):
+        checkpoint.remove_saved(leftover)
   if jax.process_count() > 1:  # the others read the workdir (to resume) once process 0 has cleared it
     multihost_utils.sync_global_devices("workdir ready")
 

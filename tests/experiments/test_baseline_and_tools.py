@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from flax import nnx, serialization
+from flax import nnx
 
 from experiments import plot, segmentation, sweep
 from php_jax import fitting, flat_lstm
@@ -196,7 +196,7 @@ def test_segmentation_of_a_joint_run_reads_the_whole_stack_decoding_at_every_lev
   demos = datasets.training_demos(NANOCRAFT, seed=2, num_demos=6, num_strong=2)
   hierarchy = train.make_hierarchy(NANOCRAFT.spec, train.TrainConfig(hidden=(4,)))
   checkpoint.save_hierarchy(str(tmp_path), "nanocraft", hierarchy, (4,), capacity=[8, 6, 4])
-  (tmp_path / "checkpoint.msgpack").write_bytes(b"")
+  (tmp_path / "checkpoint").mkdir()  # joint runs read no decoded views from it
   (tmp_path / "results.json").write_text(json.dumps({"task": "nanocraft", "seed": 2, "num_demos": 6, "num_strong": 2,
                                                      "config": {"training": "joint"}}))
   supervisor = decoding.Decoded(np.zeros(6), np.asarray(demos.procedures), np.asarray(demos.counters))
@@ -289,7 +289,8 @@ def test_segmentation_refuses_bad_runs_and_levels(tmp_path):
   with pytest.raises(ValueError, match="results.json does not exist"):
     segmentation.report(str(run), None, 3)
   run.mkdir()
-  (run / "checkpoint.msgpack").write_bytes(b"not msgpack")
+  (run / "checkpoint").mkdir()
+  (run / "checkpoint" / "state.json").write_text("not JSON")
   good = {"task": "nanocraft", "seed": 1, "num_demos": 4, "num_strong": 1}
   for results, message in [('{"task": "nanocr', "results.json: not a training run's results"),
                            ({**good, "seed": "1"}, "needs int 'seed'"), ({**good, "task": "nope"}, "unknown task"),
@@ -301,10 +302,10 @@ def test_segmentation_refuses_bad_runs_and_levels(tmp_path):
   for level in (0, 3):
     with pytest.raises(ValueError, match=r"--level must be in 1..2 for nanocraft"):
       segmentation.report(str(run), level, 3)
-  with pytest.raises(checkpoint.CheckpointError, match="checkpoint.msgpack: corrupt"):
+  with pytest.raises(checkpoint.CheckpointError, match="state.json: corrupt or truncated JSON"):
     segmentation.report(str(run), 1, 3)
-  (run / "checkpoint.msgpack").write_bytes(serialization.msgpack_serialize({"meta": "{}"}))
-  with pytest.raises(checkpoint.CheckpointError, match="checkpoint.msgpack: not a training checkpoint"):
+  (run / "checkpoint" / "state.json").write_text(json.dumps({"meta": "{}"}))
+  with pytest.raises(checkpoint.CheckpointError, match="state.json: not a training checkpoint"):
     segmentation.report(str(run), 1, 3)
   proc = subprocess.run([sys.executable, "-m", "experiments.segmentation", f"--run={run}", "--level=7"],
                         capture_output=True, text=True, timeout=300)

@@ -228,7 +228,7 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
   fitted.mkdir()
   (fitted / "results.json").write_text(json.dumps({"task": "warehouse", "model": "php", "hierarchy": hierarchy,
                                                    "num_demos": 36, "demos": "train.jsonl"}))
-  (fitted / "checkpoint.msgpack").write_bytes(b"")
+  (fitted / "checkpoint").mkdir()
   cases = [
       (("experiments.segmentation", f"--run={fitted}"), "is a fit run, whose actions-only demonstrations carry no"),
       (("experiments.fit", f"--demos={outside}", f"--hierarchy={hierarchy}", f"--workdir={tmp_path / 'w1'}",

@@ -89,13 +89,15 @@ def test_a_finished_run_is_not_trained_again_and_other_settings_are_named(tmp_pa
   workdir, experiment, config = str(tmp_path / "flat"), _flat_experiment(), TrainConfig(iterations=2, eval_every=1)
   rows = []
   first = run.train_and_evaluate(experiment, config, workdir, flat_lstm_hidden=4, echo=rows.append)
-  written = [tmp_path / "flat" / name for name in run.RUN_FILES if (tmp_path / "flat" / name).exists()]
-  files = {path.name: path.read_bytes() for path in written}
+
+  def written():  # every file of the run, those of its Orbax directories included
+    return {path: path.read_bytes() for path in (tmp_path / "flat").rglob("*") if path.is_file()}
+  files = written()
   rows.clear()
   again = run.train_and_evaluate(experiment, config, workdir, flat_lstm_hidden=4, echo=rows.append)
   assert again == json.loads(json.dumps(first))  # as results.json holds it
   assert rows == [{"test": first["test"], "wall_seconds": first["wall_seconds"], "finished_before": True}]
-  assert {name: (tmp_path / "flat" / name).read_bytes() for name in files} == files
+  assert written() == files
   results_path = tmp_path / "flat" / run.RESULTS_FILE
   older = json.loads(results_path.read_text())
   del older["config"]["length_buckets"]  # a run made before that setting existed ran with its default
@@ -127,10 +129,8 @@ def test_a_model_or_run_that_cannot_be_read_is_refused_not_reported(fitted, tmp_
     with pytest.raises(checkpoint.CheckpointError, match='"capacity" must give one integer in 1..4096 per level'):
       checkpoint.saved_capacity(str(bad))
   spec = {**architecture["spec"], "obs_dim": -1}
-  edited = {**architecture, "spec": spec}
-  params = (bad / checkpoint.MODEL_FILE).read_bytes()
-  edited["sha256"] = checkpoint._model_digest(params, edited)  # signed anew, as an editor could
-  (bad / checkpoint.ARCHITECTURE_FILE).write_text(json.dumps(edited))
+  edited = checkpoint._signed({**{k: v for k, v in architecture.items() if k != "sha256"}, "spec": spec})
+  (bad / checkpoint.ARCHITECTURE_FILE).write_text(json.dumps(edited))  # signed anew, as an editor could
   with pytest.raises(checkpoint.CheckpointError, match="malformed hierarchy spec"):
     checkpoint.load_policy(str(bad))
   with pytest.raises(ValueError, match="malformed hierarchy spec"):

@@ -31,7 +31,7 @@ def test_interrupted_joint_training_resumes_to_the_same_result(tmp_path):
   def stop_at_20(row):
     if row.get("iteration") == 20:
       raise KeyboardInterrupt
-  path = str(tmp_path / checkpoint.TRAINING_FILE)
+  path = str(tmp_path / checkpoint.TRAINING_DIR)
   with pytest.raises(KeyboardInterrupt):
     joint.train_joint(NANOCRAFT.spec, batch, config, log=stop_at_20, checkpoint_path=path)
   rows = []

@@ -113,8 +113,8 @@ def test_interrupted_seeds_resume_to_the_same_result(tmp_path):
         raise _Interrupt
     return train.train_seeds(NANOCRAFT.spec, demos, configs, validate, log=log, checkpoint_path=path)
 
-  reference = run(str(tmp_path / "uninterrupted.msgpack"))
-  path = str(tmp_path / "interrupted.msgpack")
+  reference = run(str(tmp_path / "uninterrupted"))
+  path = str(tmp_path / "interrupted")
   for stop_at in [(2, 10), (1, 20), (0, 20)]:  # the warm-up's end, a level's last iteration, the root mid-way
     with pytest.raises(_Interrupt):
       run(path, stop_at)

@@ -1,6 +1,7 @@
 """Level views, the EG loss, decoding agreement, checkpoints, and end-to-end training."""
 import dataclasses
 import json
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -116,45 +117,63 @@ def test_checkpoint_round_trip(tmp_path):
     checkpoint.load_policy(str(tmp_path / "empty"))
 
 
+def _damaged(path, original: bytes):
+  """A file's bytes flipped here and there, cut in half, and emptied."""
+  flipped = bytearray(original)
+  for i in range(0, len(flipped), max(1, len(flipped) // 50)):
+    flipped[i] ^= 0xFF
+  return [bytes(flipped), original[:len(original) // 2], b""]
+
+
+def _each_damaged_file(directory):
+  """Yields each file under directory damaged each way (`_damaged`), restoring it afterwards."""
+  for path in sorted(p for p in directory.rglob("*") if p.is_file()):
+    original = path.read_bytes()
+    for content in _damaged(path, original):
+      path.write_bytes(content)
+      yield path
+    path.write_bytes(original)
+
+
 def test_corrupt_or_mismatched_saved_files_are_refused_naming_the_file(tmp_path):
   config = train.TrainConfig(hidden=(8,), seed=1)
   hierarchy = train.make_hierarchy(NANOCRAFT.spec, config)
   workdir = tmp_path / "model"
   checkpoint.save_hierarchy(str(workdir), "nanocraft", hierarchy, config.hidden)
-  params, description = (workdir / "model.msgpack").read_bytes(), (workdir / "model.json").read_text()
-  flipped = bytearray(params)
-  for i in range(100, len(flipped), len(flipped) // 50):
-    flipped[i] ^= 0xFF
+  for damaged in _each_damaged_file(workdir / checkpoint.MODEL_DIR):  # every file of the parameters
+    with pytest.raises(checkpoint.CheckpointError, match=f"{damaged.name} does not match its checksum in .*model.json"):
+      checkpoint.load_policy(str(workdir))
+  description = (workdir / "model.json").read_text()
   architecture = json.loads(description)
-  for name, content, message in [
-      ("model.msgpack", bytes(flipped), "does not match"), ("model.msgpack", params[:len(params) // 2], "does not match"),
-      ("model.json", json.dumps({**architecture, "hidden": [16]}), "does not match|needs"),
-      ("model.json", json.dumps({**architecture, "capacity": [1]}), "does not match"),
-      ("model.json", json.dumps({**architecture, "spec": {**architecture["spec"], "action_sizes": [2 ** 40]}}),
-       "does not match"),
-      ("model.json", description[:20], "corrupt or truncated JSON"), ("model.json", "[]", "not a model description")]:
-    original = (workdir / name).read_bytes()
-    (workdir / name).write_bytes(content.encode() if isinstance(content, str) else content)
+  for content, message in [
+      (json.dumps({**architecture, "hidden": [16]}), "edited or corrupt"),
+      (json.dumps({**architecture, "capacity": [1]}), "edited or corrupt"),
+      (json.dumps({**architecture, "spec": {**architecture["spec"], "action_sizes": [2 ** 40]}}), "edited or corrupt"),
+      (description[:20], "corrupt or truncated JSON"), ("[]", "not a model description")]:
+    (workdir / "model.json").write_text(content)
     with pytest.raises(checkpoint.CheckpointError, match=message):
       checkpoint.load_policy(str(workdir))
-    (workdir / name).write_bytes(original)
+  (workdir / "model.json").write_text(description)
   wider = train.make_hierarchy(NANOCRAFT.spec, dataclasses.replace(config, hidden=(16,)))
   checkpoint.save_hierarchy(str(tmp_path / "wide"), "nanocraft", wider, (16,))
-  wide_params = (tmp_path / "wide" / "model.msgpack").read_bytes()
-  (workdir / "model.msgpack").write_bytes(wide_params)
-  (workdir / "model.json").write_text(json.dumps({**architecture, "sha256": checkpoint._model_digest(
-      wide_params, architecture)}))  # a consistent checksum, other shapes
-  with pytest.raises(checkpoint.CheckpointError, match=r"is float32\[.*16.*the model needs"):
+  shutil.rmtree(workdir / checkpoint.MODEL_DIR)
+  shutil.copytree(tmp_path / "wide" / checkpoint.MODEL_DIR, workdir / checkpoint.MODEL_DIR)
+  with pytest.raises(checkpoint.CheckpointError, match=r"(listed|checksum) in .*model.json"):  # another run's
     checkpoint.load_policy(str(workdir))
-  path = tmp_path / "checkpoint.msgpack"
+  wide_files = json.loads((tmp_path / "wide" / "model.json").read_text())["files"]
+  unsigned = {k: v for k, v in architecture.items() if k != "sha256"}
+  (workdir / "model.json").write_text(json.dumps(checkpoint._signed({**unsigned, "files": wide_files})))
+  with pytest.raises(checkpoint.CheckpointError, match=r"is float32\[.*16.*the model needs"):  # signed anew
+    checkpoint.load_policy(str(workdir))
+  path = tmp_path / "checkpoint"
   checkpoint.write_training(str(path), hierarchy, {"level": 2, "report": {}}, None, {})
   assert checkpoint.read_training(str(path))[0]["level"] == 2
-  saved = path.read_bytes()
-  for content, message in [(saved[:-40] + bytes(40), "corrupt"), (saved[:len(saved) // 2], "corrupt"),
-                           (b"", "corrupt"), (b"\x93\x01\x02\x03", "not a training checkpoint")]:
-    path.write_bytes(content)
-    with pytest.raises(checkpoint.CheckpointError, match=message):
+  for damaged in _each_damaged_file(path):  # state.json and every file of the arrays
+    with pytest.raises(checkpoint.CheckpointError, match="state.json: corrupt|state.json: edited|does not match"):
       checkpoint.read_training(str(path))
+  (path / "state.json").write_text("[]")
+  with pytest.raises(checkpoint.CheckpointError, match="state.json: not a training checkpoint"):
+    checkpoint.read_training(str(path))
 
 
 def test_resume_check_names_what_differs_and_takes_defaults_for_settings_a_checkpoint_predates():
@@ -252,8 +271,8 @@ def test_interrupted_training_resumes_to_the_same_result(tmp_path, warmup, stops
         raise _Interrupt
     return train.train_hierarchy(NANOCRAFT.spec, demos, config, validate, log=log, checkpoint_path=path)
 
-  reference, ref_report = run(str(tmp_path / "uninterrupted.msgpack"))
-  path = str(tmp_path / "interrupted.msgpack")
+  reference, ref_report = run(str(tmp_path / "uninterrupted"))
+  path = str(tmp_path / "interrupted")
   for stop_at in stops:  # mid-level (at the end of the warmup), then at the root level's last iteration
     with pytest.raises(_Interrupt):
       run(path, stop_at)
