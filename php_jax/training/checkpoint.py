@@ -56,17 +56,19 @@ class CheckpointError(ValueError):
   """A saved file that cannot be used: missing, corrupt, or not matching the model; the message names it."""
 
 
-def _key_name(key) -> str:
-  for attribute in ("key", "idx", "name"):  # DictKey, SequenceKey, GetAttrKey
-    if hasattr(key, attribute):
-      return str(getattr(key, attribute))
-  return str(key)
+def _path_name(path) -> str:
+  """A pytree path's name: its keys, indices and attribute names joined by "/"."""
+  def key_name(key) -> str:
+    for attribute in ("key", "idx", "name"):  # DictKey, SequenceKey, GetAttrKey
+      if hasattr(key, attribute):
+        return str(getattr(key, attribute))
+    return str(key)
+  return "/".join(map(key_name, path))
 
 
 def named_arrays(tree) -> dict[str, np.ndarray]:
   """{path name ("levels/0/operation/kernels/0"): host array} of a pytree's leaves."""
-  return {"/".join(map(_key_name, path)): np.asarray(leaf)
-          for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
+  return {_path_name(path): np.asarray(leaf) for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
 
 
 def _nested(named: dict[str, np.ndarray]) -> dict:
@@ -90,7 +92,7 @@ def restore_named(template, named: dict, source: str):
   """The pytree shaped like template with the arrays of `named`; raises CheckpointError naming `source` and
   the first missing, unexpected or mis-shaped array."""
   leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
-  names = ["/".join(map(_key_name, path)) for path, _ in leaves]
+  names = [_path_name(path) for path, _ in leaves]
   unexpected = sorted(set(named) - set(names))
   if unexpected:
     raise CheckpointError(f"{source}: unexpected array {unexpected[0]} (saved with another architecture?)")
