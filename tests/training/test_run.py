@@ -7,11 +7,11 @@ import sys
 
 import pytest
 
-from php_jax.training import run
+from php_jax.training import checkpoint, run
 
 HOLD = """
 import sys, time
-from php_jax.training import run
+from php_jax.training import checkpoint, run
 with run.workdir_lock(sys.argv[1]):
   print("held", flush=True)
   time.sleep(60)
@@ -63,3 +63,16 @@ def test_metrics_start_afresh_unless_resumed(tmp_path, capsys):
     log({"d": 4})
   rows = [json.loads(line) for line in path.read_text().splitlines()]
   assert [list(row)[0] for row in rows] == ["a", "b", "d"] and rows[-1]["seconds"] >= 5.0
+
+
+def test_a_workdir_saved_before_orbax_is_refused_until_overwrite(tmp_path):
+  (tmp_path / "checkpoint.msgpack").write_bytes(b"old")
+  (tmp_path / "model.msgpack").write_bytes(b"old")
+  (tmp_path / "model.json").write_text("{}")
+  older = r"model.msgpack was saved by an older php_jax; use a fresh workdir, or --overwrite"
+  with pytest.raises(run.WorkdirError, match=older):
+    run.clear_workdir(str(tmp_path), run.RUN_FILES)
+  with pytest.raises(checkpoint.CheckpointError, match="model.msgpack was saved by an older php_jax; train"):
+    checkpoint.load_policy(str(tmp_path))
+  run.clear_workdir(str(tmp_path), run.RUN_FILES, overwrite=True)
+  assert sorted(os.listdir(tmp_path)) == []
