@@ -30,3 +30,9 @@ def leftovers(workdir: pathlib.Path) -> list[pathlib.Path]:
     step = str(json.loads((training / checkpoint.STATE_FILE).read_text())["step"])
     found += [p for p in training.iterdir() if p.name not in (step, checkpoint.STATE_FILE)]
   return found
+
+
+def file_bytes(directory: pathlib.Path, but: tuple[str, ...] = ()) -> dict[pathlib.Path, bytes]:
+  """{path: bytes} of every file under directory (those of its Orbax directories included) but those named in
+  `but`."""
+  return {p: p.read_bytes() for p in directory.rglob("*") if p.is_file() and p.name not in but}

@@ -22,7 +22,7 @@ from php_jax.hierarchy import HierarchySpec
 from php_jax.training import checkpoint, objective, run, train
 from php_jax.training import config as config_lib
 from tests import processes
-from tests.saved import leftovers, saved_model
+from tests.saved import file_bytes, leftovers, saved_model
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DEC, REST = 0, 1  # elementary actions: decrement the counter, or do nothing
@@ -158,7 +158,7 @@ def test_a_checkpoint_made_with_other_settings_or_data_is_refused(tmp_path):
   batch = datasets.training_demos(COUNTDOWN, seed=0, num_demos=4, num_strong=2)
   config = train.TrainConfig(iterations=2, eval_every=1, hidden=(4,), root="mlp", root_hidden=4)
   train.train_hierarchy(SPEC, batch, config, log=lambda row: None, checkpoint_path=path)
-  saved = {p: p.read_bytes() for p in pathlib.Path(path).rglob("*") if p.is_file()}
+  saved = file_bytes(pathlib.Path(path))
   other_data = datasets.training_demos(COUNTDOWN, seed=1, num_demos=4, num_strong=2)
   for demos_, config_, message in [
       (batch, dataclasses.replace(config, hidden=(5,)), r"hidden: \[4\] there, \[5\] here"),
@@ -167,7 +167,7 @@ def test_a_checkpoint_made_with_other_settings_or_data_is_refused(tmp_path):
       (batch._replace(strong=np.array([True, False, False, False])), config, "demonstrations differ")]:
     with pytest.raises(checkpoint.CheckpointError, match=message):
       train.train_hierarchy(SPEC, demos_, config_, log=lambda row: None, checkpoint_path=path)
-  assert {p: p.read_bytes() for p in pathlib.Path(path).rglob("*") if p.is_file()} == saved
+  assert file_bytes(pathlib.Path(path)) == saved
 
 
 @pytest.mark.slow
@@ -177,14 +177,11 @@ def test_a_workdir_made_with_other_settings_is_refused_until_overwrite(tmp_path)
           f"--workdir={workdir}", "--num_strong=2", "--root=mlp", "--iterations=20", "--eval_every=10"]
   first = subprocess.run(base, capture_output=True, text=True, timeout=600, cwd=ROOT)
   assert first.returncode == 0, first.stderr[-3000:]
-  def files():  # every file, those of its Orbax directories included, but the lock (the refused run's pid)
-    return {p: p.read_bytes() for p in workdir.rglob("*") if p.is_file() and p.name != run.LOCK_FILE}
-
-  before = files()
+  before = file_bytes(workdir, but=(run.LOCK_FILE,))  # the lock holds the refused run's pid
   proc = subprocess.run(base + ["--iterations=30"], capture_output=True, text=True, timeout=600, cwd=ROOT)
   assert proc.returncode == 2 and "iterations: 20 there, 30 here" in proc.stderr, proc.stderr[-2000:]
   assert proc.stderr.count("\n") == 1 and "--overwrite" in proc.stderr
-  assert files() == before  # nothing written
+  assert file_bytes(workdir, but=(run.LOCK_FILE,)) == before  # nothing written
   again = subprocess.run(base + ["--iterations=30", "--overwrite"], capture_output=True, text=True, timeout=600,
                          cwd=ROOT)
   assert again.returncode == 0, again.stderr[-3000:]

@@ -17,6 +17,7 @@ from php_jax.data import demo_files
 from php_jax.model import PHPHierarchy
 from php_jax.training import checkpoint, run
 from php_jax.training.config import TrainConfig
+from tests.saved import file_bytes
 
 WAREHOUSE = pathlib.Path(__file__).resolve().parents[2] / "examples" / "warehouse"
 
@@ -89,15 +90,12 @@ def test_a_finished_run_is_not_trained_again_and_other_settings_are_named(tmp_pa
   workdir, experiment, config = str(tmp_path / "flat"), _flat_experiment(), TrainConfig(iterations=2, eval_every=1)
   rows = []
   first = run.train_and_evaluate(experiment, config, workdir, flat_lstm_hidden=4, echo=rows.append)
-
-  def written():  # every file of the run, those of its Orbax directories included
-    return {path: path.read_bytes() for path in (tmp_path / "flat").rglob("*") if path.is_file()}
-  files = written()
+  files = file_bytes(tmp_path / "flat")
   rows.clear()
   again = run.train_and_evaluate(experiment, config, workdir, flat_lstm_hidden=4, echo=rows.append)
   assert again == json.loads(json.dumps(first))  # as results.json holds it
   assert rows == [{"test": first["test"], "wall_seconds": first["wall_seconds"], "finished_before": True}]
-  assert written() == files
+  assert file_bytes(tmp_path / "flat") == files
   results_path = tmp_path / "flat" / run.RESULTS_FILE
   older = json.loads(results_path.read_text())
   del older["config"]["length_buckets"]  # a run made before that setting existed ran with its default
