@@ -8,7 +8,7 @@ import threading
 
 import jax
 
-WRITING = threading.Lock()  # held while write_atomically writes: whoever ends the process waits for it
+WRITING = threading.RLock()  # held while write_atomically (or a checkpoint) writes: whoever ends the process waits for it
 
 
 def write_atomically(path: str, data: bytes) -> None:

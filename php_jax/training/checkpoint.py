@@ -245,10 +245,10 @@ def _save(workdir: str, model, architecture: dict) -> None:
   describes other parameters, even if a save is cut off between the two)."""
   if jax.process_index() != 0:  # of several processes (jax.distributed), the first writes: the others agree
     return
-  with WRITING:
+  with WRITING:  # an interrupt waits for model.json too
     files = _save_arrays(os.path.join(workdir, MODEL_DIR), named_arrays(nnx.state(model, nnx.Param)))
-  write_atomically(os.path.join(workdir, ARCHITECTURE_FILE),
-                   json.dumps(_signed({**architecture, "files": files}), indent=1).encode())
+    write_atomically(os.path.join(workdir, ARCHITECTURE_FILE),
+                     json.dumps(_signed({**architecture, "files": files}), indent=1).encode())
 
 
 def _spec_json(spec: HierarchySpec) -> dict:
@@ -401,18 +401,18 @@ def write_training_seeds(path: str, states: list[tuple]) -> None:
                     f"{s}/decoded/{level}/counters": np.asarray(counters)})
   os.makedirs(path, exist_ok=True)
   step = str(max((int(name) for name in os.listdir(path) if name.isdigit()), default=-1) + 1)
-  with WRITING:
-    files = _save_arrays(os.path.join(path, step), named)
   metas = json.loads(json.dumps(metas))  # as state.json reads back (its keys strings), so that its checksum holds
-  try:
-    write_atomically(os.path.join(path, STATE_FILE), json.dumps(_signed({"states": metas, "step": int(step),
-                                                                            "files": files})).encode())
-  except BaseException:  # the step state.json would have named is no checkpoint's
-    remove_saved(os.path.join(path, step))
-    raise
-  for name in os.listdir(path):  # the step before, or what a save cut off left
-    if name not in (step, STATE_FILE):
-      remove_saved(os.path.join(path, name))
+  with WRITING:  # an interrupt waits until the old step is gone too
+    files = _save_arrays(os.path.join(path, step), named)
+    try:
+      write_atomically(os.path.join(path, STATE_FILE), json.dumps(_signed({"states": metas, "step": int(step),
+                                                                              "files": files})).encode())
+    except BaseException:  # the step state.json would have named is no checkpoint's
+      remove_saved(os.path.join(path, step))
+      raise
+    for name in os.listdir(path):  # the step before, or what a save cut off left
+      if name not in (step, STATE_FILE):
+        remove_saved(os.path.join(path, name))
 
 
 def read_training(path: str | None) -> tuple[dict, dict] | None:
