@@ -48,16 +48,17 @@ def fit_overrides(hierarchy: demo_files.Hierarchy) -> dict:
           "min_capacity": (0,) + tuple(DEFAULT_CAPACITY if c is None else c for c in least[1:])}
 
 
-def split(batch: Demonstration, fraction: float, seed: int) -> tuple[Demonstration, Demonstration]:
-  """(training, held out): round(fraction × B) demonstrations (at least 1) held out at random by seed, the
-  weak ones first: an annotated demonstration is held out only where too few are weak, so that the few
-  annotations a user has stay in training."""
+def split(batch: Demonstration, fraction: float, seed: int) -> tuple[Demonstration, Demonstration, tuple[int, ...]]:
+  """(training, held out, the training ones' indices in batch): round(fraction × B) demonstrations (at least
+  1) held out at random by seed, the weak ones first: an annotated demonstration is held out only where too
+  few are weak, so that the few annotations a user has stay in training."""
   num = len(batch.length)
   order = np.random.default_rng(seed).permutation(num)
   order = np.concatenate([order[~batch.strong[order]], order[batch.strong[order]]])
   held = np.zeros(num, bool)
   held[order[:held_out_count(num, fraction)]] = True
-  return tuple(Demonstration(*(np.asarray(x)[mask] for x in batch)) for mask in (~held, held))
+  kept, held_out = (Demonstration(*(np.asarray(x)[mask] for x in batch)) for mask in (~held, held))
+  return kept, held_out, tuple(int(b) for b in np.flatnonzero(~held))
 
 
 def held_out_count(num: int, fraction: float) -> int:
@@ -75,7 +76,7 @@ def run() -> dict:
   config_flags.check_levels(hierarchy.spec, config)
   try:
     demos, spec = demo_files.read_demonstrations(_DEMOS.value, hierarchy.spec)
-    in_file = demos
+    in_file, numbers = demos, None
     if _VALIDATION.value:
       held_out, spec = demo_files.read_demonstrations(_VALIDATION.value, spec)
     else:
@@ -86,7 +87,7 @@ def run() -> dict:
       if held_out_count(len(demos.length), _VALIDATION_FRACTION.value) >= len(demos.length):
         raise config_flags.UsageError(f"--validation_fraction={_VALIDATION_FRACTION.value} holds out all "
                                   f"{len(demos.length)} demonstrations of --demos: lower it, or give --validation")
-      demos, held_out = split(demos, _VALIDATION_FRACTION.value, config.seed)
+      demos, held_out, numbers = split(demos, _VALIDATION_FRACTION.value, config.seed)
   except demo_files.DemoFileError as e:
     raise config_flags.UsageError(str(e)) from None
   try:
@@ -101,7 +102,8 @@ def run() -> dict:
       spec.name, spec, demos, validate=rate, test=lambda model: {"held_out_replayed": rate(model)},
       extra={"demos": _DEMOS.value, "hierarchy": _HIERARCHY.value, "validation": _VALIDATION.value,
              "num_demos": len(demos.length), "num_annotated": int(np.sum(demos.strong)),
-             "num_held_out": len(held_out.length), "num_held_out_annotated": int(np.sum(held_out.strong))})
+             "num_held_out": len(held_out.length), "num_held_out_annotated": int(np.sum(held_out.strong))},
+      action_name=demo_files.action_namer(hierarchy.action_names), numbers=numbers)
   flat = training.flat_lstm_hidden()
   with progress.shown(config, None if flat else spec.num_levels, training.WORKDIR.value) as echo:
     results = train_and_evaluate(experiment, config, training.WORKDIR.value, training.OVERWRITE.value, flat,

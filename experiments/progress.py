@@ -11,6 +11,7 @@ import sys
 from typing import Callable, Iterator
 
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
@@ -71,7 +72,9 @@ class TrainingProgress:
       self.seed = row["seed"]
     if row.get("seed", self.seed) != self.seed:
       return
-    if row.get("resumed"):
+    if "warning" in row:
+      self.console.print(f"[yellow]warning:[/] {escape(row['warning'])}", highlight=False)
+    elif row.get("resumed"):
       self.console.print(f"resumed from the checkpoint: level {row['level']}, iteration {row['iteration']}")
     elif "capacity" in row:
       self._phase(row.get("level", "joint"))

@@ -158,7 +158,8 @@ def _experiment(task_name: str, task, seed: int, num_demos: int, num_test: int, 
                     lambda model: {key: evaluation.accuracy(task, model, problems)
                                    for key, problems in test_sets.items()},
                     {"seed": seed, "num_demos": num_demos, "num_strong": int(demos.strong.sum()),
-                     "num_test": num_test, **({"annotated": annotated} if annotated is not None else {})})
+                     "num_test": num_test, **({"annotated": annotated} if annotated is not None else {})},
+                    action_name=task.action_name)
 
 
 def main_for(task_name: str | None):

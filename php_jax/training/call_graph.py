@@ -8,6 +8,8 @@ level, the values of each elementary action factor), or None where every operati
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from php_jax.demos import UNKNOWN, Demonstration
@@ -68,6 +70,58 @@ def check(demos: Demonstration, spec: HierarchySpec, graph: tuple) -> None:
       raise ValueError(f"demonstration {n}, step {t}: no chain of calls that the call graph allows fits its "
                        f"annotation and elementary action (at level {level}); allow more operations (the "
                        "hierarchy's \"calls\", or call_graph=all)")
+
+
+@dataclasses.dataclass(frozen=True)
+class UnshownPair:
+  """Two consecutive elementary actions that actions-only demonstrations take and no annotated one does,
+  which the call graph lets no lowest-level procedure take both of: each such step is split between two
+  calls, whether or not one procedure should take both.
+
+  Attributes:
+    first, second: the two actions, one value per action factor.
+    demonstrations: how many actions-only demonstrations take them one after the other.
+    example: the first of those (its index in the batch).
+  """
+  first: tuple[int, ...]
+  second: tuple[int, ...]
+  demonstrations: int
+  example: int
+
+
+def unshown_pairs(demos: Demonstration, spec: HierarchySpec, graph: tuple) -> list[UnshownPair]:
+  """What graph (for demos [B, ...]) may have locked out: the pairs of consecutive actions that split every
+  actions-only demonstration showing them, because no lowest-level procedure the graph lets take the first
+  may take the second, and that no annotated demonstration shows (where one does, the annotation shows the
+  split). Pairs the declared call graph (`spec.allowed_ops`) splits as well are the user's own choice and
+  left out. Most shown first."""
+  if graph[-1] is None:
+    return []
+  may_take = _taker(spec, graph[-1])
+  declared = spec.allowed_ops and spec.allowed_ops[-1]
+  declared_may_take = _taker(spec, declared) if declared else None
+  annotated, weak = set(), {}
+  for b, (taken, length, strong) in enumerate(zip(np.asarray(demos.actions), np.asarray(demos.length),
+                                                  np.asarray(demos.strong))):
+    steps = [tuple(int(v) for v in a) for a in taken[:length]]
+    pairs = set(zip(steps[:-1], steps[1:]))
+    if strong:
+      annotated |= pairs
+    for pair in () if strong else pairs:
+      weak.setdefault(pair, []).append(b)
+  split = lambda taker, a, b: not np.any(taker(a) & taker(b))
+  found = [UnshownPair(a, b, len(shown), shown[0]) for (a, b), shown in weak.items()
+           if (a, b) not in annotated and split(may_take, a, b)
+           and not (declared_may_take and split(declared_may_take, a, b))]
+  return sorted(found, key=lambda p: (-p.demonstrations, p.first, p.second))
+
+
+def _taker(spec: HierarchySpec, allowed):
+  """action (a tuple of factor values) → [K_{d-1}] bool: which lowest-level procedures `allowed` (that
+  level's entry of a call graph) lets take it."""
+  allowed = np.asarray(allowed)
+  offsets = np.cumsum((0,) + tuple(spec.action_sizes[:-1]))
+  return lambda action: allowed[:, offsets + np.asarray(action)].all(axis=1)
 
 
 def intersect(a: tuple, b: tuple) -> tuple:

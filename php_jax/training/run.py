@@ -28,7 +28,7 @@ from php_jax import fitting, flat_lstm
 from php_jax.data import files
 from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
-from php_jax.training import checkpoint, joint, provenance, train
+from php_jax.training import call_graph, checkpoint, joint, provenance, train
 from php_jax.training.config import TrainConfig
 
 METRICS_FILE, RESULTS_FILE, SEEDS_CHECKPOINT = "metrics.jsonl", "results.json", "seeds_checkpoint"
@@ -52,6 +52,8 @@ class Experiment:
     validate: model → validation score (the kept snapshot has the best).
     test: model → the test results (results.json's "test").
     extra: more entries for results.json (e.g. the seed and the data set's sizes).
+    action_name: an elementary action (a list of ints, one per factor) → its text, for messages.
+    numbers: per demonstration, its number in messages (e.g. its line in a file, from 0); None: its index.
   """
   name: str
   spec: HierarchySpec
@@ -59,6 +61,8 @@ class Experiment:
   validate: Callable[[Any], float]
   test: Callable[[Any], dict]
   extra: dict
+  action_name: Callable[[list[int]], str] = str
+  numbers: tuple[int, ...] | None = None
 
 
 def print_row(row: dict) -> None:
@@ -85,6 +89,7 @@ def train_and_evaluate(experiment: Experiment, config: TrainConfig, workdir: str
     if finished:
       echo({"test": finished["test"], "wall_seconds": finished["wall_seconds"], "finished_before": True})
       return finished
+    gaps = {} if flat_lstm_hidden else annotation_gaps(experiment, config, echo)
     with MetricsLog(workdir, echo=echo) as log:
       if flat_lstm_hidden:
         model, trained = _train_flat_lstm(experiment, config, flat_lstm_hidden, log)
@@ -94,7 +99,7 @@ def train_and_evaluate(experiment: Experiment, config: TrainConfig, workdir: str
                                               os.path.join(workdir, checkpoint.TRAINING_DIR))
         checkpoint.save_hierarchy(workdir, experiment.name, model, config.hidden, capacity)
     results = {"task": experiment.name, "model": "flat_lstm" if flat_lstm_hidden else "php",
-               "config": dataclasses.asdict(config), **experiment.extra, **trained}
+               "config": dataclasses.asdict(config), **experiment.extra, **gaps, **trained}
     log.echo({"phase": "testing"})
     return _write_results(workdir, results, experiment.test(model), log, commit)
 
@@ -123,6 +128,8 @@ def train_and_evaluate_seeds(experiments: list[Experiment], configs: list[TrainC
         echo({"seed": c.seed, "test": results["test"], "wall_seconds": results["wall_seconds"],
               "finished_before": True})
       return finished
+    gaps = [annotation_gaps(e, c, lambda row, seed=c.seed: echo({"seed": seed, **row}))
+            for e, c in zip(experiments, configs)]
     logs = [stack.enter_context(MetricsLog(run_dir, {"seed": c.seed}, echo)) for run_dir, c in zip(workdirs, configs)]
     trained = train.train_seeds(spec, [e.demos for e in experiments], configs, [e.validate for e in experiments],
                                 log=lambda s, row: logs[s](row),
@@ -136,8 +143,30 @@ def train_and_evaluate_seeds(experiments: list[Experiment], configs: list[TrainC
     together = {"trained_with_seeds": [c.seed for c in configs]}  # its times are the shared program's
     echo({"phase": "testing"})
     return [_write_results(run_dir, {"task": e.name, "model": "php", "config": dataclasses.asdict(c), **e.extra,
-                                     **together, **_levels(report)}, e.test(hierarchy), log, commit)
-            for run_dir, c, e, (hierarchy, report), log in zip(workdirs, configs, experiments, trained, logs)]
+                                     **gap, **together, **_levels(report)}, e.test(hierarchy), log, commit)
+            for run_dir, c, e, (hierarchy, report), log, gap in zip(workdirs, configs, experiments, trained, logs,
+                                                                      gaps)]
+
+
+def annotation_gaps(experiment: Experiment, config: TrainConfig, echo: Callable[[dict], None]) -> dict:
+  """Warns, through echo({"warning": text}), of each pair of consecutive actions that the call graph may have
+  locked out (`call_graph.unshown_pairs`); returns results.json's entry for them, {"annotation_gaps": [...]},
+  or {} where there are none."""
+  spec, demos, name = experiment.spec, experiment.demos, experiment.action_name
+  pairs = call_graph.unshown_pairs(demos, spec, call_graph.resolve(config.call_graph, demos, spec))
+  weak = int(len(demos.strong) - demos.strong.sum())
+  number = (lambda b: b) if experiment.numbers is None else experiment.numbers.__getitem__
+  pairs = [dataclasses.replace(p, example=number(p.example)) for p in pairs]
+  for pair in pairs:
+    first, second = name(list(pair.first)), name(list(pair.second))
+    echo({"warning": f"{pair.demonstrations} of the {weak} actions-only demonstrations take '{first}' then "
+                     f"'{second}' (the first: demonstration {pair.example}), the annotated ones never do, and "
+                     f"with --call_graph={config.call_graph} no procedure that takes '{first}' may take "
+                     f"'{second}': each of those steps is split between two calls. If one procedure should take "
+                     "both, annotate a demonstration that shows it (experiments.suggest chooses), or give "
+                     "--call_graph=calls"})
+  return {"annotation_gaps": [{"first": list(p.first), "second": list(p.second), "demonstrations":
+                               p.demonstrations, "example": p.example} for p in pairs]} if pairs else {}
 
 
 def _finished(workdir: str, experiment: Experiment, config: TrainConfig, flat_lstm_hidden: int | None) -> dict | None:

@@ -53,3 +53,9 @@ def test_joint_and_flat_runs_and_other_seeds():
                               {"seed": 2, "test": {"accuracy": 0.5}, "wall_seconds": 5.0}])
   assert "30/60" in text and "loss 9" not in text  # the first seed's rows stand for all
   assert "seed 1: test results" in text and "seed 2: test results" in text and "runs/w/seed=2" in text
+
+
+def test_a_warning_is_printed_whole_with_its_brackets():
+  text = _display(TrainConfig(), 3, [{"warning": "take '[1, 4]' then '[0, 4]'"},
+                                     {"level": 2, "capacity": 4, "seconds": 1.0}])
+  assert "warning: take '[1, 4]' then '[0, 4]'" in text and "level 2 (1 of 3)" in text

@@ -15,7 +15,8 @@ from php_jax.envs import datasets, tasks
 from php_jax.hierarchy import HierarchySpec
 from php_jax.inference import stack_lattice
 from php_jax.model import PHPHierarchy, PHPLevel
-from php_jax.training import call_graph, checkpoint, objective, train
+from php_jax.training import call_graph, checkpoint, objective, run, train
+from php_jax.training.config import TrainConfig
 
 SPEC = HierarchySpec("tiny", (("root",), ("a", "b"), ("x", "y", "z")), (2, 3), 3)
 NANOCRAFT = tasks.get("nanocraft")
@@ -171,3 +172,36 @@ def test_bad_declared_call_graphs_are_refused_naming_the_file(tmp_path, calls, m
   path = _hierarchy_file(tmp_path, calls)
   with pytest.raises(demo_files.DemoFileError, match=f"^{path}: " + r'"calls"' + f".*{message}|^{path}: {message}"):
     demo_files.read_hierarchy(path)
+
+
+def test_unshown_pairs_are_the_splits_the_graph_forces_that_no_annotated_demonstration_shows():
+  # The annotation shows x taking (0, 0) and y (1, 1); the declared graph lets z take only (0, 0).
+  demos = _demos([[[0, 0, 0], [0, 1, 1], [0, 1, 1]]] + [[[UNKNOWN] * 3] * 3] * 2,
+                 [[[0, 0], [1, 1], [1, 1]], [[1, 1], [0, 0], [0, 0]], [[0, 0], [1, 1], [0, 0]]], [True, False, False])
+  anything, only_00, only_11 = (True,) * 5, (True, False, True, False, False), (False, True, False, True, False)
+  spec = dataclasses.replace(SPEC, allowed_ops=(None, None, (anything, anything, only_00)))
+  # (1, 1) then (0, 0): no procedure may take both, and only weak demonstrations take it (1 and 2); (0, 0)
+  # then (1, 1) is annotated (a split there is what the annotation shows); (0, 0) twice: x may repeat.
+  assert call_graph.unshown_pairs(demos, spec, call_graph.resolve("operations", demos, spec)) == [
+      call_graph.UnshownPair((1, 1), (0, 0), 2, 1)]
+  # A split that the declared graph forces too is the user's choice; without a restricted lowest level, none.
+  declared = dataclasses.replace(SPEC, allowed_ops=(None, None, (only_00, only_11, only_00)))
+  assert call_graph.unshown_pairs(demos, declared, call_graph.resolve("operations", demos, declared)) == []
+  assert call_graph.unshown_pairs(demos, SPEC, call_graph.resolve("calls", demos, SPEC)) == []
+
+
+def test_a_run_warns_of_the_operations_its_few_annotated_demonstrations_lock_out():
+  # NanoCraft seed 2 with 2 of 64 annotated: neither shows build_d or build_u placing a block.
+  demos = datasets.training_demos(NANOCRAFT, 2, 64, 2)
+  experiment = run.Experiment("nanocraft", NANOCRAFT.spec, demos, None, None, {}, NANOCRAFT.action_name,
+                              numbers=tuple(range(100, 164)))
+  rows = []
+  gaps = run.annotation_gaps(experiment, TrainConfig(call_graph="operations"), rows.append)
+  pairs = [(g["first"], g["second"]) for g in gaps["annotation_gaps"]]
+  assert ([3], [4]) in pairs and ([1], [4]) in pairs  # MOVE_UP, MOVE_DOWN then PLACE_BLOCK
+  assert all(g["example"] >= 100 and not demos.strong[g["example"] - 100] for g in gaps["annotation_gaps"])
+  assert len(rows) == len(pairs) and "'MOVE_DOWN' then 'PLACE_BLOCK'" in " ".join(r["warning"] for r in rows)
+  assert run.annotation_gaps(experiment, TrainConfig(call_graph="all"), rows.append) == {} and len(rows) == len(pairs)
+  # Every demonstration annotated: the graph is the supervisor's and nothing is locked out.
+  whole = dataclasses.replace(experiment, demos=datasets.training_demos(NANOCRAFT, 2, 64, 64))
+  assert run.annotation_gaps(whole, TrainConfig(call_graph="operations"), rows.append) == {}
