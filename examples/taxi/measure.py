@@ -1,7 +1,10 @@
-r"""Measures Taxi through the documented commands: per seed, record the expert's episodes, fit, act in 1,000
-fresh episodes and decode 200 held-out annotated episodes against the expert's stacks.
+r"""Measures a Gymnasium environment and expert (Taxi's by default) through the documented commands: per seed,
+record the expert's episodes, fit, act in 1,000 fresh episodes and decode 200 held-out annotated episodes
+against the expert's stacks.
 
   python examples/taxi/measure.py --workdir=runs/taxi_measure --demos=100 --annotated=1,3,10 --seeds=1,2,3,4,5
+  python examples/taxi/measure.py --workdir=runs/doorkey_measure --env=examples.doorkey.doorkey:make_env \
+      --expert=examples.doorkey.doorkey:ThreePartExpert --hierarchy=examples/doorkey/doorkey.json
 
 Seed s records its training episodes from seed 10000·s (each configuration's own demonstrations) and fits
 with --seed=s; every run acts in the same 1,000 episodes (seeds 100000..100999) and decodes the same 200
@@ -18,8 +21,7 @@ import re
 import subprocess
 import sys
 
-ENV, EXPERT = "--env=examples.taxi.taxi:make_env", "--expert=examples.taxi.taxi:MaxqExpert"
-HIERARCHY = "examples/taxi/taxi.json"
+ENV, EXPERT, HIERARCHY = "examples.taxi.taxi:make_env", "examples.taxi.taxi:MaxqExpert", "examples/taxi/taxi.json"
 
 
 def _run(*args: str) -> str:
@@ -29,13 +31,14 @@ def _run(*args: str) -> str:
   return proc.stdout
 
 
-def _record(path: str, episodes: int, annotated: int, seed: int) -> None:
+def _record(gym: argparse.Namespace, path: str, episodes: int, annotated: int, seed: int) -> None:
   if not os.path.exists(path):
-    _run("experiments.record", ENV, EXPERT, f"--episodes={episodes}", f"--annotated={annotated}",
-         f"--seed={seed}", f"--out={path}", f"--hierarchy={HIERARCHY}")
+    _run("experiments.record", f"--env={gym.env}", f"--expert={gym.expert}", f"--episodes={episodes}",
+         f"--annotated={annotated}", f"--seed={seed}", f"--out={path}", f"--hierarchy={gym.hierarchy}")
 
 
-def measure(workdir: str, demos: int, annotated: int, seed: int, model: str, fit_flags: list[str]) -> dict:
+def measure(gym: argparse.Namespace, workdir: str, demos: int, annotated: int, seed: int, model: str,
+            fit_flags: list[str]) -> dict:
   """One configuration and seed, run through record, fit, act and decode; returns its row."""
   name = f"{model}_d{demos}_a{annotated}_s{seed}"
   run, done = os.path.join(workdir, name), os.path.join(workdir, name, "row.json")
@@ -43,11 +46,12 @@ def measure(workdir: str, demos: int, annotated: int, seed: int, model: str, fit
     with open(done) as f:
       return json.load(f)
   train, held = os.path.join(workdir, f"train_d{demos}_a{annotated}_s{seed}.jsonl"), os.path.join(workdir, "held.jsonl")
-  _record(train, demos, annotated, 10000 * seed)
-  _record(held, 200, 200, 500000)
-  _run("experiments.fit", f"--demos={train}", f"--hierarchy={HIERARCHY}", f"--workdir={run}", f"--seed={seed}",
+  _record(gym, train, demos, annotated, 10000 * seed)
+  _record(gym, held, 200, 200, 500000)
+  _run("experiments.fit", f"--demos={train}", f"--hierarchy={gym.hierarchy}", f"--workdir={run}", f"--seed={seed}",
        f"--model={model}", *fit_flags)
-  acted = _run("experiments.act", f"--policy={run}", ENV, "--episodes=1000", "--seed=100000", "--num_envs=64",
+  acted = _run("experiments.act", f"--policy={run}", f"--env={gym.env}", "--episodes=1000", "--seed=100000",
+               "--num_envs=64",
                f"--out={os.path.join(run, 'episodes.jsonl')}")
   success = float(re.search(r"success ([0-9.]+)", acted).group(1))
   row = {"model": model, "demos": demos, "annotated": annotated, "seed": seed, "success": success}
@@ -68,6 +72,9 @@ def main() -> None:
   parser.add_argument("--annotated", default="3", help="comma-separated numbers annotated")
   parser.add_argument("--seeds", default="1,2,3,4,5")
   parser.add_argument("--model", default="php", choices=["php", "flat_lstm"])
+  parser.add_argument("--env", default=ENV, help="the environment's MODULE:ATTR (or Gymnasium id)")
+  parser.add_argument("--expert", default=EXPERT, help="the expert's MODULE:ATTR")
+  parser.add_argument("--hierarchy", default=HIERARCHY, help="the hierarchy file")
   parser.add_argument("fit_flags", nargs="*", help="further experiments.fit flags, after --")
   args = parser.parse_args()
   os.makedirs(args.workdir, exist_ok=True)
@@ -75,7 +82,7 @@ def main() -> None:
   for demos in map(int, args.demos.split(",")):
     for annotated in map(int, args.annotated.split(",")):
       for seed in map(int, args.seeds.split(",")):
-        row = measure(args.workdir, demos, annotated, seed, args.model, args.fit_flags)
+        row = measure(args, args.workdir, demos, annotated, seed, args.model, args.fit_flags)
         print(json.dumps(row), flush=True)
         rows.append(row)
   with open(os.path.join(args.workdir, "rows.jsonl"), "w") as f:

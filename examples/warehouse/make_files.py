@@ -1,6 +1,7 @@
 r"""Writes the warehouse example's files: a domain that php_jax knows nothing about, given only as data.
 
   python examples/warehouse/make_files.py   # writes warehouse.json, train.jsonl, held_out.jsonl here
+  python examples/warehouse/make_files.py --out_dir=DIR --num_train=64 --num_annotated=16
 
 A robot on a line of 8 cells fulfils 1 to 3 orders: for each, it walks right to the order's shelf, picks the
 item, walks back left to the dock (cell 0) and drops it. Elementary actions: 0 left, 1 right, 2 pick,
@@ -10,9 +11,10 @@ holding an item, orders left / 3. The recorded stacks follow the hierarchy
   fulfil (root) -> fetch, deliver -> go_left, go_right, pick, drop -> elementary actions
 
 (fetch = go_right then pick; deliver = go_left then drop; fulfil = fetch, deliver per order). train.jsonl
-has 40 demonstrations, 4 of them with their stack; held_out.jsonl 100 more, all with stacks, for measuring
-how well decoding recovers them.
+has 40 demonstrations (--num_train), the first 4 (--num_annotated) with their stack; held_out.jsonl 100 more,
+all with stacks, for measuring how well decoding recovers them.
 """
+import argparse
 import json
 import os
 
@@ -58,16 +60,22 @@ def demonstration(orders: list[int]) -> dict:
 
 
 def main():
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--out_dir", default=HERE)
+  parser.add_argument("--num_train", type=int, default=40)
+  parser.add_argument("--num_annotated", type=int, default=4)
+  args = parser.parse_args()
   rng = np.random.default_rng(0)
-  demos = [demonstration(rng.integers(1, 8, size=rng.integers(1, 4)).tolist()) for _ in range(140)]
-  with open(os.path.join(HERE, "warehouse.json"), "w") as f:
+  demos = [demonstration(rng.integers(1, 8, size=rng.integers(1, 4)).tolist()) for _ in range(args.num_train + 100)]
+  os.makedirs(args.out_dir, exist_ok=True)
+  with open(os.path.join(args.out_dir, "warehouse.json"), "w") as f:
     json.dump({"levels": LEVELS, "action_sizes": [4], "action_names": [["left", "right", "pick", "drop"]]}, f)
     f.write("\n")
-  with open(os.path.join(HERE, "train.jsonl"), "w") as f:
-    for i, demo in enumerate(demos[:40]):
-      f.write(json.dumps(demo if i < 4 else {k: v for k, v in demo.items() if k != "stack"}) + "\n")
-  with open(os.path.join(HERE, "held_out.jsonl"), "w") as f:
-    for demo in demos[40:]:
+  with open(os.path.join(args.out_dir, "train.jsonl"), "w") as f:
+    for i, demo in enumerate(demos[:args.num_train]):
+      f.write(json.dumps(demo if i < args.num_annotated else {k: v for k, v in demo.items() if k != "stack"}) + "\n")
+  with open(os.path.join(args.out_dir, "held_out.jsonl"), "w") as f:
+    for demo in demos[args.num_train:]:
       f.write(json.dumps(demo) + "\n")
 
 

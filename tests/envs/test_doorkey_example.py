@@ -1,0 +1,42 @@
+"""examples/doorkey: the expert solves MiniGrid's DoorKey by its three-part hierarchy, and its stacks are ones
+the hierarchy file admits."""
+import json
+
+import pytest
+
+pytest.importorskip("minigrid")
+
+from examples.doorkey import doorkey  # noqa: E402
+from php_jax.data import demo_files  # noqa: E402
+from php_jax.envs import gym  # noqa: E402
+from php_jax.training import call_graph  # noqa: E402
+
+
+def test_the_expert_reaches_the_goal_in_every_layout_within_its_declared_calls(tmp_path):
+  env, spec = doorkey.make_env(), demo_files.read_hierarchy("examples/doorkey/doorkey.json").spec
+  lines = gym.record(env, doorkey.ThreePartExpert(env), episodes=40, seed=3, annotated=40, spec=spec)
+  layouts = set()
+  for i, line in enumerate(lines):
+    observation, _ = env.reset(seed=3 + i)
+    layouts.add(tuple(observation[3:7]))  # the key's and the door's cells
+    for (action,) in line["actions"]:
+      _, reward, terminated, truncated, _ = env.step(action)
+    assert terminated and not truncated and reward > 0  # at the goal
+    assert len(line["actions"]) <= 19
+  assert len(layouts) > 20
+  path = tmp_path / "doorkey.jsonl"
+  path.write_text("".join(json.dumps(line) + "\n" for line in lines))
+  demos, _ = demo_files.read_demonstrations(str(path), spec)
+  call_graph.check(demos, spec, spec.allowed_ops)  # every step within the file's "calls"
+  used = {(frames[1][0], frames[2][0]) for line in lines for frames in line["stack"]}  # (middle, lowest)
+  assert {h for _, h in used} == set(range(5)) and {m for m, _ in used} == {0, 1, 2}
+
+
+def test_the_shortest_turns_face_the_target_and_go_round_walls():
+  open_cells = {(1, 1), (2, 1), (1, 2), (2, 2)}
+  passable = lambda x, y: (x, y) in open_cells
+  # From (1, 1) facing right, to face (2, 2) from (2, 1): forward, then turn right.
+  assert doorkey.shortest_turns(passable, (1, 1, 0), lambda p: (p[0], p[1], p[2]) == (2, 1, 1)) == [
+      doorkey.FORWARD, doorkey.RIGHT]
+  with pytest.raises(ValueError, match="no path"):
+    doorkey.shortest_turns(passable, (1, 1, 0), lambda p: p[:2] == (3, 3))
