@@ -35,9 +35,28 @@ class TaxiFactors(gymnasium.ObservationWrapper):
     return np.array(list(self.env.unwrapped.decode(observation)), np.int64)
 
 
+class TaxiFactorsAndLandmarks(TaxiFactors):
+  """TaxiFactors and, for each landmark (R, G, Y, B), whether the taxi stands on it: what a user who knows
+  the map might add, so that the networks need not learn which cells are landmarks."""
+
+  def __init__(self, env: gymnasium.Env):
+    super().__init__(env)
+    self.observation_space = spaces.MultiDiscrete([5, 5, 5, 4, 2, 2, 2, 2])
+
+  def observation(self, observation):
+    row, col, passenger, destination = super().observation(observation)
+    on = [int((row, col) == tuple(landmark)) for landmark in self.env.unwrapped.locs]
+    return np.array([row, col, passenger, destination, *on], np.int64)
+
+
 def make_env() -> gymnasium.Env:
   """Taxi-v3 with factored observations (the `--env` of record and act)."""
   return TaxiFactors(gymnasium.make("Taxi-v3"))
+
+
+def make_env_with_landmarks() -> gymnasium.Env:
+  """Taxi-v3 with factored observations and the landmarks the taxi stands on."""
+  return TaxiFactorsAndLandmarks(gymnasium.make("Taxi-v3"))
 
 
 def _moves(desc: np.ndarray, row: int, col: int):
@@ -80,7 +99,7 @@ class MaxqExpert:
     self.stack = None
 
   def act(self, observation, info):
-    row, col, passenger, destination = (int(x) for x in observation)
+    row, col, passenger, destination = (int(x) for x in observation[:4])
     subtask = PUT if passenger == IN_TAXI else GET
     target = destination if subtask == PUT else passenger
     if (row, col) == self.landmarks[target]:

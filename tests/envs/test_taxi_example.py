@@ -1,6 +1,8 @@
 """examples/taxi: the expert solves Taxi by MAXQ's hierarchy, and its stacks are ones the hierarchy file admits."""
 import json
 
+import numpy as np
+
 from examples.taxi import taxi
 from php_jax.data import demo_files
 from php_jax.envs import gym
@@ -41,3 +43,18 @@ def test_the_maxq_expert_delivers_every_passenger_along_shortest_paths_within_it
   call_graph.check(demos, spec, spec.allowed_ops)  # every step within the file's "calls"
   navigate = {tuple(frames[2]) for line in lines for frames in line["stack"] if frames[2][0] < 4}
   assert {h for h, _ in navigate} == {0, 1, 2, 3} and max(t for _, t in navigate) <= 7
+
+
+def test_the_landmark_factors_say_which_landmark_the_taxi_stands_on():
+  env, plain, rng = taxi.make_env_with_landmarks(), taxi.make_env(), np.random.default_rng(0)
+  seen = set()
+  for seed in range(40):
+    observation, _ = env.reset(seed=seed)
+    assert list(observation[:4]) == list(plain.reset(seed=seed)[0])  # the four factors, then four bits
+    for _ in range(20):
+      row, col = observation[:2]
+      on = [int((row, col) == tuple(landmark)) for landmark in env.unwrapped.locs]
+      assert list(observation[4:]) == on
+      seen.add(tuple(on))
+      observation, *_ = env.step(int(rng.integers(4)))  # a move (or a bump into a wall)
+  assert len(seen) == 5  # off every landmark, and on each of the four
