@@ -74,8 +74,11 @@ def main(argv):
                                          level)
     if measured:
       exact, renamed = measured
-      print(f"level {level}: decoded stacks agree with the given ones on {exact:.3f} of annotated steps"
-            + (f" ({renamed:.3f} up to renaming)" if renamed is not None else ""))
+      boundaries = agreement.stack_boundary_scores(batch.procedures, batch.counters, decoded.procedures,
+                                                   decoded.counters, batch.length, level)
+      found = f"; call boundaries: F1 {boundaries['f1']:.3f}" if boundaries else ""
+      print(f"level {level}: decoded stacks agree with the given ones on {exact:.3f} of annotated steps "
+            f"({renamed:.3f} up to renaming){found}")
 
 
 if __name__ == "__main__":

@@ -60,6 +60,8 @@ def measure(gym: argparse.Namespace, workdir: str, demos: int, annotated: int, s
                    f"--out={os.path.join(run, 'decoded.jsonl')}")
     for level, exact, renamed in re.findall(r"level (\d+): .* on ([0-9.]+) of annotated steps \(([0-9.]+)", decoded):
       row[f"level{level}"], row[f"level{level}_renamed"] = float(exact), float(renamed)
+    for level, f1 in re.findall(r"level (\d+): .*call boundaries: F1 ([0-9.]+)", decoded):
+      row[f"level{level}_boundary_f1"] = float(f1)
   with open(done, "w") as f:
     json.dump(row, f)
   return row

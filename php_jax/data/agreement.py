@@ -1,9 +1,8 @@
-"""How well decoded weak views (or decoded stacks) recover the supervisor's hierarchy: per level, the
-fraction of elementary steps whose decoded (procedure, counter) equals the supervisor's, by exact procedure
-ids and up to a renaming of them."""
+"""How well decoded weak views (or decoded stacks, or another method's segments) recover the supervisor's
+hierarchy: per level, the fraction of elementary steps whose decoded (procedure, counter) equals the
+supervisor's, by exact procedure ids and up to a renaming of them (the best one-to-one renaming, by the
+Hungarian algorithm); and how well the calls' boundaries are found (precision, recall, F1)."""
 from __future__ import annotations
-
-import itertools
 
 import numpy as np
 
@@ -41,14 +40,11 @@ def exact_fraction(counts, total: int) -> float | None:
 
 
 def relabelled_fraction(counts, total: int) -> float | None:
-  """Agreement under the best renaming from agreement_counts' result: brute force over the K! renamings,
-  so None (not measured) above K = 8, as when no weak demonstration carries the stack."""
-  num_procs = 0 if counts is None else len(counts)
-  if not 0 < num_procs <= 8:
+  """Agreement under the best renaming from agreement_counts' result (None, as when no weak demonstration
+  carries the stack)."""
+  if counts is None:
     return None
-  rows = np.arange(num_procs)
-  best = max(counts[rows, list(perm)].sum() for perm in itertools.permutations(range(num_procs)))
-  return float(best / total)
+  return float(sum(counts[r, c] for r, c in best_assignment(counts)) / total)
 
 
 def agreement(demos: Demonstration, view: LevelView, level: int, procedures, counters) -> float | None:
@@ -65,7 +61,7 @@ def relabelled_agreement(demos: Demonstration, view: LevelView, level: int, proc
 
 
 def stack_agreement(procedures, counters, decoded_procedures, decoded_counters,
-                    level: int) -> tuple[float, float | None] | None:
+                    level: int) -> tuple[float, float] | None:
   """(exact, up to renaming) fraction of the annotated steps of given stacks [..., T, d] (UNKNOWN where not
   annotated, or padding) whose decoded frame at level equals the given one; None if no step is annotated
   there."""
@@ -79,3 +75,115 @@ def stack_agreement(procedures, counters, decoded_procedures, decoded_counters,
   same_tau = known & (decoded_taus == taus)
   np.add.at(counts, (decoded_procs[same_tau], procs[same_tau]), 1)
   return exact_fraction(counts, known.sum()), relabelled_fraction(counts, known.sum())
+
+
+def stack_boundary_scores(procedures, counters, decoded_procedures, decoded_counters, length,
+                          level: int) -> dict | None:
+  """boundary_scores of the calls at level that decoded stacks [B, T, d] start against those of the given
+  stacks [B, T, d], over the demonstrations (of lengths [B]) whose given stack is known down to level; None
+  if there is none."""
+  truth, found = [], []
+  for b, n in enumerate(np.asarray(length)):
+    given = np.asarray(procedures)[b, :n], np.asarray(counters)[b, :n]
+    if np.all(given[0][:, :level + 1] != UNKNOWN) and np.all(given[1][:, :level + 1] != UNKNOWN):
+      truth.append(boundary_steps(call_starts(*given, level)))
+      found.append(boundary_steps(call_starts(np.asarray(decoded_procedures)[b, :n],
+                                              np.asarray(decoded_counters)[b, :n], level)))
+  return boundary_scores(truth, found) if truth else None
+
+
+def call_starts(procedures, counters, level: int) -> np.ndarray:
+  """[T] bool: the steps where a new call starts at `level`, from one demonstration's stack [T, d] (root
+  first). Step 0 starts one; a later step starts one when a level above `level` resumed there, that is when
+  some frame above `level` differs from the step before. (A counter of 0 at consecutive steps is no new call:
+  the level below took both.) Raises ValueError if a frame at or above `level` is unknown."""
+  procedures, counters = np.asarray(procedures), np.asarray(counters)
+  if procedures.ndim != 2 or procedures.shape != counters.shape or not 1 <= level < procedures.shape[1]:
+    raise ValueError(f"need a stack [T, d] with 1 <= level < d; got {list(procedures.shape)}, level {level}")
+  if np.any(procedures[:, :level + 1] == UNKNOWN) or np.any(counters[:, :level + 1] == UNKNOWN):
+    raise ValueError(f"the stack is not known down to level {level}")
+  upper = np.concatenate([procedures[:, :level], counters[:, :level]], axis=1)
+  starts = np.ones(len(upper), bool)
+  starts[1:] = np.any(upper[1:] != upper[:-1], axis=1)
+  return starts
+
+
+def boundary_steps(starts) -> set[int]:
+  """The boundaries of a [T] bool of call (or segment) starts: every start after step 0."""
+  return {int(t) for t in np.flatnonzero(np.asarray(starts)) if t > 0}
+
+
+def boundary_scores(true_boundaries, predicted_boundaries, tolerance: int = 0) -> dict:
+  """Precision, recall and F1 of predicted boundary steps, pooled over demonstrations: two lists (one entry
+  per demonstration) of sets of steps. A predicted boundary is a hit when it is within `tolerance` steps of
+  a true one, each true one matched at most once (tolerance 0: the same step; the most hits in each
+  demonstration, by best_assignment). Empty ratios: precision 1 with nothing predicted, recall 1 with
+  nothing to find; F1 0 when both are 0."""
+  if len(true_boundaries) != len(predicted_boundaries):
+    raise ValueError(f"{len(true_boundaries)} true and {len(predicted_boundaries)} predicted demonstrations")
+  hits = num_true = num_predicted = 0
+  for truth, predicted in zip(true_boundaries, predicted_boundaries):
+    truth, predicted = sorted(set(truth)), sorted(set(predicted))
+    num_true, num_predicted = num_true + len(truth), num_predicted + len(predicted)
+    near = np.abs(np.subtract.outer(predicted, truth)) <= tolerance if predicted and truth else np.zeros((0, 0))
+    hits += int(sum(near[p, t] for p, t in best_assignment(near)))
+  precision = hits / num_predicted if num_predicted else 1.0
+  recall = hits / num_true if num_true else 1.0
+  f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
+  return {"precision": precision, "recall": recall, "f1": f1, "hits": hits, "true": num_true,
+          "predicted": num_predicted}
+
+
+def best_assignment(score) -> list[tuple[int, int]]:
+  """The one-to-one assignment of rows to columns of a score matrix [R, C] that maximizes the summed score
+  (min(R, C) pairs (row, column), by row): the Hungarian algorithm (O(n^2 m)), in numpy."""
+  score = np.asarray(score, np.float64)
+  if score.ndim != 2:
+    raise ValueError(f"need a matrix; got shape {list(score.shape)}")
+  if min(score.shape) == 0:
+    return []
+  transposed = score.shape[0] > score.shape[1]
+  cost = -(score.T if transposed else score)  # rows ≤ columns, minimized
+  n, m = cost.shape
+  u, v = np.zeros(n + 1), np.zeros(m + 1)
+  owner, way = np.zeros(m + 1, int), np.zeros(m + 1, int)  # owner[j]: the row (1-based) holding column j
+  for i in range(1, n + 1):
+    owner[0], j0 = i, 0
+    min_v, used = np.full(m + 1, np.inf), np.zeros(m + 1, bool)
+    while True:
+      used[j0] = True
+      i0, free = owner[j0], np.flatnonzero(~used)
+      reduced = cost[i0 - 1, free - 1] - u[i0] - v[free]
+      better = reduced < min_v[free]
+      min_v[free[better]], way[free[better]] = reduced[better], j0
+      j1 = free[np.argmin(min_v[free])]
+      delta = min_v[j1]
+      u[owner[used]] += delta
+      v[used] -= delta
+      min_v[~used] -= delta
+      j0 = j1
+      if owner[j0] == 0:
+        break
+    while j0:
+      j1 = way[j0]
+      owner[j0] = owner[j1]
+      j0 = j1
+  pairs = [(int(owner[j]) - 1, j - 1) for j in range(1, m + 1) if owner[j]]
+  return sorted((c, r) for r, c in pairs) if transposed else sorted(pairs)
+
+
+def label_agreement(true_labels, predicted_labels) -> tuple[float, dict]:
+  """(fraction of positions whose predicted label, renamed, equals the true one; the renaming {predicted:
+  true}) under the one-to-one renaming of predicted labels to true ones that maximizes it. Labels are any
+  integers; a predicted label left without a partner (more predicted labels than true ones) counts as
+  wrong. Raises ValueError on empty or mismatched inputs."""
+  true_labels, predicted_labels = np.asarray(true_labels).ravel(), np.asarray(predicted_labels).ravel()
+  if true_labels.shape != predicted_labels.shape or not true_labels.size:
+    raise ValueError(f"need equally many labels, at least one; got {true_labels.size} and {predicted_labels.size}")
+  true_ids, true_index = np.unique(true_labels, return_inverse=True)
+  predicted_ids, predicted_index = np.unique(predicted_labels, return_inverse=True)
+  counts = np.zeros((len(predicted_ids), len(true_ids)), np.int64)
+  np.add.at(counts, (predicted_index, true_index), 1)
+  pairs = best_assignment(counts)
+  hits = sum(int(counts[r, c]) for r, c in pairs)
+  return hits / true_labels.size, {int(predicted_ids[r]): int(true_ids[c]) for r, c in pairs}

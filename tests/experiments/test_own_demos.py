@@ -202,6 +202,7 @@ def test_fit_decode_show_and_report_on_the_warehouse_example(tmp_path):
   rows = [json.loads(line) for line in out.read_text().splitlines()]
   given = [json.loads(line) for line in held_out.read_text().splitlines()]
   assert len(rows) == 5 and "level 1: decoded stacks agree" in decode.stdout
+  assert "call boundaries: F1" in decode.stdout
   for row, demo in zip(rows, given):
     assert set(row) == {"log_likelihood", "stack", "replayed", "first_mismatch"}
     assert np.isfinite(row["log_likelihood"]) and row["log_likelihood"] < 0

@@ -85,7 +85,7 @@ def test_relabelled_agreement_ignores_procedure_ids_but_not_segmentation():
   merged = np.zeros_like(procs)  # every call decoded as one procedure: no renaming recovers the three
   counts, total = agreement.agreement_counts(demos, view, 2, merged, taus)
   assert agreement.relabelled_agreement(demos, view, 2, merged, taus) == counts.max() / total < 1.0
-  assert agreement.relabelled_agreement(demos, view, 2, procs + 6, taus) is None  # 9 ids: 9! renamings, not tried
+  assert agreement.relabelled_agreement(demos, view, 2, procs + 6, taus) == 1.0  # ids 6..8 of 9, renamed
 
 
 def test_level_capacity_is_the_longest_annotated_call_at_least_the_minimum():
