@@ -10,7 +10,7 @@ holding modules.py and utils.py, or a git directory (bare, or a checkout's .git)
 time. Nothing of CompILE's code is copied into this repository: its `modules.CompILE` (the LSTM segmentation
 encoder with Gumbel-softmax boundaries b and per-segment latents z, and the MLP decoder) and
 `utils.get_losses` (the negative ELBO: reconstruction, KL on z, Poisson prior on b) are imported from there
-unchanged, and this command only feeds them. Needs torch (`pip install torch==2.13.0`, a CPU build).
+unchanged, and this command only feeds them. Needs torch (`pip install -e ".[peer]"`: torch 2.13.0, a CPU build).
 
 How the files are fed to CompILE, as its train.py feeds its toy sequences: each demonstration's elementary
 actions become one symbol per step (the action's index + 1; several action factors are numbered jointly),
@@ -48,7 +48,7 @@ import types
 
 import numpy as np
 
-from php_jax.data.agreement import boundary_scores, boundary_steps, call_starts, label_agreement
+from php_jax.data.agreement import boundary_scores, boundary_steps, known_call_boundaries, label_agreement
 
 # --- CompILE's segments as labelled steps: pure functions of numpy arrays (the tests check them). ---
 
@@ -104,8 +104,10 @@ def load_compile(compile_dir: str):
   commit = None
   if os.path.isfile(os.path.join(compile_dir, "modules.py")):
     source = compile_dir
-    found = subprocess.run(["git", "-C", compile_dir, "rev-parse", "HEAD"], capture_output=True, text=True)
-    commit = found.stdout.strip() if found.returncode == 0 else None
+    found = subprocess.run(["git", "-C", compile_dir, "rev-parse", "--show-toplevel", "HEAD"], capture_output=True,
+                           text=True)
+    top, head = (found.stdout.split() + [None, None])[:2] if found.returncode == 0 else (None, None)
+    commit = head if top and os.path.realpath(top) == os.path.realpath(compile_dir) else None  # not a repo above
   else:
     found = subprocess.run(["git", "--git-dir", compile_dir, "rev-parse", "HEAD"], capture_output=True, text=True)
     if found.returncode != 0:
@@ -254,16 +256,9 @@ def train_and_segment(settings, train_batch, held_batch, spec, log=print) -> dic
 
 def score(held_batch, spec, level: int, segments, labels, latent_dist: str, seed: int) -> dict:
   """The metrics of the module docstring from train_and_segment's segments and labels."""
-  procs, taus, lengths = (np.asarray(x) for x in (held_batch.procedures, held_batch.counters, held_batch.length))
-  scored = []
-  for b, n in enumerate(lengths):
-    try:
-      scored.append((b, call_starts(procs[b, :n], taus[b, :n], level)))
-    except ValueError:
-      continue
-  if not scored:
-    raise ValueError(f"--held_out: no demonstration carries its stack down to level {level}")
-  true_b = [boundary_steps(starts) for _, starts in scored]
+  procs, lengths = np.asarray(held_batch.procedures), np.asarray(held_batch.length)
+  scored = known_call_boundaries(held_batch.procedures, held_batch.counters, lengths, level)
+  true_b = [boundaries for _, boundaries in scored]
   predicted_b = [boundary_steps(np.diff(segments[b], prepend=-1) != 0) for b, _ in scored]
   exact, near = boundary_scores(true_b, predicted_b), boundary_scores(true_b, predicted_b, tolerance=1)
   keys = [(b, s) for b, _ in scored for s in sorted(labels[b])]
@@ -287,8 +282,8 @@ def score(held_batch, spec, level: int, segments, labels, latent_dist: str, seed
           "position_accuracy_up_to_renaming": position_accuracy}
 
 
-# --- The command. Its flags are defined only when it runs as a command, so that the tests can import the
-# metrics beside other commands that define flags of the same names. ---
+# --- The command. Its flags are defined only when it runs as a command, so that the tests can import this
+# module beside other commands that define flags of the same names. ---
 
 
 def _define_flags():
@@ -346,10 +341,13 @@ def main(argv, defined):
       raise ValueError(f"--level must be below {spec.num_levels} (the hierarchy's levels); got {settings.level}")
     train_batch, spec = demo_files.read_demonstrations(settings.demos, spec)
     held_batch, _ = demo_files.read_demonstrations(settings.held_out, spec)
+    if not known_call_boundaries(held_batch.procedures, held_batch.counters, held_batch.length, settings.level):
+      raise ValueError(f"--held_out={settings.held_out}: no demonstration carries its stack down to level "
+                       f"{settings.level}")
     try:
       import torch  # noqa: F401  pylint: disable=import-outside-toplevel,unused-import
     except ImportError:
-      raise ValueError("CompILE needs torch: pip install torch==2.13.0 (a CPU build)") from None
+      raise ValueError('CompILE needs torch: pip install -e ".[peer]"') from None
     settings.compile = load_compile(settings.compile_dir)
   except (OSError, ValueError) as e:  # DemoFileError is one
     cli.fail(str(e))
@@ -357,11 +355,8 @@ def main(argv, defined):
   settings.num_segments = settings.num_segments or num_procs
   settings.latent_dim = settings.latent_dim or (num_procs if settings.latent_dist == "concrete" else 32)
   found = train_and_segment(settings, train_batch, held_batch, spec)
-  try:
-    metrics = score(held_batch, spec, settings.level, found["segments"], found["labels"], settings.latent_dist,
-                    settings.seed)
-  except ValueError as e:
-    cli.fail(str(e))
+  metrics = score(held_batch, spec, settings.level, found["segments"], found["labels"], settings.latent_dist,
+                  settings.seed)
   row = {"model": "compile", "compile_commit": settings.compile[2], "seed": settings.seed,
          "iterations": settings.iterations, "num_segments": settings.num_segments,
          "latent_dist": settings.latent_dist, "latent_dim": settings.latent_dim,

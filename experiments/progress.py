@@ -68,13 +68,15 @@ class TrainingProgress:
     if row.get("phase") == "testing":
       self.progress.add_task("testing", total=None, status="")
       return
+    if "warning" in row:  # every seed's
+      seed = f"seed {row['seed']}: " if "seed" in row else ""
+      self.console.print(f"[yellow]warning:[/] {seed}{escape(row['warning'])}", highlight=False)
+      return
     if self.seed is None and "seed" in row:
       self.seed = row["seed"]
     if row.get("seed", self.seed) != self.seed:
       return
-    if "warning" in row:
-      self.console.print(f"[yellow]warning:[/] {escape(row['warning'])}", highlight=False)
-    elif row.get("resumed"):
+    if row.get("resumed"):
       self.console.print(f"resumed from the checkpoint: level {row['level']}, iteration {row['iteration']}")
     elif "capacity" in row:
       self._phase(row.get("level", "joint"))

@@ -31,26 +31,27 @@ def _run(*args: str) -> str:
   return proc.stdout
 
 
-def _record(gym: argparse.Namespace, path: str, episodes: int, annotated: int, seed: int) -> None:
+def _record(setup: argparse.Namespace, path: str, episodes: int, annotated: int, seed: int) -> None:
   if not os.path.exists(path):
-    _run("experiments.record", f"--env={gym.env}", f"--expert={gym.expert}", f"--episodes={episodes}",
-         f"--annotated={annotated}", f"--seed={seed}", f"--out={path}", f"--hierarchy={gym.hierarchy}")
+    _run("experiments.record", f"--env={setup.env}", f"--expert={setup.expert}", f"--episodes={episodes}",
+         f"--annotated={annotated}", f"--seed={seed}", f"--out={path}", f"--hierarchy={setup.hierarchy}")
 
 
-def measure(gym: argparse.Namespace, workdir: str, demos: int, annotated: int, seed: int, model: str,
+def measure(setup: argparse.Namespace, workdir: str, demos: int, annotated: int, seed: int, model: str,
             fit_flags: list[str]) -> dict:
-  """One configuration and seed, run through record, fit, act and decode; returns its row."""
+  """One configuration and seed, run through record, fit, act and decode (setup: the environment, expert and
+  hierarchy flags); returns its row."""
   name = f"{model}_d{demos}_a{annotated}_s{seed}"
   run, done = os.path.join(workdir, name), os.path.join(workdir, name, "row.json")
   if os.path.exists(done):
     with open(done) as f:
       return json.load(f)
   train, held = os.path.join(workdir, f"train_d{demos}_a{annotated}_s{seed}.jsonl"), os.path.join(workdir, "held.jsonl")
-  _record(gym, train, demos, annotated, 10000 * seed)
-  _record(gym, held, 200, 200, 500000)
-  _run("experiments.fit", f"--demos={train}", f"--hierarchy={gym.hierarchy}", f"--workdir={run}", f"--seed={seed}",
+  _record(setup, train, demos, annotated, 10000 * seed)
+  _record(setup, held, 200, 200, 500000)
+  _run("experiments.fit", f"--demos={train}", f"--hierarchy={setup.hierarchy}", f"--workdir={run}", f"--seed={seed}",
        f"--model={model}", *fit_flags)
-  acted = _run("experiments.act", f"--policy={run}", f"--env={gym.env}", "--episodes=1000", "--seed=100000",
+  acted = _run("experiments.act", f"--policy={run}", f"--env={setup.env}", "--episodes=1000", "--seed=100000",
                "--num_envs=64",
                f"--out={os.path.join(run, 'episodes.jsonl')}")
   success = float(re.search(r"success ([0-9.]+)", acted).group(1))

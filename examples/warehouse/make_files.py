@@ -65,6 +65,8 @@ def main():
   parser.add_argument("--num_train", type=int, default=40)
   parser.add_argument("--num_annotated", type=int, default=4)
   args = parser.parse_args()
+  if not 0 <= args.num_annotated <= args.num_train:
+    parser.error(f"--num_annotated must be in 0..--num_train ({args.num_train}); got {args.num_annotated}")
   rng = np.random.default_rng(0)
   demos = [demonstration(rng.integers(1, 8, size=rng.integers(1, 4)).tolist()) for _ in range(args.num_train + 100)]
   os.makedirs(args.out_dir, exist_ok=True)

@@ -82,14 +82,23 @@ def stack_boundary_scores(procedures, counters, decoded_procedures, decoded_coun
   """boundary_scores of the calls at level that decoded stacks [B, T, d] start against those of the given
   stacks [B, T, d], over the demonstrations (of lengths [B]) whose given stack is known down to level; None
   if there is none."""
-  truth, found = [], []
+  known = known_call_boundaries(procedures, counters, length, level)
+  found = [boundary_steps(call_starts(np.asarray(decoded_procedures)[b, :np.asarray(length)[b]],
+                                      np.asarray(decoded_counters)[b, :np.asarray(length)[b]], level))
+           for b, _ in known]
+  return boundary_scores([truth for _, truth in known], found) if known else None
+
+
+def known_call_boundaries(procedures, counters, length, level: int) -> list[tuple[int, set[int]]]:
+  """(b, its call boundaries at level) for each demonstration b of stacks [B, T, d] (lengths [B]) whose stack
+  is known down to level (`call_starts`, `boundary_steps`)."""
+  procedures, counters = np.asarray(procedures), np.asarray(counters)
+  known = []
   for b, n in enumerate(np.asarray(length)):
-    given = np.asarray(procedures)[b, :n], np.asarray(counters)[b, :n]
-    if np.all(given[0][:, :level + 1] != UNKNOWN) and np.all(given[1][:, :level + 1] != UNKNOWN):
-      truth.append(boundary_steps(call_starts(*given, level)))
-      found.append(boundary_steps(call_starts(np.asarray(decoded_procedures)[b, :n],
-                                              np.asarray(decoded_counters)[b, :n], level)))
-  return boundary_scores(truth, found) if truth else None
+    given = procedures[b, :n, :level + 1], counters[b, :n, :level + 1]
+    if np.all(given[0] != UNKNOWN) and np.all(given[1] != UNKNOWN):
+      known.append((b, boundary_steps(call_starts(*given, level))))
+  return known
 
 
 def call_starts(procedures, counters, level: int) -> np.ndarray:

@@ -8,7 +8,8 @@ import threading
 
 import jax
 
-WRITING = threading.RLock()  # held while write_atomically (or a checkpoint) writes: whoever ends the process waits for it
+WRITING = threading.RLock()  # held while write_atomically or a whole checkpoint save writes (reentrant: a save
+# holds it around its own write_atomically calls); whoever ends the process waits for it
 
 
 def write_atomically(path: str, data: bytes) -> None:

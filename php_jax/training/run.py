@@ -53,7 +53,8 @@ class Experiment:
     test: model → the test results (results.json's "test").
     extra: more entries for results.json (e.g. the seed and the data set's sizes).
     action_name: an elementary action (a list of ints, one per factor) → its text, for messages.
-    numbers: per demonstration, its number in messages (e.g. its line in a file, from 0); None: its index.
+    numbers: per demonstration, its number in messages (e.g. its place among a file's demonstrations, from 0);
+      None: its index in demos.
   """
   name: str
   spec: HierarchySpec
@@ -163,8 +164,7 @@ def annotation_gaps(experiment: Experiment, config: TrainConfig, echo: Callable[
                      f"'{second}' (the first: demonstration {pair.example}), the annotated ones never do, and "
                      f"with --call_graph={config.call_graph} no procedure that takes '{first}' may take "
                      f"'{second}': each of those steps is split between two calls. If one procedure should take "
-                     "both, annotate a demonstration that shows it (experiments.suggest chooses), or give "
-                     "--call_graph=calls"})
+                     "both, annotate a demonstration that shows it (experiments.suggest chooses)"})
   return {"annotation_gaps": [{"first": list(p.first), "second": list(p.second), "demonstrations":
                                p.demonstrations, "example": p.example} for p in pairs]} if pairs else {}
 

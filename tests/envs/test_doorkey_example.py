@@ -33,10 +33,12 @@ def test_the_expert_reaches_the_goal_in_every_layout_within_its_declared_calls(t
 
 
 def test_the_shortest_turns_face_the_target_and_go_round_walls():
-  open_cells = {(1, 1), (2, 1), (1, 2), (2, 2)}
+  open_cells = {(1, 1), (2, 1), (3, 1), (1, 2), (3, 2), (1, 3), (2, 3), (3, 3)}  # a ring round a wall at (2, 2)
   passable = lambda x, y: (x, y) in open_cells
-  # From (1, 1) facing right, to face (2, 2) from (2, 1): forward, then turn right.
-  assert doorkey.shortest_turns(passable, (1, 1, 0), lambda p: (p[0], p[1], p[2]) == (2, 1, 1)) == [
-      doorkey.FORWARD, doorkey.RIGHT]
+  # From (1, 1) facing right, to face (2, 2) from (2, 1): forward, then turn right (down).
+  assert doorkey.shortest_turns(passable, (1, 1, 0), lambda p: p == (2, 1, 1)) == [doorkey.FORWARD, doorkey.RIGHT]
+  # From (2, 1) facing down (into the wall), to (2, 3): round the wall, 7 actions either way.
+  path = doorkey.shortest_turns(passable, (2, 1, 1), lambda p: p[:2] == (2, 3))
+  assert len(path) == 7 and path[0] == doorkey.LEFT  # ties: LEFT first, so round by the right-hand side
   with pytest.raises(ValueError, match="no path"):
-    doorkey.shortest_turns(passable, (1, 1, 0), lambda p: p[:2] == (3, 3))
+    doorkey.shortest_turns(passable, (1, 1, 0), lambda p: p[:2] == (2, 2))

@@ -55,7 +55,12 @@ def test_joint_and_flat_runs_and_other_seeds():
   assert "seed 1: test results" in text and "seed 2: test results" in text and "runs/w/seed=2" in text
 
 
-def test_a_warning_is_printed_whole_with_its_brackets():
+def test_a_warning_is_printed_whole_with_its_brackets_for_every_seed():
   text = _display(TrainConfig(), 3, [{"warning": "take '[1, 4]' then '[0, 4]'"},
                                      {"level": 2, "capacity": 4, "seconds": 1.0}])
   assert "warning: take '[1, 4]' then '[0, 4]'" in text and "level 2 (1 of 3)" in text
+  text = _display(TrainConfig(iterations=60), 3, [{"seed": 2, "warning": "w2"},
+                                                  {"seed": 1, "level": 2, "capacity": 4, "seconds": 1.0},
+                                                  {"seed": 2, "level": 2, "iteration": 60, "loss": 9.0, "seconds": 2.0},
+                                                  {"seed": 1, "level": 2, "iteration": 30, "loss": 1.0, "seconds": 2.0}])
+  assert "warning: seed 2: w2" in text and "30/60" in text and "loss 9" not in text  # seed 1 still followed
