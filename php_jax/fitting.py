@@ -64,8 +64,13 @@ class Hooks(NamedTuple):
 
 
 def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array], schedule: Schedule, hooks: Hooks = Hooks(),
-        resume: Progress | None = None, args: tuple = (), mesh: Mesh | None = None) -> Progress:
+        resume: Progress | None = None, args: tuple = (), mesh: Mesh | None = None,
+        pass_iteration: bool = False) -> Progress:
   """Full-batch Adam on loss_fn(model, *args) []. Updates `model` in place to the kept snapshot.
+
+  pass_iteration: loss_fn is called as loss_fn(model, iteration, *args) instead, iteration [] int32 the number
+  of updates made before this one (0 at the first), for a loss that changes over the fit (one compiled
+  update all the same).
 
   args (the data) follow the model into loss_fn: as constants of the compiled update without a mesh, as its
   arguments with one (arrays split over `mesh`); then the parameters and optimizer state are replicated on
@@ -80,7 +85,7 @@ def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array], schedule: Schedule
   optimizer = _optimizer(schedule)
   progress = resume if resume is not None else Progress(0, params, optimizer.init(params), params, None, None,
                                                         [])
-  step = _adam_step(graphdef, loss_fn, optimizer)
+  step = _adam_step(graphdef, loss_fn, optimizer, pass_iteration)
   if mesh is None:  # the data as constants, folded into the program by XLA
     update = jax.jit(lambda params, opt_state: step(params, opt_state, rest, args))
   else:  # as arguments: a constant would sit whole on one device
@@ -119,10 +124,14 @@ def _optimizer(schedule: Schedule) -> optax.GradientTransformation:
   return optax.adam(schedule.learning_rate)
 
 
-def _adam_step(graphdef: nnx.GraphDef, loss_fn: Callable[..., jax.Array], optimizer: optax.GradientTransformation):
+def _adam_step(graphdef: nnx.GraphDef, loss_fn: Callable[..., jax.Array], optimizer: optax.GradientTransformation,
+               pass_iteration: bool = False):
   """step(params, opt_state, rest, args) → (params, opt_state, loss): one update of the model
-  nnx.merge(graphdef, params, rest) on loss_fn(model, *args); `fit` runs it, `fit_seeds` vmaps it."""
+  nnx.merge(graphdef, params, rest) on loss_fn(model, *args) (with pass_iteration, loss_fn(model, iteration,
+  *args), iteration Adam's count of updates made); `fit` runs it, `fit_seeds` vmaps it."""
   def step(params, opt_state, rest, args):
+    if pass_iteration:
+      args = (optax.tree_utils.tree_get(opt_state, "count"),) + tuple(args)
     loss, grads = jax.value_and_grad(lambda p: loss_fn(nnx.merge(graphdef, p, rest), *args))(params)
     updates, opt_state = optimizer.update(grads, opt_state, params)
     return optax.apply_updates(params, updates), opt_state, loss

@@ -296,16 +296,24 @@ def _annotated_log_likelihood(inputs: StackInputs, procedures, counters, length)
   return _log_likelihood(inputs, _potentials(inputs, procedures, counters), length)
 
 
-def log_likelihood(inputs: StackInputs, procedures=None, counters=None) -> jax.Array:
+def log_likelihood(inputs: StackInputs, procedures=None, counters=None, temperature=1.0) -> jax.Array:
   """forward_backward's log_likelihood [] alone (the forward pass only): for a loss, whose jax.grad gives the
-  same posteriors, or for scoring.
+  same posteriors, or for scoring. With a temperature T, the tempered T · log Σ_ζ P(ζ, ξ)^(1/T), whose jax.grad
+  gives the posteriors of P(ζ | ξ)^(1/T), renormalised (flatter for T > 1: deterministic annealing); a fully
+  annotated path's is its log P(ζ, ξ) at every T.
 
   Args:
     inputs: StackInputs. procedures, counters: [T, d] int annotation or None. (As forward_backward's.)
+    temperature: [] a finite number > 0; 1 is the log-likelihood itself.
   Returns:
-    [] log P(ξ) (of the paths that agree with the annotation).
+    [] log P(ξ) (of the paths that agree with the annotation), or its tempered form.
   """
-  return _annotated_log_likelihood(*_prepared(inputs, procedures, counters))
+  prepared = _prepared(inputs, procedures, counters)
+  check_temperature(temperature)
+  if isinstance(temperature, (int, float)) and temperature == 1:
+    return _annotated_log_likelihood(*prepared)
+  inputs, *rest = prepared
+  return temperature * _annotated_log_likelihood(jax.tree.map(lambda x: x / temperature, inputs), *rest)
 
 
 def forward_backward(inputs: StackInputs, procedures=None, counters=None) -> StackPosterior:

@@ -19,7 +19,7 @@ from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy
 from php_jax.training import call_graph, checkpoint, train
-from php_jax.training.objective import counter_capacity, stack_loss
+from php_jax.training.objective import annealed_temperature, counter_capacity, stack_loss
 
 
 def joint_capacity(demos: Demonstration, spec: HierarchySpec, config: train.TrainConfig) -> tuple[int, ...]:
@@ -70,7 +70,16 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   schedule = fitting.Schedule(config.iterations, config.learning_rate, config.eval_every, config.snapshot)
   hooks = fitting.Hooks((lambda it, loss: validate(hierarchy)) if validate else None, counted_log,
                         save if checkpoint_path else None)
-  progress = fitting.fit(hierarchy, lambda h, buckets: stack_loss(h, buckets, capacity, config.strong_weight),
-                         schedule, hooks, resume, args=(buckets,), mesh=mesh)
+  annealed = config.anneal_temperature != 1
+
+  def loss(h, *args):
+    if not annealed:
+      return stack_loss(h, args[0], capacity, config.strong_weight)
+    iteration, buckets = args
+    return stack_loss(h, buckets, capacity, config.strong_weight,
+                      annealed_temperature(config.anneal_temperature, iteration, config.iterations))
+
+  progress = fitting.fit(hierarchy, loss, schedule, hooks, resume, args=(buckets,), mesh=mesh,
+                         pass_iteration=annealed)
   return hierarchy, {"capacity": list(capacity), "losses": progress.losses, "best_iteration": progress.best_iteration,
                      "validation": progress.best_score, "seconds": time.time() - start}

@@ -9,7 +9,9 @@ The loss is −(w_strong Σ_strong log P(ζ, ξ) + Σ_weak log P(ξ)) / N, each 
   so weak views' posteriors favour fewer, longer calls (a strong view's log-likelihood drops by λ per call, a
   constant);
 - jointly (`stack_loss`), of the demonstrations' elementary actions under the whole hierarchy, summed over
-  every call stack that agrees with their (complete, partial or absent) annotation (`stack_lattice`).
+  every call stack that agrees with their (complete, partial or absent) annotation (`stack_lattice`);
+  optionally tempered (deterministic annealing, `annealed_temperature`): −T log Σ_ζ P(ζ, ξ)^(1/T), whose
+  gradient takes the EG expectation under the flatter P(ζ | ξ)^(1/T).
 """
 from __future__ import annotations
 
@@ -100,19 +102,28 @@ def stack_inputs(hierarchy: PHPHierarchy, capacity: tuple[int, ...], observation
   return stack_lattice.StackInputs(tuple(log_call), log_act, tuple(log_stop), tuple(log_cont), length)
 
 
-def stack_log_likelihoods(hierarchy: PHPHierarchy, batch: Demonstration, capacity: tuple[int, ...]) -> jax.Array:
-  """[B] log P(ζ_known, ξ) of each demonstration of batch under the whole hierarchy."""
+def stack_log_likelihoods(hierarchy: PHPHierarchy, batch: Demonstration, capacity: tuple[int, ...],
+                          temperature=1.0) -> jax.Array:
+  """[B] log P(ζ_known, ξ) of each demonstration of batch under the whole hierarchy; with a posterior
+  temperature T [], its tempered form T · log Σ P(ζ, ξ)^(1/T) (`stack_lattice.log_likelihood`)."""
   def one(obs, act, procs, taus, n):
-    return stack_lattice.log_likelihood(stack_inputs(hierarchy, capacity, obs, act, n), procs, taus)
+    return stack_lattice.log_likelihood(stack_inputs(hierarchy, capacity, obs, act, n), procs, taus, temperature)
   return jax.vmap(one)(batch.observations, batch.actions, batch.procedures, batch.counters, batch.length)
 
 
 def stack_loss(hierarchy: PHPHierarchy, buckets: list[tuple[Demonstration, jax.Array]], capacity: tuple[int, ...],
-               strong_weight: float) -> jax.Array:
+               strong_weight: float, temperature=1.0) -> jax.Array:
   """[] weighted negative log-likelihood (`weighted_nll`) of the real demonstrations of every bucket
-  (batch, real [B]) under the whole hierarchy."""
-  return weighted_nll(((stack_log_likelihoods(hierarchy, batch, capacity), real, batch.strong)
+  (batch, real [B]) under the whole hierarchy, tempered at a posterior temperature [] other than 1."""
+  return weighted_nll(((stack_log_likelihoods(hierarchy, batch, capacity, temperature), real, batch.strong)
                        for batch, real in buckets), strong_weight)
+
+
+def annealed_temperature(start: float, iteration: jax.Array, iterations: int) -> jax.Array:
+  """[] the posterior temperature after `iteration` updates of `iterations` (deterministic annealing): start
+  at the first, falling linearly to 1 at half the iterations, 1 from there on."""
+  ramp = max(iterations // 2, 1)
+  return 1.0 + (start - 1.0) * jnp.clip(1.0 - iteration / ramp, 0.0, 1.0)
 
 
 def weighted_nll(terms: Iterable[tuple[jax.Array, jax.Array, jax.Array]], strong_weight: float) -> jax.Array:

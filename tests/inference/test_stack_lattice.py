@@ -372,6 +372,29 @@ def test_tempered_samples_match_enumeration():
     assert abs(counts[k] / n - p) <= 5 * np.sqrt(p * (1 - p) / n) + 2 / n, (k, counts[k] / n, p)
 
 
+@pytest.mark.parametrize("temperature", [0.5, 3.0])
+def test_tempered_log_likelihood_and_its_gradients_match_enumeration(temperature):
+  """T · log Σ P(ζ, ξ)^(1/T), and its jax.grad the events' posteriors under P(ζ | ξ)^(1/T) renormalised; a
+  fully annotated path keeps its log P(ζ, ξ)."""
+  with jax.enable_x64(True):
+    inputs, args, num_steps, depth, (_, _, stacks, log_probs) = _case((THREE, 4, 0.15), seed=7, scale=2.0)
+    tempered = jax.jit(jax.value_and_grad(
+        lambda fields: sl.log_likelihood(sl.StackInputs(*fields, length=args.length), temperature=temperature)))
+    value, grads = jax.device_get(tempered(tuple(args[:4])))
+    best = int(np.argmax(log_probs))
+    path_value = sl.log_likelihood(args, *_annotation(stacks[best], num_steps), temperature=temperature)
+  scaled = log_probs / temperature
+  np.testing.assert_allclose(value, temperature * np.logaddexp.reduce(scaled), atol=1e-6)
+  events = event_posteriors(inputs, inputs.length, np.exp(scaled - np.logaddexp.reduce(scaled)), stacks)
+  np.testing.assert_allclose(grads[1], events["marginals"][-1], atol=1e-6)
+  for i in range(depth - 1):
+    np.testing.assert_allclose(grads[0][i], events["call"][i], atol=1e-6)
+  for i in range(depth):
+    np.testing.assert_allclose(grads[2][i], events["stop"][i], atol=1e-6)
+    np.testing.assert_allclose(grads[3][i], events["cont"][i], atol=1e-6)
+  np.testing.assert_allclose(path_value, log_probs[best], atol=1e-6)
+
+
 def test_stack_lattice_structure_answers_every_query_and_passes_through_jit_and_vmap():
   with jax.enable_x64(True):
     _, args, _, _, (log_z, _, _, _) = _case((THREE, 4, 0.0), seed=4)
@@ -417,6 +440,7 @@ def _annotated(entry, value, name="procedures"):
     (lambda x: sl.sample_posterior(jax.random.key(0), x, temperature=-1), "temperature must be a finite number > 0"),
     (lambda x: sl.sample_posterior(jax.random.key(0), x, temperature=np.inf), "temperature"),
     (lambda x: sl.sample_posterior(jax.random.key(0), x, temperature=True), "temperature"),
+    (lambda x: sl.log_likelihood(x, temperature=0.0), "temperature must be a finite number > 0"),
     (lambda x: sl.top_k(0, x), "k must be an int ≥ 1; got 0"),
     (lambda x: sl.kl_divergence(x, x._replace(log_act=x.log_act[:, :1])), "q: log_act must have shape"),
     (lambda x: sl.cross_entropy(x._replace(length=3), x._replace(length=4)), "p and q must have the same length"),

@@ -62,6 +62,8 @@ def test_flags_override_the_task_which_overrides_the_defaults():
     (["--strong_weight=-2"], "--strong_weight: must be a positive finite number"),
     (["--training=joint", "--root=mlp"], "--root: applies to level-wise training only; this run trains jointly "
                                           "(--training=joint): add --training=levelwise or drop --root"),
+    (["--training=joint", "--anneal_temperature=0.5"], "--anneal_temperature: must be a finite number ≥ 1"),
+    (["--training=levelwise", "--anneal_temperature=3"], "--anneal_temperature: applies to joint training only"),
 ])
 def test_bad_flags_are_refused_naming_the_flag(argv, message):
   with pytest.raises(config_flags.UsageError) as refused:

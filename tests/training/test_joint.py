@@ -1,12 +1,14 @@
 """Joint EG training of every level at once (--training=joint): it fits, and an interrupted run resumes to
 the same result."""
+import dataclasses
+
 import jax
 import numpy as np
 import pytest
 from flax import nnx
 
 from php_jax.envs import datasets, tasks
-from php_jax.training import checkpoint, joint, train
+from php_jax.training import checkpoint, joint, objective, train
 
 NANOCRAFT = tasks.get("nanocraft")
 
@@ -20,6 +22,25 @@ def test_joint_training_lowers_the_loss_and_fits_annotated_demonstrations():
   losses = [loss for _, loss in report["losses"]]
   assert rows[0] == {"training": "joint", "capacity": report["capacity"]} and losses[-1] < 0.5 * losses[0]
   assert report["capacity"][1:] == [int(np.max(np.asarray(batch.counters)[..., level])) + 1 for level in (1, 2)]
+
+
+def test_annealing_tempers_the_loss_from_its_start_temperature_down_to_1_at_half_the_iterations():
+  temperatures = [float(objective.annealed_temperature(4.0, i, 40)) for i in (0, 10, 20, 39)]
+  np.testing.assert_allclose(temperatures, [4.0, 2.5, 1.0, 1.0])
+  batch = datasets.training_demos(NANOCRAFT, 1, 4, 1)
+  config = train.TrainConfig(iterations=40, learning_rate=3e-2, hidden=(16,), eval_every=1, training="joint",
+                             seed=1, length_buckets=1, anneal_temperature=4.0)
+  hierarchy = train.make_hierarchy(NANOCRAFT.spec, train.prepare(NANOCRAFT.spec, batch, config), None)
+  capacity = joint.joint_capacity(batch, NANOCRAFT.spec, config)
+  [(bucket, real)] = joint._buckets(batch, 1)
+  want = [float(objective.stack_loss(hierarchy, [(bucket, real)], capacity, 1.0, t)) for t in (4.0, 1.0)]
+  _, report = joint.train_joint(NANOCRAFT.spec, batch, dataclasses.replace(config, strong_weight=1.0),
+                                log=lambda row: None)
+  losses = [loss for _, loss in report["losses"]]
+  # The first update's loss is the tempered one (the actions-only demonstrations' −T log Σ P^(1/T) is lower
+  # than their −log P(ξ)), and training lowers it.
+  np.testing.assert_allclose(losses[0], want[0], rtol=1e-5)
+  assert want[0] < want[1] and losses[-1] < 0.5 * losses[0]
 
 
 @pytest.mark.slow
