@@ -9,12 +9,13 @@ against the expert's stacks.
 Seed s records its training episodes from seed 10000·s (each configuration's own demonstrations) and fits
 with --seed=s; every run acts in the same 1,000 episodes (seeds 100000..100999) and decodes the same 200
 (seeds 500000..500199), none of which any training set holds. --model=flat_lstm fits the flat LSTM on the
-same demonstrations instead. Finished runs are kept, so a rerun resumes; each row goes to
-WORKDIR/rows.jsonl and the table is printed at the end.
+same demonstrations instead. Finished runs are kept, so a rerun resumes; WORKDIR/rows.jsonl holds the row of
+every finished run in WORKDIR (this invocation's and earlier ones'), and their table is printed at the end.
 """
 from __future__ import annotations
 
 import argparse
+import glob
 import json
 import os
 import re
@@ -81,15 +82,18 @@ def main() -> None:
   parser.add_argument("fit_flags", nargs="*", help="further experiments.fit flags, after --")
   args = parser.parse_args()
   os.makedirs(args.workdir, exist_ok=True)
-  rows = []
   for demos in map(int, args.demos.split(",")):
     for annotated in map(int, args.annotated.split(",")):
       for seed in map(int, args.seeds.split(",")):
-        row = measure(args, args.workdir, demos, annotated, seed, args.model, args.fit_flags)
-        print(json.dumps(row), flush=True)
-        rows.append(row)
-  with open(os.path.join(args.workdir, "rows.jsonl"), "w") as f:
+        print(json.dumps(measure(args, args.workdir, demos, annotated, seed, args.model, args.fit_flags)), flush=True)
+  rows = []
+  for done in glob.glob(os.path.join(args.workdir, "*", "row.json")):  # this and earlier invocations' runs
+    with open(done) as f:
+      rows.append(json.load(f))
+  rows.sort(key=lambda r: (r["model"], r["demos"], r["annotated"], r["seed"]))
+  with open(os.path.join(args.workdir, "rows.jsonl.tmp"), "w") as f:
     f.writelines(json.dumps(row) + "\n" for row in rows)
+  os.replace(os.path.join(args.workdir, "rows.jsonl.tmp"), os.path.join(args.workdir, "rows.jsonl"))
   print("| model | demos | annotated | success per seed | seeds ≥ 0.99 | level 1, 2 agreement (renamed), mean |")
   print("|---|---|---|---|---|---|")
   for key in sorted({(r["model"], r["demos"], r["annotated"]) for r in rows}):
