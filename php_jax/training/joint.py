@@ -71,14 +71,13 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   hooks = fitting.Hooks((lambda it, loss: validate(hierarchy)) if validate else None, counted_log,
                         save if checkpoint_path else None)
   annealed = config.anneal_temperature != 1
-
-  def loss(h, *args):
-    if not annealed:
-      return stack_loss(h, args[0], capacity, config.strong_weight)
-    iteration, buckets = args
-    return stack_loss(h, buckets, capacity, config.strong_weight,
-                      annealed_temperature(config.anneal_temperature, iteration, config.iterations))
-
+  if annealed:  # the loss logged while T > 1 is the tempered one
+    def loss(h, iteration, buckets):
+      temperature = annealed_temperature(config.anneal_temperature, iteration, config.iterations)
+      return stack_loss(h, buckets, capacity, config.strong_weight, temperature)
+  else:
+    def loss(h, buckets):
+      return stack_loss(h, buckets, capacity, config.strong_weight)
   progress = fitting.fit(hierarchy, loss, schedule, hooks, resume, args=(buckets,), mesh=mesh,
                          pass_iteration=annealed)
   return hierarchy, {"capacity": list(capacity), "losses": progress.losses, "best_iteration": progress.best_iteration,
