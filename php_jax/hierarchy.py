@@ -30,15 +30,20 @@ class HierarchySpec:
     allowed_ops: the call graph the hierarchy declares (a hierarchy file's "calls"): per level, root first,
       None or `[K_i][Σ op_sizes(i)]` bools, which operations each procedure may take (`php_jax.training.call_graph`);
       None: any, at every level.
+    observes: which observation entries each procedure's networks see (a hierarchy file's "observes", state
+      abstraction as in MAXQ): per level, root first, None or per procedure None (every entry) or a sorted
+      tuple of entry indices; None: every entry, at every level.
   Raises:
     ValueError naming the field: no levels, a level without procedures, a root level of more than one,
-    no action factors or one of size < 1, or a negative obs_dim (0: not known yet).
+    no action factors or one of size < 1, a negative obs_dim (0: not known yet), or observes of another
+    shape or naming an entry outside 0..obs_dim−1 (once obs_dim is known).
   """
   name: str
   levels: tuple[tuple[str, ...], ...]
   action_sizes: tuple[int, ...]
   obs_dim: int
   allowed_ops: tuple | None = None
+  observes: tuple | None = None
 
   def __post_init__(self):
     if not (isinstance(self.levels, tuple) and self.levels
@@ -52,6 +57,8 @@ class HierarchySpec:
     for f, size in enumerate(self.action_sizes):
       check_size(f"action_sizes[{f}]", size)
     check_size("obs_dim", self.obs_dim, 0)
+    if self.observes is not None:
+      check_observes(self.observes, self.levels, self.obs_dim)
 
   @property
   def num_levels(self) -> int:
@@ -65,6 +72,28 @@ class HierarchySpec:
     if level == self.num_levels - 1:
       return self.action_sizes
     return (self.num_procs(level + 1),)
+
+
+def check_observes(observes, levels: tuple[tuple[str, ...], ...], obs_dim: int) -> None:
+  """Refuses (ValueError naming the procedure) observes that is not, per level, None or per procedure None or a
+  sorted tuple of distinct entry indices, each in 0..obs_dim−1 when obs_dim is known (> 0)."""
+  if not (isinstance(observes, tuple) and len(observes) == len(levels)):
+    raise ValueError(f"observes must give one entry per level, root first ({len(levels)}); got {observes!r}")
+  for level, (names, per_procedure) in enumerate(zip(levels, observes)):
+    if per_procedure is None:
+      continue
+    if not (isinstance(per_procedure, tuple) and len(per_procedure) == len(names)):
+      raise ValueError(f"observes[{level}] must give one entry per procedure ({len(names)}); got {per_procedure!r}")
+    for name, entries in zip(names, per_procedure):
+      if entries is None:
+        continue
+      if not (isinstance(entries, tuple) and all(isinstance(e, int) and not isinstance(e, bool) and e >= 0
+                                                 for e in entries) and list(entries) == sorted(set(entries))):
+        raise ValueError(f"observes: {name!r} must list distinct observation entries in increasing order; got "
+                         f"{entries!r}")
+      if obs_dim and entries and entries[-1] >= obs_dim:
+        raise ValueError(f"observes: {name!r} names observation entry {entries[-1]}, outside 0..{obs_dim - 1} "
+                         f"(observations have {obs_dim} numbers)")
 
 
 class Policy(Protocol):

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from php_jax.hierarchy import HierarchySpec, check_size
+from php_jax.hierarchy import HierarchySpec, check_observes, check_size
 
 
 def _check_sizes(name: str, sizes, least: int = 1) -> tuple[int, ...]:
@@ -34,17 +34,23 @@ class ProcedureMLPs(nnx.Module):
   """
 
   def __init__(self, num_procs: int, obs_dim: int, hidden: tuple[int, ...], out_dim: int, *,
-               rngs: nnx.Rngs):
+               observes: tuple[tuple[bool, ...], ...] | None = None, rngs: nnx.Rngs):
+    """observes: [K][obs_dim] bools, which observation entries each procedure's MLP sees (the others get no
+    weight); None: every entry."""
     sizes = (obs_dim + 1, *hidden, out_dim)
     self.kernels = nnx.List([nnx.Param(_he_init(rngs.params(), (num_procs, n_in, n_out)))
                              for n_in, n_out in zip(sizes[:-1], sizes[1:])])
     self.biases = nnx.List([nnx.Param(jnp.zeros((num_procs, n_out))) for n_out in sizes[1:]])
+    self.observes = observes
 
   def __call__(self, obs: jax.Array, tau: jax.Array) -> jax.Array:
     """obs: [N, obs_dim]; tau: [M] float → [K, out_dim, N, M]."""
     first = self.kernels[0][...]
     num_procs, num_obs, num_taus = first.shape[0], obs.shape[0], tau.shape[0]
-    from_obs = jnp.einsum("nd,kdh->knh", obs, first[:, :-1])
+    from_obs_kernel = first[:, :-1]
+    if self.observes is not None:
+      from_obs_kernel = jnp.where(np.asarray(self.observes)[:, :, None], from_obs_kernel, 0.0)
+    from_obs = jnp.einsum("nd,kdh->knh", obs, from_obs_kernel)
     from_tau = tau[None, :, None] * first[:, -1][:, None, :] + self.biases[0][...][:, None, :]  # [K, M, H]
     x = (from_obs[:, :, None, :] + from_tau[:, None, :, :]).reshape(num_procs, num_obs * num_taus, -1)
     batched = ((0,), (0,))
@@ -70,13 +76,17 @@ class PHPLevel(nnx.Module):
     allowed_ops: `[K][Σ op_sizes]` bools: per procedure, which value of each operation factor it may take
       (which callee, or which value of each elementary action factor; the others get probability 0); None:
       any.
+    observes: per procedure, None or the observation entries (indices) both its networks see
+      (`HierarchySpec.observes`); None: every entry for every procedure.
   Raises ValueError naming the argument: num_procs < 1, obs_dim < 0, no op_sizes or one < 1, a hidden size
-  < 1, tau_limit < 0, allowed_ops of another shape.
+  < 1, tau_limit < 0, allowed_ops of another shape, observes not one entry per procedure or naming an
+  entry outside 0..obs_dim−1.
   """
 
   def __init__(self, num_procs: int, obs_dim: int, op_sizes: tuple[int, ...], hidden=(64, 64),
                tau_in_termination: bool = True, tau_limit: int | None = None,
-               allowed_ops: tuple[tuple[bool, ...], ...] | None = None, *, rngs: nnx.Rngs):
+               allowed_ops: tuple[tuple[bool, ...], ...] | None = None,
+               observes: tuple[tuple[int, ...] | None, ...] | None = None, *, rngs: nnx.Rngs):
     check_size("num_procs", num_procs)
     check_size("obs_dim", obs_dim, 0)
     if not _check_sizes("op_sizes", op_sizes):
@@ -91,8 +101,13 @@ class PHPLevel(nnx.Module):
       raise ValueError(f"allowed_ops must be [{num_procs}][{sum(self.op_sizes)}] (procedure, operation factor "
                        f"value); got shape {np.shape(allowed_ops)}")
     self.allowed_ops = None if allowed_ops is None else tuple(tuple(bool(c) for c in row) for row in allowed_ops)
-    self.operation = ProcedureMLPs(num_procs, obs_dim, tuple(hidden), sum(op_sizes), rngs=rngs)
-    self.termination = ProcedureMLPs(num_procs, obs_dim, tuple(hidden), 1, rngs=rngs)
+    if observes is not None:
+      check_observes((observes,), (tuple(f"procedure {k}" for k in range(num_procs)),), obs_dim)
+    self.observes = observes
+    mask = None if observes is None else tuple(
+        tuple(entries is None or d in entries for d in range(obs_dim)) for entries in observes)
+    self.operation = ProcedureMLPs(num_procs, obs_dim, tuple(hidden), sum(op_sizes), observes=mask, rngs=rngs)
+    self.termination = ProcedureMLPs(num_procs, obs_dim, tuple(hidden), 1, observes=mask, rngs=rngs)
 
   def op_log_probs(self, obs: jax.Array, tau: jax.Array) -> list[jax.Array]:
     """Per factor f: [N, K, M, op_sizes[f]] log-probabilities (the factorized action head)."""
@@ -169,7 +184,8 @@ class PHPHierarchy(nnx.Module):
   def __init__(self, spec: HierarchySpec, hidden=(64, 64), tau_in_termination=None, sample: bool = False,
                tau_limit=None, allowed_ops=None, *, rngs: nnx.Rngs):
     """tau_in_termination, tau_limit, allowed_ops: per level, root first (PHPLevel); None: τ everywhere,
-    unlimited, every operation allowed."""
+    unlimited, every operation allowed. Each procedure's networks see the observation entries spec.observes
+    gives it (every entry where it gives none)."""
     if not isinstance(spec, HierarchySpec):
       raise ValueError(f"spec must be a HierarchySpec; got {spec!r}")
     tau_in_termination = tau_in_termination or (True,) * spec.num_levels
@@ -181,9 +197,10 @@ class PHPHierarchy(nnx.Module):
         raise ValueError(f"{name} needs one value per level ({spec.num_levels}); got {values}")
     self.spec = spec
     self.sample = sample
+    observes = spec.observes or (None,) * spec.num_levels
     self.levels = nnx.List([
         PHPLevel(spec.num_procs(i), spec.obs_dim, spec.op_sizes(i), hidden, tau_in_termination[i], tau_limit[i],
-                 allowed_ops[i], rngs=rngs)
+                 allowed_ops[i], observes[i], rngs=rngs)
         for i in range(spec.num_levels)])
 
   def operation(self, level, proc, tau, obs, key):

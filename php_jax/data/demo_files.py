@@ -44,7 +44,7 @@ from php_jax.data.files import write_atomically
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.hierarchy import HierarchySpec
 
-HIERARCHY_KEYS = ("levels", "action_sizes", "name", "capacity", "hidden", "calls", "action_names")
+HIERARCHY_KEYS = ("levels", "action_sizes", "name", "capacity", "hidden", "calls", "observes", "action_names")
 DEMONSTRATION_KEYS = ("observations", "actions", "stack")
 MAX_COUNT = 64
 MAX_SIZE = 4096
@@ -125,6 +125,8 @@ def _hierarchy(obj, default_name: str) -> Hierarchy:
   spec = HierarchySpec(name, tuple(tuple(level) for level in levels), tuple(sizes), 0)
   if obj.get("calls") is not None:
     spec = dataclasses.replace(spec, allowed_ops=_declared_calls(obj["calls"], spec))
+  if obj.get("observes") is not None:
+    spec = dataclasses.replace(spec, observes=_declared_observes(obj["observes"], spec))
   names = obj.get("action_names")
   if names is not None and not (isinstance(names, list) and len(names) == len(sizes) and all(
       isinstance(factor, list) and len(factor) == size and all(isinstance(n, str) and n for n in factor)
@@ -164,6 +166,32 @@ def _declared_calls(calls, spec: HierarchySpec) -> tuple:
       allowed[names.index(procedure)] = _allowed_row(ops, level, spec, f'"calls": {procedure!r}')
     graph.append(tuple(map(tuple, allowed.tolist())))
   return tuple(graph)
+
+
+def _declared_observes(observes, spec: HierarchySpec) -> tuple:
+  """A hierarchy file's "observes" (per level, root first, an object or null: procedure name → the
+  observation entries its networks see) as `HierarchySpec.observes`; ValueError saying what is wrong."""
+  depth = spec.num_levels
+  if not (isinstance(observes, list) and len(observes) == depth
+          and all(o is None or isinstance(o, dict) for o in observes)):
+    raise ValueError(f'"observes" must give one object or null per level, root first ({depth}); got '
+                     f'{json_lines.shown(observes)}')
+  declared = []
+  for level, named in enumerate(observes):
+    if not named:
+      declared.append(None)
+      continue
+    names, entries = spec.levels[level], [None] * spec.num_procs(level)
+    for procedure, indices in named.items():
+      if procedure not in names:
+        raise ValueError(f'"observes": level {level} has no procedure {procedure!r}')
+      if not (isinstance(indices, list) and len(indices) <= MAX_SIZE
+              and all(_is_int(i) and 0 <= i < MAX_SIZE for i in indices)):
+        raise ValueError(f'"observes": {procedure!r} must list observation entries (integers from 0, at most '
+                         f'{MAX_SIZE}); got {json_lines.shown(indices)}')
+      entries[names.index(procedure)] = tuple(sorted(set(indices)))
+    declared.append(tuple(entries))
+  return tuple(declared)
 
 
 def _allowed_row(ops, level: int, spec: HierarchySpec, where: str) -> np.ndarray:
@@ -303,7 +331,11 @@ def read_demonstrations(path: str, spec: HierarchySpec) -> tuple[Demonstration, 
         raise DemoFileError(f"{path}:{number}: malformed demonstration: {e}") from None
   if not parsed:
     raise DemoFileError(f"{path}: no demonstrations")
-  return _batch(parsed, spec.num_levels), dataclasses.replace(spec, obs_dim=obs_dim)
+  try:
+    spec = dataclasses.replace(spec, obs_dim=obs_dim)
+  except ValueError as e:  # the hierarchy's "observes" names an entry these observations do not have
+    raise DemoFileError(f"{path}: the hierarchy does not fit these demonstrations: {e}") from None
+  return _batch(parsed, spec.num_levels), spec
 
 
 def _batch(parsed: list, depth: int) -> Demonstration:

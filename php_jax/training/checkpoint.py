@@ -252,8 +252,12 @@ def _save(workdir: str, model, architecture: dict) -> None:
 
 
 def _spec_json(spec: HierarchySpec) -> dict:
+  observes = None if spec.observes is None else [
+      None if level is None else [None if entries is None else list(entries) for entries in level]
+      for level in spec.observes]
   return {"name": spec.name, "levels": [list(level) for level in spec.levels],
-          "action_sizes": list(spec.action_sizes), "obs_dim": spec.obs_dim}
+          "action_sizes": list(spec.action_sizes), "obs_dim": spec.obs_dim,
+          **({"observes": observes} if observes is not None else {})}
 
 
 def save_hierarchy(workdir: str, task_name: str, hierarchy: PHPHierarchy, hidden,
@@ -280,9 +284,13 @@ def _saved_spec(path: str, architecture: dict) -> HierarchySpec:
     return tasks.get(architecture["task"]).spec
   spec = architecture["spec"]
   try:
+    observes = spec.get("observes")
+    if observes is not None:
+      observes = tuple(None if level is None else tuple(None if entries is None else tuple(entries)
+                                                        for entries in level) for level in observes)
     saved = HierarchySpec(str(spec["name"]), tuple(tuple(map(str, level)) for level in spec["levels"]),
-                          tuple(int(n) for n in spec["action_sizes"]), int(spec["obs_dim"]))
-  except (TypeError, KeyError, ValueError):
+                          tuple(int(n) for n in spec["action_sizes"]), int(spec["obs_dim"]), observes=observes)
+  except (AttributeError, TypeError, KeyError, ValueError):
     raise CheckpointError(f"{path}: malformed hierarchy spec {str(spec)[:200]}") from None
   sizes = (saved.obs_dim, *saved.action_sizes, *map(len, saved.levels))
   if not (saved.levels and isinstance(spec["levels"], list) and saved.action_sizes

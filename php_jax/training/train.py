@@ -154,7 +154,8 @@ def run_settings(spec: HierarchySpec, demos: Demonstration, config: TrainConfig)
   digest = hashlib.sha256()
   for array in demos:
     digest.update(np.ascontiguousarray(np.asarray(array)).tobytes())
-  settings = {"config": dataclasses.asdict(config), "levels": spec.levels, "demonstrations": digest.hexdigest()}
+  settings = {"config": dataclasses.asdict(config), "levels": spec.levels, "demonstrations": digest.hexdigest(),
+              **({"observes": spec.observes} if spec.observes is not None else {})}
   return json.loads(json.dumps(settings))  # as a checkpoint stores it: tuples become lists
 
 
@@ -168,7 +169,8 @@ def saved_config(saved: dict) -> dict:
 
 
 _WHY = {"demonstrations": " (another seed, number of demonstrations or of annotated ones, or data file; the "
-                          "balanced strong_weight follows them)", "levels": " (another hierarchy)"}
+                          "balanced strong_weight follows them)", "levels": " (another hierarchy)",
+        "observes": " (another hierarchy: what its procedures observe)"}
 
 
 def check_resumable(path: str, saved_settings: dict, settings: dict) -> None:
@@ -178,7 +180,8 @@ def check_resumable(path: str, saved_settings: dict, settings: dict) -> None:
   if saved_settings == settings:
     return
   old_config, new_config = saved_settings["config"], settings["config"]
-  differ = [f"{k} differ{_WHY[k]}" for k in ("demonstrations", "levels") if saved_settings.get(k) != settings[k]]
+  differ = [f"{k} differ{_WHY[k]}" for k in ("demonstrations", "levels", "observes")
+            if saved_settings.get(k) != settings.get(k)]
   differ += [f"{k}: {old_config.get(k)!r} there, {v!r} here" for k, v in new_config.items() if old_config.get(k) != v]
   raise checkpoint.CheckpointError(f"{path} was made with other settings ({'; '.join(differ) or 'unknown'}); "
                                    "use a fresh workdir, or --overwrite to start again")
