@@ -1,9 +1,12 @@
 """PHP networks: the split first layer equals a plain MLP on concat(obs, τ), the factorized head is a
 distribution, the τ switch, the LSTM root is causal, and random hierarchies run without retracing."""
+import dataclasses
+
 import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from flax import nnx
 
 from php_jax import executor
@@ -59,6 +62,28 @@ def test_tau_limit_makes_counters_past_it_look_alike():
     assert not np.allclose(out[:, :, 0], out[:, :, 1])
   unlimited = PHPLevel(3, 5, (4, 2), hidden=(8,), rngs=nnx.Rngs(0))
   np.testing.assert_array_equal(unlimited.log_op(obs, tau[:2], ops), level.log_op(obs, tau[:2], ops))
+
+
+def test_a_procedure_sees_only_the_observation_entries_it_observes():
+  """State abstraction: procedure 0 observes entries 0 and 2, procedure 1 none, procedure 2 all; what a
+  procedure does not observe changes neither its outputs nor, through them, any gradient."""
+  level = PHPLevel(3, 5, (4,), hidden=(8,), observes=((0, 2), (), None), rngs=nnx.Rngs(0))
+  obs, tau = jax.random.normal(jax.random.key(1), (4, 5)), jnp.arange(3.0)
+  changed = obs.at[:, jnp.array([1, 3, 4])].set(9.0)
+  for out in (lambda o: level.termination_logits(o, tau), lambda o: level.op_log_probs(o, tau)[0]):
+    np.testing.assert_allclose(out(changed)[:, :2], out(obs)[:, :2], atol=1e-6)
+    assert not np.allclose(out(changed)[:, 2], out(obs)[:, 2])
+  empty = PHPLevel(3, 5, (4,), hidden=(8,), observes=((), (), ()), rngs=nnx.Rngs(0))
+  np.testing.assert_allclose(empty.termination_logits(obs, tau), empty.termination_logits(changed * 2, tau),
+                             atol=1e-6)
+  spec = tasks.get("nanocraft").spec
+  observes = (None, None, tuple((0,) for _ in spec.levels[2]))
+  hierarchy = PHPHierarchy(dataclasses.replace(spec, observes=observes), hidden=(8,), rngs=nnx.Rngs(0))
+  assert hierarchy.levels[2].observes == observes[2] and hierarchy.levels[1].observes is None
+  with pytest.raises(ValueError, match="names observation entry 99, outside"):
+    dataclasses.replace(spec, observes=(None, None, tuple((99,) for _ in spec.levels[2])))
+  with pytest.raises(ValueError, match="observes must give one entry per level"):
+    PHPHierarchy(dataclasses.replace(spec, observes=(None,)), rngs=nnx.Rngs(0))
 
 
 def test_root_networks_give_distributions_and_lstm_is_causal():

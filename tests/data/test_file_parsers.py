@@ -220,12 +220,31 @@ def _hierarchy_file(**keys) -> str:
     (_hierarchy_file()[:-1] + ', "hidden": [1e39]}', "cannot read a hierarchy: number 1e39 is beyond"),
     (_hierarchy_file()[:-1] + ', "action_sizes": [4]}', "key 'action_sizes' appears twice"),
     (DEEP, "cannot read a hierarchy: arrays and objects nested deeper than 32"),
+    (_hierarchy_file(observes=[None, {"a": [0]}]), '"observes" must give one object or null per level, root '
+                                                   'first \\(3\\)'),
+    (_hierarchy_file(observes=[None, {"c": [0]}, None]), '"observes": level 1 has no procedure \'c\''),
+    (_hierarchy_file(observes=[None, {"a": [0, -1]}, None]), '"observes": \'a\' must list observation entries'),
+    (_hierarchy_file(observes=[None, {"a": [True]}, None]), '"observes": \'a\' must list observation entries'),
+    (_hierarchy_file(observes=[None, {"a": 3}, None]), '"observes": \'a\' must list observation entries'),
 ])
 def test_bad_sizes_and_structures_in_hierarchy_files(tmp_path, text, message):
   path = _write(tmp_path / "h.json", text)
   with pytest.raises(demo_files.DemoFileError, match=message) as error:
     demo_files.read_hierarchy(path)
   assert str(error.value).startswith(f"{path}: ")
+
+
+def test_observes_names_what_each_procedure_sees_and_must_fit_the_observations(tmp_path):
+  path = _write(tmp_path / "h.json", _hierarchy_file(observes=[None, {"b": [2, 0, 2], "a": []}, {"x": [1]}]))
+  spec = demo_files.read_hierarchy(path).spec
+  assert spec.observes == (None, ((), (0, 2)), ((1,),))
+  line = json.dumps({"observations": [[0, 0, 0]] * 2, "actions": [[1]]})
+  _, read = demo_files.read_demonstrations(_write(tmp_path / "d.jsonl", line + "\n"), spec)
+  assert read.obs_dim == 3 and read.observes == spec.observes
+  narrow = _write(tmp_path / "narrow.jsonl", json.dumps({"observations": [[0, 0]] * 2, "actions": [[1]]}) + "\n")
+  with pytest.raises(demo_files.DemoFileError, match="narrow.jsonl: the hierarchy does not fit these "
+                     "demonstrations: observes: 'b' names observation entry 2, outside 0..1"):
+    demo_files.read_demonstrations(narrow, spec)
 
 
 @pytest.mark.parametrize("task, line, message", [

@@ -137,6 +137,18 @@ def test_the_call_graph_is_saved_with_the_model(tmp_path):
     checkpoint.load_policy(str(tmp_path))
 
 
+def test_what_procedures_observe_is_saved_with_the_model(tmp_path):
+  observes = (None, None, tuple((0, 1) if k % 2 else () for k in range(len(NANOCRAFT.spec.levels[2]))))
+  spec = dataclasses.replace(NANOCRAFT.spec, observes=observes)
+  hierarchy = PHPHierarchy(spec, hidden=(4,), rngs=nnx.Rngs(0))
+  checkpoint.save_hierarchy(str(tmp_path), "nanocraft", hierarchy, (4,))
+  _, loaded = checkpoint.load_policy(str(tmp_path))
+  assert loaded.spec.observes == observes and [level.observes for level in loaded.levels] == list(observes)
+  obs, tau = jnp.ones((2, spec.obs_dim)), jnp.arange(3.0)
+  np.testing.assert_array_equal(loaded.levels[2].termination_logits(obs, tau),
+                                hierarchy.levels[2].termination_logits(obs, tau))
+
+
 def _hierarchy_file(tmp_path, calls) -> str:
   path = tmp_path / "tiny.json"
   path.write_text(json.dumps({"levels": [list(level) for level in SPEC.levels], "action_sizes": [2, 3],

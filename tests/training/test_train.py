@@ -191,6 +191,8 @@ def test_resume_check_names_what_differs_and_takes_defaults_for_settings_a_check
     train.check_resumable("ckpt", settings, {**settings, "config": {**settings["config"], "seed": 2}})
   with pytest.raises(checkpoint.CheckpointError, match="demonstrations differ"):
     train.check_resumable("ckpt", settings, {**settings, "demonstrations": "y"})
+  with pytest.raises(checkpoint.CheckpointError, match="observes differ \\(another hierarchy: what its procedures"):
+    train.check_resumable("ckpt", settings, {**settings, "observes": [None, [[0], [1]]]})
 
 
 @pytest.mark.slow
