@@ -89,11 +89,11 @@ def check_observes(observes, levels: tuple[tuple[str, ...], ...], obs_dim: int) 
         continue
       if not (isinstance(entries, tuple) and all(isinstance(e, int) and not isinstance(e, bool) and e >= 0
                                                  for e in entries) and list(entries) == sorted(set(entries))):
-        raise ValueError(f"observes: {name!r} must list distinct observation entries in increasing order; got "
-                         f"{entries!r}")
+        raise ValueError(f"observes: level {level}'s {name!r} must list distinct observation entries in "
+                         f"increasing order; got {entries!r}")
       if obs_dim and entries and entries[-1] >= obs_dim:
-        raise ValueError(f"observes: {name!r} names observation entry {entries[-1]}, outside 0..{obs_dim - 1} "
-                         f"(observations have {obs_dim} numbers)")
+        raise ValueError(f"observes: level {level}'s {name!r} names observation entry {entries[-1]}, outside "
+                         f"0..{obs_dim - 1} (observations have {obs_dim} numbers)")
 
 
 class Policy(Protocol):

@@ -38,8 +38,11 @@ class ProcedureMLPs(nnx.Module):
     """observes: [K][obs_dim] bools, which observation entries each procedure's MLP sees (the others get no
     weight); None: every entry."""
     sizes = (obs_dim + 1, *hidden, out_dim)
-    self.kernels = nnx.List([nnx.Param(_he_init(rngs.params(), (num_procs, n_in, n_out)))
-                             for n_in, n_out in zip(sizes[:-1], sizes[1:])])
+    kernels = [_he_init(rngs.params(), (num_procs, n_in, n_out)) for n_in, n_out in zip(sizes[:-1], sizes[1:])]
+    if observes is not None:  # what a procedure does not observe gets no weight (and, masked, no gradient)
+      seen = jnp.concatenate([jnp.asarray(observes, bool), jnp.ones((num_procs, 1), bool)], axis=1)
+      kernels[0] = jnp.where(seen[:, :, None], kernels[0], 0.0)
+    self.kernels = nnx.List([nnx.Param(kernel) for kernel in kernels])
     self.biases = nnx.List([nnx.Param(jnp.zeros((num_procs, n_out))) for n_out in sizes[1:]])
     self.observes = observes
 
@@ -102,6 +105,8 @@ class PHPLevel(nnx.Module):
                        f"value); got shape {np.shape(allowed_ops)}")
     self.allowed_ops = None if allowed_ops is None else tuple(tuple(bool(c) for c in row) for row in allowed_ops)
     if observes is not None:
+      if not (isinstance(observes, tuple) and len(observes) == num_procs):
+        raise ValueError(f"observes must give one entry per procedure ({num_procs}), a tuple; got {observes!r}")
       check_observes((observes,), (tuple(f"procedure {k}" for k in range(num_procs)),), obs_dim)
     self.observes = observes
     mask = None if observes is None else tuple(

@@ -9,13 +9,16 @@ against the expert's stacks.
 Seed s records its training episodes from seed 10000·s (each configuration's own demonstrations) and fits
 with --seed=s; every run acts in the same 1,000 episodes (seeds 100000..100999) and decodes the same 200
 (seeds 500000..500199), none of which any training set holds. --model=flat_lstm fits the flat LSTM on the
-same demonstrations instead. Finished runs are kept, so a rerun resumes; WORKDIR/rows.jsonl holds the row of
-every finished run in WORKDIR (this invocation's and earlier ones'), and their table is printed at the end.
+same demonstrations instead. Finished runs are kept, so a rerun resumes (and stops, exit status 2, at a
+finished run measured with another environment, expert, hierarchy file or fit flags); WORKDIR/rows.jsonl
+holds the row of every finished run in WORKDIR (this invocation's and earlier ones'), and their table is
+printed at the end.
 """
 from __future__ import annotations
 
 import argparse
 import glob
+import hashlib
 import json
 import os
 import re
@@ -46,7 +49,11 @@ def measure(setup: argparse.Namespace, workdir: str, demos: int, annotated: int,
   run, done = os.path.join(workdir, name), os.path.join(workdir, name, "row.json")
   if os.path.exists(done):
     with open(done) as f:
-      return json.load(f)
+      row = json.load(f)
+    if row.get("setup", _setup(setup, fit_flags)) != _setup(setup, fit_flags):
+      print(f"{done} was measured with other settings ({row['setup']}); use another --workdir", file=sys.stderr)
+      sys.exit(2)
+    return row
   train, held = os.path.join(workdir, f"train_d{demos}_a{annotated}_s{seed}.jsonl"), os.path.join(workdir, "held.jsonl")
   _record(setup, train, demos, annotated, 10000 * seed)
   _record(setup, held, 200, 200, 500000)
@@ -64,9 +71,20 @@ def measure(setup: argparse.Namespace, workdir: str, demos: int, annotated: int,
       row[f"level{level}"], row[f"level{level}_renamed"] = float(exact), float(renamed)
     for level, f1 in re.findall(r"level (\d+): .*call boundaries: F1 ([0-9.]+)", decoded):
       row[f"level{level}_boundary_f1"] = float(f1)
-  with open(done, "w") as f:
+  row["setup"] = _setup(setup, fit_flags)
+  with open(done + ".tmp", "w") as f:
     json.dump(row, f)
+  os.replace(done + ".tmp", done)
   return row
+
+
+def _setup(setup: argparse.Namespace, fit_flags: list[str]) -> dict:
+  """What a row was measured with besides its name: the environment, expert, hierarchy file (its sha256)
+  and fit flags."""
+  with open(setup.hierarchy, "rb") as f:
+    digest = hashlib.sha256(f.read()).hexdigest()[:16]
+  return {"env": setup.env, "expert": setup.expert, "hierarchy": f"{setup.hierarchy} {digest}",
+          "fit_flags": list(fit_flags)}
 
 
 def main() -> None:

@@ -170,7 +170,8 @@ def _declared_calls(calls, spec: HierarchySpec) -> tuple:
 
 def _declared_observes(observes, spec: HierarchySpec) -> tuple:
   """A hierarchy file's "observes" (per level, root first, an object or null: procedure name → the
-  observation entries its networks see) as `HierarchySpec.observes`; ValueError saying what is wrong."""
+  observation entries its networks see) as `HierarchySpec.observes` (None where it names no procedure);
+  ValueError saying what is wrong."""
   depth = spec.num_levels
   if not (isinstance(observes, list) and len(observes) == depth
           and all(o is None or isinstance(o, dict) for o in observes)):
@@ -187,11 +188,11 @@ def _declared_observes(observes, spec: HierarchySpec) -> tuple:
         raise ValueError(f'"observes": level {level} has no procedure {procedure!r}')
       if not (isinstance(indices, list) and len(indices) <= MAX_SIZE
               and all(_is_int(i) and 0 <= i < MAX_SIZE for i in indices)):
-        raise ValueError(f'"observes": {procedure!r} must list observation entries (integers from 0, at most '
-                         f'{MAX_SIZE}); got {json_lines.shown(indices)}')
+        raise ValueError(f'"observes": {procedure!r} must list observation entries (at most {MAX_SIZE} '
+                         f'integers, each from 0 to {MAX_SIZE - 1}); got {json_lines.shown(indices)}')
       entries[names.index(procedure)] = tuple(sorted(set(indices)))
-    declared.append(tuple(entries))
-  return tuple(declared)
+    declared.append(tuple(entries) if any(e is not None for e in entries) else None)
+  return tuple(declared) if any(d is not None for d in declared) else None
 
 
 def _allowed_row(ops, level: int, spec: HierarchySpec, where: str) -> np.ndarray:

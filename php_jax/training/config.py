@@ -35,6 +35,7 @@ def _setting(default: Any, help: str, kind: str, choices: tuple[str, ...] = (), 
 
 
 MAX_SEED = 2**31 - 1
+WEAK_ONLY_ANNEALING = 1.5  # the start temperature of joint runs without annotation (RESULTS.md, NanoCraft weak only)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,10 +79,11 @@ class TrainConfig:
   training: str = _setting("levelwise", "levelwise: one level at a time from the lowest, a stand-in root for the "
                            "levels above (the paper); joint: every level at once by exact inference over the "
                            "whole call stack.", "str", TRAININGS)
-  anneal_temperature: float = _setting(
-      1.0, "Joint training: the posterior temperature T ≥ 1 at the first iteration (deterministic annealing): "
+  anneal_temperature: float | None = _setting(
+      None, "Joint training: the posterior temperature T ≥ 1 at the first iteration (deterministic annealing): "
       "the loss takes its expectation over call stacks under P(stack | actions)^(1/T), flatter for T > 1, T "
-      "falling linearly to 1 at half the iterations; 1: none.", "float")
+      f"falling linearly to 1 at half the iterations; 1: none; unset: {WEAK_ONLY_ANNEALING} where no "
+      "demonstration is annotated (measured best there), else 1.", "float")
   call_graph: str = _setting("all", "Which operations each procedure may take. all: any; calls: a procedure the "
                              "annotated demonstrations show calling may call only what they show it calling; "
                              "operations: also, a lowest-level procedure only the elementary action values they "
@@ -102,9 +104,10 @@ class TrainConfig:
       value = getattr(self, name)
       if (value is not None or name == "learning_rate") and not (_is_number(value) and value > 0):
         raise ConfigError(name, f"must be a positive finite number; got {value!r}")
-    if not (_is_number(self.anneal_temperature) and self.anneal_temperature >= 1):
+    if self.anneal_temperature is not None and not (_is_number(self.anneal_temperature)
+                                                    and self.anneal_temperature >= 1):
       raise ConfigError("anneal_temperature", f"must be a finite number ≥ 1; got {self.anneal_temperature!r}")
-    if self.anneal_temperature != 1 and self.training != "joint":
+    if self.anneal_temperature not in (None, 1) and self.training != "joint":
       raise ConfigError("anneal_temperature", f"applies to joint training only (training=joint); this "
                         f"config trains {self.training!r}")
     if not (isinstance(self.hidden, tuple) and self.hidden and all(_is_int(h) and h >= 1 for h in self.hidden)):

@@ -24,7 +24,7 @@ from php_jax.demos import validate as validate_demos
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy, RootLSTM, RootMLP
 from php_jax.training import call_graph, checkpoint
-from php_jax.training.config import TrainConfig, check_levels
+from php_jax.training.config import WEAK_ONLY_ANNEALING, TrainConfig, check_levels
 from php_jax.training.objective import LevelModel, counter_capacity, decode, level_loss
 
 
@@ -134,11 +134,12 @@ def make_root(spec: HierarchySpec, level: int, config: TrainConfig) -> nnx.Modul
 
 
 def prepare(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> TrainConfig:
-  """config with its strong weight resolved, once the settings and the demonstrations' annotations are checked
-  against the hierarchy (ValueError naming the first setting, or the demonstration and step, that is wrong)."""
+  """config with the settings that follow the demonstrations resolved (`resolved`), once the settings and the
+  demonstrations' annotations are checked against the hierarchy (ValueError naming the first setting, or the
+  demonstration and step, that is wrong)."""
   check_levels(spec, config)
   validate_demos(demos, spec)
-  return with_strong_weight(config, demos)
+  return resolved(config, demos)
 
 
 def with_strong_weight(config: TrainConfig, demos: Demonstration) -> TrainConfig:
@@ -146,6 +147,17 @@ def with_strong_weight(config: TrainConfig, demos: Demonstration) -> TrainConfig
   if config.strong_weight is not None:
     return config
   return dataclasses.replace(config, strong_weight=balanced_strong_weight(np.asarray(demos.strong)))
+
+
+def resolved(config: TrainConfig, demos: Demonstration, flat_lstm: bool = False) -> TrainConfig:
+  """config with the settings that follow the demonstrations resolved where unset (as results.json and a
+  checkpoint record them): the balanced strong weight, and the annealing: WEAK_ONLY_ANNEALING for a PHP
+  trained jointly on demonstrations none of which is annotated, else 1 (none)."""
+  config = with_strong_weight(config, demos)
+  if config.anneal_temperature is not None:
+    return config
+  weak_only = not flat_lstm and config.training == "joint" and not np.asarray(demos.strong).any()
+  return dataclasses.replace(config, anneal_temperature=WEAK_ONLY_ANNEALING if weak_only else 1.0)
 
 
 def run_settings(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> dict:
@@ -159,7 +171,7 @@ def run_settings(spec: HierarchySpec, demos: Demonstration, config: TrainConfig)
   return json.loads(json.dumps(settings))  # as a checkpoint stores it: tuples become lists
 
 
-_BEFORE_THEY_EXISTED = {"snapshot": "earliest"}  # settings whose default differs from what runs did before them
+_BEFORE_THEY_EXISTED = {"snapshot": "earliest", "anneal_temperature": 1.0}  # settings whose default differs from what runs did before them
 
 
 def saved_config(saved: dict) -> dict:

@@ -241,9 +241,11 @@ def test_observes_names_what_each_procedure_sees_and_must_fit_the_observations(t
   line = json.dumps({"observations": [[0, 0, 0]] * 2, "actions": [[1]]})
   _, read = demo_files.read_demonstrations(_write(tmp_path / "d.jsonl", line + "\n"), spec)
   assert read.obs_dim == 3 and read.observes == spec.observes
+  nothing = _write(tmp_path / "nothing.json", _hierarchy_file(observes=[None, {}, None]))
+  assert demo_files.read_hierarchy(nothing).spec.observes is None  # the same hierarchy as without the key
   narrow = _write(tmp_path / "narrow.jsonl", json.dumps({"observations": [[0, 0]] * 2, "actions": [[1]]}) + "\n")
   with pytest.raises(demo_files.DemoFileError, match="narrow.jsonl: the hierarchy does not fit these "
-                     "demonstrations: observes: 'b' names observation entry 2, outside 0..1"):
+                     "demonstrations: observes: level 1's 'b' names observation entry 2, outside 0..1"):
     demo_files.read_demonstrations(narrow, spec)
 
 

@@ -9,6 +9,7 @@ from flax import nnx
 
 from php_jax.envs import datasets, tasks
 from php_jax.training import checkpoint, joint, objective, train
+from php_jax.training.config import WEAK_ONLY_ANNEALING
 
 NANOCRAFT = tasks.get("nanocraft")
 
@@ -41,6 +42,16 @@ def test_annealing_tempers_the_loss_from_its_start_temperature_down_to_1_at_half
   # than their −log P(ξ)), and training lowers it.
   np.testing.assert_allclose(losses[0], want[0], rtol=1e-5)
   assert want[0] < want[1] and losses[-1] < 0.5 * losses[0]
+
+
+def test_joint_runs_without_annotation_anneal_by_default():
+  weak, mixed = datasets.training_demos(NANOCRAFT, 1, 4, 0), datasets.training_demos(NANOCRAFT, 1, 4, 1)
+  joint_config, levelwise = train.TrainConfig(training="joint"), train.TrainConfig()
+  assert train.prepare(NANOCRAFT.spec, weak, joint_config).anneal_temperature == WEAK_ONLY_ANNEALING > 1
+  assert train.prepare(NANOCRAFT.spec, mixed, joint_config).anneal_temperature == 1
+  assert train.prepare(NANOCRAFT.spec, weak, levelwise).anneal_temperature == 1
+  given = dataclasses.replace(joint_config, anneal_temperature=1.0)
+  assert train.prepare(NANOCRAFT.spec, weak, given).anneal_temperature == 1
 
 
 @pytest.mark.slow

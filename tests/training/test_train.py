@@ -384,3 +384,20 @@ def test_fit_saves_by_time_between_evaluations_and_resumes_from_there():
   resumed, resumed_model = run(resume=saves[14])  # iteration 15, between evaluations
   np.testing.assert_array_equal(resumed_model.kernel[...], model.kernel[...])
   assert resumed.losses == reference.losses
+
+
+def test_fit_can_pass_the_update_count_to_the_loss():
+  """pass_iteration: the loss is given the number of updates made before it (0 at the first), resumed too."""
+  model = nnx.Linear(1, 1, rngs=nnx.Rngs(0))
+
+  def loss(m, iteration, x):
+    return jnp.sum(m(x) * 0.0) + iteration
+
+  schedule, hooks = fitting.Schedule(6, 0.1, 1), fitting.Hooks(log=lambda row: None)
+  saved = []
+  progress = fitting.fit(model, loss, schedule._replace(iterations=3),
+                         fitting.Hooks(log=lambda row: None, save=saved.append), args=(jnp.ones((2, 1)),),
+                         pass_iteration=True)
+  assert [value for _, value in progress.losses] == [0, 1, 2]
+  resumed = fitting.fit(model, loss, schedule, hooks, resume=saved[-1], args=(jnp.ones((2, 1)),), pass_iteration=True)
+  assert [value for _, value in resumed.losses] == [0, 1, 2, 3, 4, 5]
