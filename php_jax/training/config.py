@@ -83,7 +83,7 @@ class TrainConfig:
       None, "Joint training: the posterior temperature T ≥ 1 at the first iteration (deterministic annealing): "
       "the loss takes its expectation over call stacks under P(stack | actions)^(1/T), flatter for T > 1, T "
       f"falling linearly to 1 at half the iterations; 1: none; unset: {WEAK_ONLY_ANNEALING} where no "
-      "demonstration is annotated (measured best there), else 1.", "float")
+      "demonstration is annotated (it segments better there; RESULTS.md), else 1.", "float")
   call_graph: str = _setting("all", "Which operations each procedure may take. all: any; calls: a procedure the "
                              "annotated demonstrations show calling may call only what they show it calling; "
                              "operations: also, a lowest-level procedure only the elementary action values they "
