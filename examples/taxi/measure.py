@@ -47,10 +47,11 @@ def measure(setup: argparse.Namespace, workdir: str, demos: int, annotated: int,
   hierarchy flags); returns its row."""
   name = f"{model}_d{demos}_a{annotated}_s{seed}"
   run, done = os.path.join(workdir, name), os.path.join(workdir, name, "row.json")
+  measured_with = _setup(setup, fit_flags)
   if os.path.exists(done):
     with open(done) as f:
       row = json.load(f)
-    if row.get("setup", _setup(setup, fit_flags)) != _setup(setup, fit_flags):
+    if row.get("setup", measured_with) != measured_with:
       print(f"{done} was measured with other settings ({row['setup']}); use another --workdir", file=sys.stderr)
       sys.exit(2)
     return row
@@ -71,7 +72,7 @@ def measure(setup: argparse.Namespace, workdir: str, demos: int, annotated: int,
       row[f"level{level}"], row[f"level{level}_renamed"] = float(exact), float(renamed)
     for level, f1 in re.findall(r"level (\d+): .*call boundaries: F1 ([0-9.]+)", decoded):
       row[f"level{level}_boundary_f1"] = float(f1)
-  row["setup"] = _setup(setup, fit_flags)
+  row["setup"] = measured_with
   with open(done + ".tmp", "w") as f:
     json.dump(row, f)
   os.replace(done + ".tmp", done)

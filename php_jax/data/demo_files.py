@@ -147,52 +147,48 @@ def action_namer(action_names: tuple[tuple[str, ...], ...] | None):
   return name
 
 
+def _named_procedures(value, key: str, spec: HierarchySpec):
+  """(level, procedure index, name, its entry) for each procedure that a per-level hierarchy key ("calls",
+  "observes": one object or null per level, root first) names, in order; ValueError naming the key for a
+  value of another shape or a procedure its level does not have."""
+  depth = spec.num_levels
+  if not (isinstance(value, list) and len(value) == depth and all(v is None or isinstance(v, dict) for v in value)):
+    raise ValueError(f'"{key}" must give one object or null per level, root first ({depth}); got '
+                     f'{json_lines.shown(value)}')
+  for level, named in enumerate(value):
+    names = spec.levels[level]
+    for procedure, entry in (named or {}).items():
+      if procedure not in names:
+        raise ValueError(f'"{key}": level {level} has no procedure {procedure!r}')
+      yield level, names.index(procedure), procedure, entry
+
+
 def _declared_calls(calls, spec: HierarchySpec) -> tuple:
   """A hierarchy file's "calls" as a call graph (`HierarchySpec.allowed_ops`); ValueError saying what is wrong."""
-  depth = spec.num_levels
-  if not (isinstance(calls, list) and len(calls) == depth and all(c is None or isinstance(c, dict) for c in calls)):
-    raise ValueError(f'"calls" must give one object or null per level, root first ({depth}); got '
-                     f'{json_lines.shown(calls)}')
-  graph = []
-  for level, named in enumerate(calls):
-    if not named:
-      graph.append(None)
-      continue
-    sizes, names = spec.op_sizes(level), spec.levels[level]
-    allowed = np.ones((len(names), sum(sizes)), bool)
-    for procedure, ops in named.items():
-      if procedure not in names:
-        raise ValueError(f'"calls": level {level} has no procedure {procedure!r}')
-      allowed[names.index(procedure)] = _allowed_row(ops, level, spec, f'"calls": {procedure!r}')
-    graph.append(tuple(map(tuple, allowed.tolist())))
-  return tuple(graph)
+  graph = [None] * spec.num_levels
+  for level, index, procedure, ops in _named_procedures(calls, "calls", spec):
+    if graph[level] is None:
+      graph[level] = np.ones((spec.num_procs(level), sum(spec.op_sizes(level))), bool)
+    graph[level][index] = _allowed_row(ops, level, spec, f'"calls": {procedure!r}')
+  return tuple(None if allowed is None else tuple(map(tuple, allowed.tolist())) for allowed in graph)
 
 
-def _declared_observes(observes, spec: HierarchySpec) -> tuple:
+def _declared_observes(observes, spec: HierarchySpec) -> tuple | None:
   """A hierarchy file's "observes" (per level, root first, an object or null: procedure name → the
   observation entries its networks see) as `HierarchySpec.observes` (None where it names no procedure);
   ValueError saying what is wrong."""
-  depth = spec.num_levels
-  if not (isinstance(observes, list) and len(observes) == depth
-          and all(o is None or isinstance(o, dict) for o in observes)):
-    raise ValueError(f'"observes" must give one object or null per level, root first ({depth}); got '
-                     f'{json_lines.shown(observes)}')
-  declared = []
-  for level, named in enumerate(observes):
-    if not named:
-      declared.append(None)
-      continue
-    names, entries = spec.levels[level], [None] * spec.num_procs(level)
-    for procedure, indices in named.items():
-      if procedure not in names:
-        raise ValueError(f'"observes": level {level} has no procedure {procedure!r}')
-      if not (isinstance(indices, list) and len(indices) <= MAX_SIZE
-              and all(_is_int(i) and 0 <= i < MAX_SIZE for i in indices)):
-        raise ValueError(f'"observes": {procedure!r} must list observation entries (at most {MAX_SIZE} '
-                         f'integers, each from 0 to {MAX_SIZE - 1}); got {json_lines.shown(indices)}')
-      entries[names.index(procedure)] = tuple(sorted(set(indices)))
-    declared.append(tuple(entries) if any(e is not None for e in entries) else None)
-  return tuple(declared) if any(d is not None for d in declared) else None
+  declared = [None] * spec.num_levels
+  for level, index, procedure, indices in _named_procedures(observes, "observes", spec):
+    if not (isinstance(indices, list) and len(indices) <= MAX_SIZE
+            and all(_is_int(i) and 0 <= i < MAX_SIZE for i in indices)):
+      raise ValueError(f'"observes": {procedure!r} must list observation entries (at most {MAX_SIZE} '
+                       f'integers, each from 0 to {MAX_SIZE - 1}); got {json_lines.shown(indices)}')
+    if declared[level] is None:
+      declared[level] = [None] * spec.num_procs(level)
+    declared[level][index] = tuple(sorted(set(indices)))
+  if all(entries is None for entries in declared):
+    return None
+  return tuple(None if entries is None else tuple(entries) for entries in declared)
 
 
 def _allowed_row(ops, level: int, spec: HierarchySpec, where: str) -> np.ndarray:
