@@ -6,7 +6,6 @@ r"""Benchmarks as commands: ratios against baselines measured in the same proces
   python -m experiments.benchmark train_step --task=NAME --hidden=64  # one EG iteration, split
   python -m experiments.benchmark scaling --task=NAME --hidden=32  # one EG step on 1 vs all devices; seeds vmapped
   python -m experiments.benchmark act --policy=RUN --env=ENV --num_envs=64  # a policy in a Gymnasium env vs the env
-  python -m experiments.benchmark stack_grad --task=NAME --num_strong=0  # the joint E-step: reachable counters vs all
 
 estep times values + marginals for B demonstrations of T steps (vmapped, jitted) at the paper's sizes and beyond,
 checks that the three agree on log P(ξ), and prints lattice cells (B·T·K·C) per second and ratios.
@@ -28,7 +27,6 @@ from flax import nnx
 import php_jax
 from php_jax import executor, sharding
 from php_jax.data import views
-from php_jax.inference import stack_lattice
 from php_jax.envs import datasets, tasks
 from php_jax.training import joint, objective, train
 
@@ -43,11 +41,11 @@ _TASK = flags.DEFINE_string("task", None, "rollout, train_step, scaling: the tas
 _SIZE = flags.DEFINE_integer("size", 1000, "rollout: problem size (digits, array length; ignored by tasks with "
                              "one size).")
 _PROBLEMS = flags.DEFINE_integer("problems", 100, "rollout: number of problems.")
-_HIDDEN = flags.DEFINE_list("hidden", ["64"], "train_step, scaling, stack_grad: hidden layer sizes of the PHP networks.")
+_HIDDEN = flags.DEFINE_list("hidden", ["64"], "train_step, scaling: hidden layer sizes of the PHP networks.")
 _ROOT = flags.DEFINE_enum("root", "lstm", ["lstm", "mlp"], "train_step, scaling: root network.")
-_NUM_STRONG = flags.DEFINE_integer("num_strong", 3, "train_step, scaling, stack_grad: annotated demonstrations of the training "
+_NUM_STRONG = flags.DEFINE_integer("num_strong", 3, "train_step, scaling: annotated demonstrations of the training "
                                    "set.")
-_NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "scaling, stack_grad: demonstrations of the training set (default: the "
+_NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "scaling: demonstrations of the training set (default: the "
                                   "task's).")
 _POLICY = flags.DEFINE_string("policy", None, "act: a workdir of experiments.fit.")
 _ENV = flags.DEFINE_string("env", None, "act: the Gymnasium environment (what experiments.act --env takes).")
@@ -182,49 +180,6 @@ def bench_estep_grad():
     print(f"{size:>20} {t_values * 1e3:10.1f} {t_grad * 1e3:9.1f} {t_grad / t_values:11.2f}x {t_plain * 1e3:14.1f}",
           flush=True)
   return rows
-
-
-def bench_stack_grad():
-  """The whole-stack E-step's gradient (jax.value_and_grad of Σ log P(ξ) w.r.t. the lattice's inputs) on a task's
-  training set, the inputs from freshly initialised networks at the capacities joint training takes, in its
-  length buckets: computing the first max(C) − 1 steps on the counters they can reach (the library's way)
-  against every counter at every step. Checks that both give the same log P(ξ) and gradient."""
-  task = _task()
-  num_demos = _NUM_DEMOS.value or task.defaults.num_demos
-  demos = datasets.training_demos(task, 1, num_demos, min(_NUM_STRONG.value, num_demos))
-  config = train.TrainConfig(hidden=tuple(int(h) for h in _HIDDEN.value), training="joint")
-  hierarchy = train.make_hierarchy(task.spec, config)
-  capacity = joint.joint_capacity(demos, task.spec, config)
-  buckets = []
-  for batch, _ in joint._buckets(demos, config.length_buckets):
-    inputs = jax.jit(jax.vmap(lambda o, a, n: objective.stack_inputs(hierarchy, capacity, o, a, n)))(
-        batch.observations, batch.actions, batch.length)
-    buckets.append((inputs._replace(length=None), (inputs.length, batch.procedures, batch.counters)))
-
-  def value_and_grad(prune):
-    def one(inputs, length, procedures, counters):  # stack_lattice.log_likelihood without its checks
-      potentials = stack_lattice._potentials(inputs, procedures, counters)
-      return jnp.sum(stack_lattice._forward(inputs, potentials, length, prune=prune)[0])
-
-    def total(inputs, annotations):
-      return sum(jnp.sum(jax.vmap(one)(x, *rest)) for x, rest in zip(inputs, annotations))
-    return jax.jit(jax.value_and_grad(total))
-
-  buckets = ([x for x, _ in buckets], [rest for _, rest in buckets])
-  (every, reachable) = (value_and_grad(False), value_and_grad(True))
-  (value_every, grad_every), (value_reachable, grad_reachable) = every(*buckets), reachable(*buckets)
-  gap = max(float(jnp.max(jnp.abs(jnp.where(jnp.isfinite(a), a - b, 0.0))))
-            for a, b in zip(jax.tree.leaves(grad_every), jax.tree.leaves(grad_reachable)))
-  widths = [int(inputs.log_act.shape[1]) for inputs in buckets[0]]
-  print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}); {task.name}: {num_demos} demonstrations "
-        f"({int(np.sum(demos.strong))} annotated), capacity {capacity}, length buckets of {widths} steps")
-  print(f"log P(ξ) summed: every counter {float(value_every):.4f}, reachable {float(value_reachable):.4f}; "
-        f"largest gradient difference {gap:.2e}")
-  row = {"task": task.name, "capacity": list(capacity), "every_s": _median_seconds(every, *buckets),
-         "reachable_s": _median_seconds(reachable, *buckets)}
-  print(f"value and gradient: every counter {row['every_s'] * 1e3:.1f} ms, reachable counters "
-        f"{row['reachable_s'] * 1e3:.1f} ms, {row['every_s'] / row['reachable_s']:.2f}x")
-  return [row]
 
 
 def bench_rollout():
@@ -397,14 +352,13 @@ def bench_act():
 
 def _task():
   if not _TASK.value:
-    raise app.UsageError("--task is required for rollout, train_step, scaling and stack_grad")
+    raise app.UsageError("--task is required for rollout, train_step and scaling")
   return tasks.get(_TASK.value)
 
 
 def main(argv):
   commands = {"estep": bench_estep, "estep_grad": bench_estep_grad, "rollout": bench_rollout,
-              "train_step": bench_train_step, "scaling": bench_scaling, "act": bench_act,
-              "stack_grad": bench_stack_grad}
+              "train_step": bench_train_step, "scaling": bench_scaling, "act": bench_act}
   if len(argv) != 2 or argv[1] not in commands:
     raise app.UsageError(f"usage: python -m experiments.benchmark {{{'|'.join(commands)}}} [--flags]")
   rows = commands[argv[1]]()

@@ -27,9 +27,6 @@ A state's deepest level with τ > 0 is the level that continued, so each state o
 "shape" of predecessor: the same levels 0..j (τ_j one less) and any stopped frames below, chosen by the cascade.
 Hence Viterbi needs one backpointer table per level and step (over levels above it: tiny), and exact posterior
 sampling draws the stopped frames level by level from the cascade's stop scores (forward filter, backward sample).
-Every counter counts calls or actions its frame has completed, each at least one step long, so step t's stacks
-have every τ_i ≤ t: the first max(C) − 1 steps are computed one by one on the counters they can reach (step 0 on
-Π K_i states instead of S), the rest as one lax.scan; nothing else changes.
 
 Marginals come from automatic differentiation: per-level potentials u_i [T, K_i, C_i] (0, or −inf outside an
 annotation) are added to the frames, and P(h_{i,t} = h, τ_{i,t} = τ | ξ) = ∂ log P(ξ) / ∂ u_i[t, h, τ], so one
@@ -211,32 +208,21 @@ def _logsumexp(x):
   return jnp.where(used, jnp.log(jnp.where(used, total, 1.0)) + peak, -jnp.inf)
 
 
-def _descend(fresh, carry: tuple, scale, log_call: tuple, log_act, potentials: tuple):
+def _descend(fresh, carry: tuple, scale, inputs: StackInputs, potentials, t):
   """The mass of every stack at step t, before any frame stops: the root's frames (fresh: the new root's
-  [..., 1, 1] mass, beside the continuing ones, carry[0] − scale) pushed down level by level with step t's
-  log_call[i], each level's continuing frames (carry[i + 1] − scale) beside the pushed ones, plus step t's
-  potentials and the action's log-probability (log_call, log_act, potentials: step t's `_step_slices`).
-  [..., K_0, C_0, ..., K_{d-1}, C_{d-1}] (top_k's leading k in the ...; each C_i as the slices cut it)."""
+  [..., 1, 1] mass, beside the continuing ones, carry[0] − scale) pushed down level by level with log_call[i][t],
+  each level's continuing frames (carry[i + 1] − scale) beside the pushed ones, plus step t's potentials and the
+  action's log-probability. [..., K_0, C_0, ..., K_{d-1}, C_{d-1}] (top_k's leading k in the ...)."""
+  log_call, log_act = inputs.log_call, inputs.log_act
   depth = len(carry)
   alpha = jnp.concatenate([fresh, carry[0] - scale], axis=-1)
-  potential = potentials[0]  # over levels 0..d-2, added to every frame of step t in one pass
+  potential = potentials[0][t]  # over levels 0..d-2, added to every frame of step t in one pass
   for i in range(depth - 1):
-    pushed = alpha[..., None] + log_call[i]
+    pushed = alpha[..., None] + log_call[i][t]
     alpha = jnp.concatenate([pushed[..., None], carry[i + 1] - scale], axis=-1)
     if i + 1 < depth - 1:
-      potential = potential[..., None, None] + potentials[i + 1]
-  return alpha + potential[..., None, None] + (log_act + potentials[-1])
-
-
-def _step_slices(inputs: StackInputs, potentials, t, caps=None):
-  """Step t of inputs and potentials, every level's counters cut to its first caps[i] (None: all):
-  ((log_call, log_act, log_stop, log_cont), potentials), as `_descend` and the stop cascade read them."""
-  caps = caps or tuple(x.shape[2] for x in inputs.log_stop)
-  log_call = tuple(x[t, :, :caps[i]] for i, x in enumerate(inputs.log_call))
-  log_act = inputs.log_act[t, :, :caps[-1]]
-  log_stop, log_cont, potentials = (tuple(x[t, :, :caps[i]] for i, x in enumerate(arrays))
-                                    for arrays in (inputs.log_stop, inputs.log_cont, potentials))
-  return (log_call, log_act, log_stop, log_cont), potentials
+      potential = potential[..., None, None] + potentials[i + 1][t]
+  return alpha + potential[..., None, None] + (log_act[t] + potentials[-1][t])
 
 
 def _rescaled(conts: list, mass, t, length, dtype):
@@ -247,33 +233,12 @@ def _rescaled(conts: list, mass, t, length, dtype):
   return scale, jnp.where(t == length - 1, mass, jnp.where(t < length - 1, scale, 0.0))
 
 
-def reachable_capacities(capacities: tuple[int, ...], t: int) -> tuple[int, ...]:
-  """The counter capacity per level that step t can use: min(C_i, t + 1). A counter counts the calls (or
-  actions) its frame has completed, each at least one step long, so every τ_i ≤ t."""
-  return tuple(min(c, t + 1) for c in capacities)
-
-
-def _grown(conts: list, caps: tuple[int, ...]) -> tuple:
-  """The continuing masses of a step whose counters were cut, as the next step (its counters cut to `caps`)
-  reads them: −inf on the counters it adds, caps[j] of each level j above (held where it was), caps[i] − 1 of
-  the level's own (the continuing frames, one counter on)."""
-  grown = []
-  for i, cont in enumerate(conts):
-    pads = [(0, 0)] * cont.ndim
-    for j in range(i + 1):
-      pads[2 * j + 1] = (0, caps[j] - (j == i) - cont.shape[2 * j + 1])
-    grown.append(jnp.pad(cont, pads, constant_values=-jnp.inf))
-  return tuple(grown)
-
-
-def _forward(inputs: StackInputs, potentials, length, semiring_max=False, keep_stops=False, prune=True):
-  """The forward recursion (module docstring), carry renormalised every step.
+def _forward(inputs: StackInputs, potentials, length, semiring_max=False, keep_stops=False):
+  """The forward recursion (module docstring) as one lax.scan, carry renormalised every step.
 
   The carry is the continuing mass cont_i (τ_i < C_i − 1) of every level and its maximum, the step's scale,
-  which the next step subtracts as it reads the carry (one pass fewer than renormalising in place). The carry
-  runs on through padding, where increments are 0. With prune, the first max(C) − 1 steps are computed
-  one by one on the counters they can reach (`reachable_capacities`: step t's stacks have every τ_i ≤ t, so
-  step 0 holds Π K_i states instead of S), the rest as one lax.scan; without, every step is the scan's.
+  which the next step subtracts as it reads the carry (one pass fewer than renormalising in place); step t
+  pushes with log_call[·][t] itself. The carry runs on through padding, where increments are 0.
 
   Returns:
     log_increments: [T] summing to log P(ξ) (max-product: the best path's log-probability).
@@ -281,64 +246,39 @@ def _forward(inputs: StackInputs, potentials, length, semiring_max=False, keep_s
       max-product [T, K_0, C_0, ..., K_{i-1}, C_{i-1}] int32 the best stopped frame of level i, flat h·C_i + τ
       (backpointers); None for a sum-product pass without keep_stops.
   """
-  log_act, log_stop = inputs.log_act, inputs.log_stop
-  depth, dtype, num_steps = len(log_stop), log_act.dtype, log_act.shape[0]
-  capacities = tuple(x.shape[2] for x in log_stop)
+  _, log_act, log_stop, log_cont, _ = inputs
+  depth, dtype = len(log_stop), log_act.dtype
 
-  def step(carry, t, caps, next_caps):
+  def step(carry, t):
     carry, scale = carry
     fresh = jnp.where(t == 0, 0.0, -jnp.inf).astype(dtype)[None, None]
-    (log_call, log_act, log_stop, log_cont), step_potentials = _step_slices(inputs, potentials, t, caps)
-    mass = _descend(fresh, carry, scale, log_call, log_act, step_potentials)
+    mass = _descend(fresh, carry, scale, inputs, potentials, t)
     conts, stops = [], []
     for i in reversed(range(depth)):
-      keep = min(caps[i], capacities[i] - 1)
-      conts.insert(0, mass[..., :keep] + log_cont[i][:, :keep])
-      scores = mass + log_stop[i]
+      conts.insert(0, mass[..., :-1] + log_cont[i][t, :, :-1])
+      scores = mass + log_stop[i][t]
       flat = scores.reshape(scores.shape[:-2] + (-1,))
       if semiring_max:
         mass = jnp.max(flat, axis=-1)  # the first maximiser by a min-reduction: much faster than argmax on CPU
         cells = jnp.arange(flat.shape[-1], dtype=jnp.int32)
-        first = jnp.min(jnp.where(flat == mass[..., None], cells, flat.shape[-1]), axis=-1)
-        h, tau = jnp.divmod(first, caps[i])
-        stops.insert(0, _padded(h * capacities[i] + tau, capacities, 0))
+        stops.insert(0, jnp.min(jnp.where(flat == mass[..., None], cells, flat.shape[-1]), axis=-1))
       else:
-        stops.insert(0, _padded(scores, capacities, -jnp.inf) if keep_stops else None)
+        stops.insert(0, scores)
         mass = _logsumexp(flat)
     scale, increment = _rescaled(conts, mass, t, length, dtype)
     outputs = tuple(stops) if semiring_max or keep_stops else None
-    return (_grown(conts, next_caps), scale), (increment, outputs)
+    return (tuple(conts), scale), (increment, outputs)
 
-  grow = min(max(capacities) - 1, num_steps) if prune else 0
-  first_caps = reachable_capacities(capacities, 0) if grow else capacities
-  carry = (tuple(jnp.full(_prefix_shape(log_stop, i, first_caps)[:-1] + (first_caps[i] - 1,), -jnp.inf, dtype)
-                 for i in range(depth)), jnp.zeros((), dtype))
-  grown = []
-  for t in range(grow):  # the last of them hands the scan a carry of every counter
-    next_caps = reachable_capacities(capacities, t + 1) if t + 1 < grow else capacities
-    carry, outputs = step(carry, t, reachable_capacities(capacities, t), next_caps)
-    grown.append(outputs)
-  carry, (log_increments, stops) = jax.lax.scan(lambda c, t: step(c, t, capacities, capacities), carry,
-                                                jnp.arange(grow, num_steps))
-  if grown:
-    log_increments = jnp.concatenate([jnp.stack([x[0] for x in grown]), log_increments])
-    if stops is not None:
-      stops = tuple(jnp.concatenate([jnp.stack([x[1][i] for x in grown]), stops[i]]) for i in range(depth))
+  init = tuple(jnp.full(_prefix_shape(log_stop, i)[:-1] + (log_stop[i].shape[2] - 1,), -jnp.inf, dtype)
+               for i in range(depth))
+  init = (init, jnp.zeros((), dtype))
+  _, (log_increments, stops) = jax.lax.scan(step, init, jnp.arange(log_act.shape[0]))
   return log_increments, stops
 
 
-def _padded(table, capacities: tuple[int, ...], fill):
-  """A stop table over levels 0..i (or 0..i−1, backpointers) with counters cut, padded with fill to C_j."""
-  pads = [(0, 0)] * table.ndim
-  for j in range(table.ndim // 2):
-    pads[2 * j + 1] = (0, capacities[j] - table.shape[2 * j + 1])
-  return jnp.pad(table, pads, constant_values=fill) if table.ndim else table
-
-
-def _prefix_shape(log_stop, level, caps=None):
-  """(K_0, C_0, ..., K_level, C_level), each C_i cut to caps[i] if given."""
-  caps = caps or tuple(x.shape[2] for x in log_stop)
-  return tuple(n for i, x in enumerate(log_stop[:level + 1]) for n in (x.shape[1], caps[i]))
+def _prefix_shape(log_stop, level):
+  """(K_0, C_0, ..., K_level, C_level)."""
+  return tuple(n for x in log_stop[:level + 1] for n in x.shape[1:])
 
 
 def _log_likelihood(inputs: StackInputs, potentials, length):
@@ -515,9 +455,7 @@ def _forward_top_k(k: int, inputs: StackInputs, potentials, length):
 
   def step(carry, t):
     carry, scale = carry
-    (log_call, log_act_t, _, _), step_potentials = _step_slices(inputs, potentials, t)
-    mass = _descend(jnp.where(t == 0, first, -jnp.inf)[:, None, None], carry, scale, log_call, log_act_t,
-                    step_potentials)
+    mass = _descend(jnp.where(t == 0, first, -jnp.inf)[:, None, None], carry, scale, inputs, potentials, t)
     conts, pointers = [], []
     for i in reversed(range(depth)):
       conts.insert(0, mass[..., :-1] + log_cont[i][t, :, :-1])

@@ -159,37 +159,6 @@ def test_viterbi_matches_enumeration(case):
   np.testing.assert_allclose(path.log_prob, log_probs[best], atol=1e-6)
 
 
-@pytest.mark.parametrize("num_steps, length", [(9, 7), (3, 3)])
-def test_reachable_counters_alone_change_no_result(num_steps, length):
-  """Computing the first max(C) − 1 steps on the counters they can reach (every τ_i ≤ t), the recursion's way,
-  against every counter at every step: the same log P(ξ) and gradients (the posteriors of every input and of
-  an annotation's potentials), the same Viterbi backpointers and the same stop scores that sampling draws
-  from; T above max(C) − 1 and below it (no step left for the scan)."""
-  rng = np.random.default_rng(6)
-  inputs = _jnp(random_stack(rng, (1, 2, 2), (5, 4, 3), num_steps, mask_prob=0.05), jnp.float32)
-  procedures, counters = np.full((num_steps, 3), -1), np.full((num_steps, 3), -1)
-  procedures[0, 1], counters[2, 2] = 1, 1
-  potentials = sl._potentials(inputs, procedures, counters)
-
-  def log_likelihood(inputs, potentials, prune):
-    return jnp.sum(sl._forward(inputs, potentials, length, prune=prune)[0])
-
-  every, reachable = (jax.value_and_grad(log_likelihood, argnums=(0, 1))(inputs, potentials, prune)
-                      for prune in (False, True))
-  assert np.isfinite(every[0])
-  for want, got in zip(jax.tree.leaves(every), jax.tree.leaves(reachable)):
-    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
-  for semiring_max, keep_stops in ((True, False), (False, True)):
-    every, reachable = (sl._forward(inputs, potentials, length, semiring_max, keep_stops, prune)
-                        for prune in (False, True))
-    np.testing.assert_allclose(reachable[0], every[0], rtol=1e-5)
-    for want, got in zip(every[1], reachable[1]):
-      if semiring_max:
-        np.testing.assert_array_equal(got, want)
-      else:
-        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
-
-
 def test_annotation_full_and_partial():
   rng = np.random.default_rng(11)
   with jax.enable_x64(True):
