@@ -84,9 +84,6 @@ class TrainConfig:
       "the loss takes its expectation over call stacks under P(stack | actions)^(1/T), flatter for T > 1, T "
       f"falling linearly to 1 at half the iterations; 1: none; unset: {WEAK_ONLY_ANNEALING} where no "
       "demonstration is annotated (it segments better there; RESULTS.md), else 1.", "float")
-  curriculum: float = _setting(
-      0.0, "Joint training: the shortest demonstrations first. Of B length buckets (shortest first), bucket b "
-      "joins the loss after b/B of this fraction of the iterations; 0: every bucket from the start.", "float")
   call_graph: str = _setting("all", "Which operations each procedure may take. all: any; calls: a procedure the "
                              "annotated demonstrations show calling may call only what they show it calling; "
                              "operations: also, a lowest-level procedure only the elementary action values they "
@@ -113,11 +110,6 @@ class TrainConfig:
     if self.anneal_temperature not in (None, 1) and self.training != "joint":
       raise ConfigError("anneal_temperature", f"applies to joint training only (training=joint); this "
                         f"config trains {self.training!r}")
-    if not (_is_number(self.curriculum) and 0 <= self.curriculum <= 1):
-      raise ConfigError("curriculum", f"must be a number in 0..1; got {self.curriculum!r}")
-    if self.curriculum and self.training != "joint":
-      raise ConfigError("curriculum", f"applies to joint training only (training=joint); this config trains "
-                        f"{self.training!r}")
     if not (isinstance(self.hidden, tuple) and self.hidden and all(_is_int(h) and h >= 1 for h in self.hidden)):
       raise ConfigError("hidden", f"must list positive layer sizes; got {self.hidden!r}")
     for name, (allowed, what) in _PER_LEVEL.items():

@@ -19,7 +19,7 @@ from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy
 from php_jax.training import call_graph, checkpoint, train
-from php_jax.training.objective import annealed_temperature, counter_capacity, curriculum_buckets, stack_loss
+from php_jax.training.objective import annealed_temperature, counter_capacity, stack_loss
 
 
 def joint_capacity(demos: Demonstration, spec: HierarchySpec, config: train.TrainConfig) -> tuple[int, ...]:
@@ -70,16 +70,15 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   schedule = fitting.Schedule(config.iterations, config.learning_rate, config.eval_every, config.snapshot)
   hooks = fitting.Hooks((lambda it, loss: validate(hierarchy)) if validate else None, counted_log,
                         save if checkpoint_path else None)
-  annealed, staged = config.anneal_temperature != 1, config.curriculum > 0
-
-  def loss(h, iteration, buckets):  # while T > 1 the loss logged is the tempered one
-    temperature = annealed_temperature(config.anneal_temperature, iteration, config.iterations) if annealed else 1.0
-    if staged:
-      buckets = curriculum_buckets(buckets, iteration, config.curriculum, config.iterations)
-    return stack_loss(h, buckets, capacity, config.strong_weight, temperature)
-
-  changing = annealed or staged  # the loss changes over the fit: it is given the update count
-  progress = fitting.fit(hierarchy, loss if changing else (lambda h, buckets: loss(h, None, buckets)), schedule,
-                         hooks, resume, args=(buckets,), mesh=mesh, pass_iteration=changing)
+  annealed = config.anneal_temperature != 1
+  if annealed:  # the loss logged while T > 1 is the tempered one
+    def loss(h, iteration, buckets):
+      temperature = annealed_temperature(config.anneal_temperature, iteration, config.iterations)
+      return stack_loss(h, buckets, capacity, config.strong_weight, temperature)
+  else:
+    def loss(h, buckets):
+      return stack_loss(h, buckets, capacity, config.strong_weight)
+  progress = fitting.fit(hierarchy, loss, schedule, hooks, resume, args=(buckets,), mesh=mesh,
+                         pass_iteration=annealed)
   return hierarchy, {"capacity": list(capacity), "losses": progress.losses, "best_iteration": progress.best_iteration,
                      "validation": progress.best_score, "seconds": time.time() - start}

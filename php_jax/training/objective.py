@@ -126,15 +126,6 @@ def annealed_temperature(start: float, iteration: jax.Array, iterations: int) ->
   return 1.0 + (start - 1.0) * jnp.clip(1.0 - iteration / ramp, 0.0, 1.0)
 
 
-def curriculum_buckets(buckets: list[tuple[Demonstration, jax.Array]], iteration: jax.Array, fraction: float,
-                       iterations: int) -> list[tuple[Demonstration, jax.Array]]:
-  """Length buckets (batch, real [B]), shortest first, with bucket b's demonstrations counted (real) only from
-  update ⌊b · fraction · iterations / len(buckets)⌋ on: the shortest alone at first, every one after
-  fraction · (len(buckets) − 1) / len(buckets) of the iterations."""
-  return [(batch, real & (iteration >= int(b * fraction * iterations / len(buckets))))
-          for b, (batch, real) in enumerate(buckets)]
-
-
 def weighted_nll(terms: Iterable[tuple[jax.Array, jax.Array, jax.Array]], strong_weight: float) -> jax.Array:
   """−(w_strong Σ_strong log P + Σ_weak log P) / N over every (log_likelihoods, real, strong) [B] of terms: the
   copies that pad a batch (real False) weigh 0 and are not counted in N."""

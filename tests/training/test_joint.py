@@ -44,24 +44,6 @@ def test_annealing_tempers_the_loss_from_its_start_temperature_down_to_1_at_half
   assert want[0] < want[1] and losses[-1] < 0.5 * losses[0]
 
 
-def test_curriculum_counts_the_shortest_demonstrations_first():
-  everything = [(None, np.ones(2, bool))] * 4
-  counted = [[bool(real.all()) for _, real in objective.curriculum_buckets(everything, i, 0.5, 80)]
-             for i in (0, 9, 10, 29, 30)]  # bucket b joins at update ⌊b · 0.5 · 80 / 4⌋ = 10 b
-  assert counted == [[True, False, False, False], [True, False, False, False], [True, True, False, False],
-                     [True, True, True, False], [True, True, True, True]]
-  batch = datasets.training_demos(NANOCRAFT, 1, 4, 0)
-  config = train.TrainConfig(iterations=8, learning_rate=3e-2, hidden=(16,), eval_every=1, training="joint",
-                             seed=1, length_buckets=2, anneal_temperature=1.0, strong_weight=1.0, curriculum=1.0)
-  hierarchy = train.make_hierarchy(NANOCRAFT.spec, train.prepare(NANOCRAFT.spec, batch, config), None)
-  capacity = joint.joint_capacity(batch, NANOCRAFT.spec, config)
-  buckets = joint._buckets(batch, 2)
-  shortest, every = (float(objective.stack_loss(hierarchy, b, capacity, 1.0)) for b in (buckets[:1], buckets))
-  _, report = joint.train_joint(NANOCRAFT.spec, batch, config, log=lambda row: None)
-  np.testing.assert_allclose(report["losses"][0][1], shortest, rtol=1e-5)  # the first update: bucket 0 alone
-  assert not np.isclose(shortest, every)
-
-
 def test_joint_runs_without_annotation_anneal_by_default():
   weak, mixed = datasets.training_demos(NANOCRAFT, 1, 4, 0), datasets.training_demos(NANOCRAFT, 1, 4, 1)
   joint_config, levelwise = train.TrainConfig(training="joint"), train.TrainConfig()
