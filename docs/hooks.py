@@ -19,6 +19,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PAGES_FROM_ROOT = ("RESULTS.md", "BUILD.md")
 _FLAGS_MARK = re.compile(r"^<!-- flags: (experiments\.\w+) -->$", re.MULTILINE)
 _COMMAND = re.compile(r"python -m (experiments\.[a-z_]+)\b((?:[^\n`&;|]|\\\n)*)")
+_OLDER_COMMIT = re.compile(r"^```bash\ngit checkout [0-9a-f]{7,40}\b.*?^```$", re.M | re.S)
 sys.path.insert(0, ROOT)  # the documentation build runs from mkdocs's script, not from the repository
 from experiments.flag_groups import GROUPS  # noqa: E402  (after the path it is found on)
 
@@ -78,6 +79,7 @@ def check_commands(markdown: str, where: str) -> None:
   """SystemExit naming the page, command and flag if a command in markdown is not one, or gives a flag it
   does not define."""
   known_modules = {os.path.basename(p)[:-3] for p in glob.glob(os.path.join(ROOT, "experiments", "*.py"))}
+  markdown = _OLDER_COMMIT.sub("", markdown)  # code blocks that first check out another commit run its commands
   prose = "\n".join(line for line in markdown.splitlines() if not line.startswith("|"))  # tables: refused inputs
   for match in _COMMAND.finditer(prose):
     module, rest = match.group(1), match.group(2)
