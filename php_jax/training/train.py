@@ -142,22 +142,17 @@ def prepare(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> T
   return resolved(config, demos)
 
 
-def with_strong_weight(config: TrainConfig, demos: Demonstration) -> TrainConfig:
-  """config with its strong weight resolved: the balanced one (`balanced_strong_weight`) where unset."""
-  if config.strong_weight is not None:
-    return config
-  return dataclasses.replace(config, strong_weight=balanced_strong_weight(np.asarray(demos.strong)))
-
-
 def resolved(config: TrainConfig, demos: Demonstration, flat_lstm: bool = False) -> TrainConfig:
   """config with the settings that follow the demonstrations resolved where unset (as results.json and a
-  checkpoint record them): the balanced strong weight, and the annealing: WEAK_ONLY_ANNEALING for a PHP
-  trained jointly on demonstrations none of which is annotated, else 1 (none)."""
-  config = with_strong_weight(config, demos)
-  if config.anneal_temperature is not None:
-    return config
-  weak_only = not flat_lstm and config.training == "joint" and not np.asarray(demos.strong).any()
-  return dataclasses.replace(config, anneal_temperature=WEAK_ONLY_ANNEALING if weak_only else 1.0)
+  checkpoint record them): the balanced strong weight (`balanced_strong_weight`), and the annealing:
+  WEAK_ONLY_ANNEALING for a PHP trained jointly on demonstrations none of which is annotated, else 1 (none)."""
+  strong = np.asarray(demos.strong)
+  strong_weight = balanced_strong_weight(strong) if config.strong_weight is None else config.strong_weight
+  anneal = config.anneal_temperature
+  if anneal is None:
+    weak_only = not flat_lstm and config.training == "joint" and not strong.any()
+    anneal = WEAK_ONLY_ANNEALING if weak_only else 1.0
+  return dataclasses.replace(config, strong_weight=strong_weight, anneal_temperature=anneal)
 
 
 def run_settings(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> dict:
@@ -171,7 +166,8 @@ def run_settings(spec: HierarchySpec, demos: Demonstration, config: TrainConfig)
   return json.loads(json.dumps(settings))  # as a checkpoint stores it: tuples become lists
 
 
-_BEFORE_THEY_EXISTED = {"snapshot": "earliest", "anneal_temperature": 1.0}  # settings whose default differs from what runs did before them
+# Settings whose default differs from what runs did before the setting existed.
+_BEFORE_THEY_EXISTED = {"snapshot": "earliest", "anneal_temperature": 1.0}
 
 
 def saved_config(saved: dict) -> dict:
