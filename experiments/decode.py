@@ -12,9 +12,11 @@ call stack at every step, and whether the hierarchy replays it.
                                         recorded action and its root returns after the last
    "first_mismatch": int or null}       the first step where it does not (null when replayed)
 
-Stacks in the input are not used for decoding; where they are given, the agreement of the decoded stacks
-with them is printed per level (exact, and up to a renaming of each level's procedures). A bad flag or a
-malformed line ends in one line and exit status 2 before anything runs; the output is written atomically.
+It prints how many replay and the demonstrations' log-likelihood per step (an unsupervised score: of
+held-out demonstrations, a way to compare runs or restarts without an environment). Stacks in the input are
+not used for decoding; where they are given, the agreement of the decoded stacks with them is printed per
+level (exact, and up to a renaming of each level's procedures). A bad flag or a malformed line ends in one
+line and exit status 2 before anything runs; the output is written atomically.
 """
 from __future__ import annotations
 
@@ -69,6 +71,9 @@ def main(argv):
     files.write_atomically(_OUT.value, "".join(json.dumps(line) + "\n" for line in lines).encode())
   replayed = sum(line["replayed"] for line in lines)
   print(f"{hierarchy.spec.name}: {replayed}/{len(lines)} replayed -> {_OUT.value}")
+  per_step, unfit = decoding.log_likelihood_per_step(decoded.log_likelihood, np.asarray(batch.length))
+  print(f"log-likelihood: {'none' if per_step is None else f'{per_step:.4f} per step'}"
+        + (f"; {unfit} of {len(lines)} demonstrations fit no call stack" if unfit else ""))
   for level in range(1, hierarchy.spec.num_levels):
     measured = agreement.stack_agreement(batch.procedures, batch.counters, decoded.procedures, decoded.counters,
                                          level)

@@ -33,6 +33,15 @@ def decode(hierarchy: PHPHierarchy, capacity: tuple[int, ...], batch: Demonstrat
   return Decoded(*_chunked(_compiled(hierarchy, tuple(capacity), _most_likely), batch, chunk))
 
 
+def log_likelihood_per_step(log_likelihood: np.ndarray, length: np.ndarray) -> tuple[float | None, int]:
+  """(Σ log P / Σ length over the demonstrations some stack fits (finite log_likelihood [B]), or None if
+  none does; how many fit none). Of held-out demonstrations, an unsupervised score for comparing runs, or
+  restarts, without an environment."""
+  fits = np.isfinite(log_likelihood)
+  steps = int(np.sum(np.asarray(length)[fits]))
+  return (float(np.sum(log_likelihood[fits])) / steps if fits.any() else None), int(np.sum(~fits))
+
+
 def explain(hierarchy: PHPHierarchy, capacity: tuple[int, ...], batch: Demonstration,
             chunk: int = 512) -> tuple[Decoded, tuple[np.ndarray, ...]]:
   """decode, and per level, root first, [B, T, K_i] P(level i runs procedure h at step t | actions,

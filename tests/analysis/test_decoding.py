@@ -75,6 +75,12 @@ def test_decode_returns_the_viterbi_stacks_and_likelihoods():
     np.testing.assert_array_equal(decoded.counters[b], path.counters)
 
 
+def test_log_likelihood_per_step_counts_only_the_demonstrations_some_stack_fits():
+  per_step, unfit = decoding.log_likelihood_per_step(np.array([-3.0, -np.inf, -1.0]), np.array([2, 5, 2]))
+  assert per_step == -1.0 and unfit == 1  # (−3 − 1) / (2 + 2): the unfit demonstration's 5 steps left out
+  assert decoding.log_likelihood_per_step(np.array([-np.inf]), np.array([3])) == (None, 1)
+
+
 def test_log_likelihood_alone_equals_forward_backward_and_has_its_gradient():
   batch = datasets.training_demos(NANOCRAFT, 2, 2, 2)
   hierarchy = PHPHierarchy(NANOCRAFT.spec, hidden=(16,), rngs=nnx.Rngs(4))

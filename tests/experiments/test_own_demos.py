@@ -203,6 +203,9 @@ def test_fit_decode_show_and_report_on_the_warehouse_example(tmp_path):
   given = [json.loads(line) for line in held_out.read_text().splitlines()]
   assert len(rows) == 5 and "level 1: decoded stacks agree" in decode.stdout
   assert "call boundaries: F1" in decode.stdout
+  steps = sum(len(json.loads(line)["actions"]) for line in held_out.read_text().splitlines())
+  per_step = sum(json.loads(line)["log_likelihood"] for line in out.read_text().splitlines()) / steps
+  assert f"log-likelihood: {per_step:.4f} per step" in decode.stdout
   for row, demo in zip(rows, given):
     assert set(row) == {"log_likelihood", "stack", "replayed", "first_mismatch"}
     assert np.isfinite(row["log_likelihood"]) and row["log_likelihood"] < 0
