@@ -39,7 +39,7 @@ def log_likelihood_per_step(log_likelihood: np.ndarray, length: np.ndarray) -> t
   restarts, without an environment."""
   fits = np.isfinite(log_likelihood)
   steps = int(np.sum(np.asarray(length)[fits]))
-  return (float(np.sum(log_likelihood[fits])) / steps if fits.any() else None), int(np.sum(~fits))
+  return (float(np.sum(log_likelihood[fits], dtype=np.float64)) / steps if fits.any() else None), int(np.sum(~fits))
 
 
 def explain(hierarchy: PHPHierarchy, capacity: tuple[int, ...], batch: Demonstration,
