@@ -120,7 +120,7 @@ def _seeds(config: train.TrainConfig) -> list[int]:
     raise config_flags.UsageError("--seeds and --seed: give one of them")
   if training.MODEL.value != "php":
     raise config_flags.UsageError("--seeds trains PHP hierarchies (not --model=flat_lstm)")
-  if config.training != "levelwise":
+  if config.training == "joint":
     raise config_flags.UsageError(config_flags.joint_refusal("--seeds trains level-wise only"))
   try:
     return cli.seed_list(SEEDS.value)

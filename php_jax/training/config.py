@@ -76,9 +76,11 @@ class TrainConfig:
                            fitting.SNAPSHOT_RULES)
   length_buckets: int = _setting(4, "Demonstrations are batched by length into this many buckets.", "int")
   seed: int = _setting(0, "Seed for data, initialisation and decoding.", "int")
-  training: str = _setting("levelwise", "levelwise: one level at a time from the lowest, a stand-in root for the "
-                           "levels above (the paper); joint: every level at once by exact inference over the "
-                           "whole call stack.", "str", TRAININGS)
+  training: str | None = _setting(
+      None, "levelwise: one level at a time from the lowest, a stand-in root for the levels above (the paper); "
+      "joint: every level at once by exact inference over the whole call stack; unset: joint where no "
+      "demonstration is annotated and no level-wise setting is given (it alone learns addition there; "
+      "RESULTS.md), else levelwise.", "str", TRAININGS)
   anneal_temperature: float | None = _setting(
       None, "Joint training: the posterior temperature T ≥ 1 at the first iteration (deterministic annealing): "
       "the loss takes its expectation over call stacks under P(stack | actions)^(1/T), flatter for T > 1, T "
@@ -107,7 +109,7 @@ class TrainConfig:
     if self.anneal_temperature is not None and not (_is_number(self.anneal_temperature)
                                                     and self.anneal_temperature >= 1):
       raise ConfigError("anneal_temperature", f"must be a finite number ≥ 1; got {self.anneal_temperature!r}")
-    if self.anneal_temperature not in (None, 1) and self.training != "joint":
+    if self.anneal_temperature not in (None, 1) and self.training == "levelwise":
       raise ConfigError("anneal_temperature", f"applies to joint training only (training=joint); this "
                         f"config trains {self.training!r}")
     if not (isinstance(self.hidden, tuple) and self.hidden and all(_is_int(h) and h >= 1 for h in self.hidden)):
@@ -118,7 +120,7 @@ class TrainConfig:
         raise ConfigError(name, f"must list one {what} per level, root first; got {values!r}")
     for field in dataclasses.fields(self):
       choices = field.metadata["choices"]
-      if choices and getattr(self, field.name) not in choices:
+      if choices and getattr(self, field.name) not in choices + ((None,) if field.default is None else ()):
         raise ConfigError(field.name, f"must be one of {', '.join(choices)}; got {getattr(self, field.name)!r}")
 
 

@@ -6,6 +6,7 @@ Demonstrations are batched by length into buckets.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Callable
 
@@ -43,11 +44,15 @@ def _buckets(demos: Demonstration, num_buckets: int,
 def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainConfig,
                 validate: Callable[[PHPHierarchy], float] | None = None, log: Callable[[dict], None] = print,
                 checkpoint_path: str | None = None) -> tuple[PHPHierarchy, dict]:
-  """Trains every level together for config.iterations Adam iterations, keeping the snapshot with the best
+  """Trains every level together (config.training unset or "joint", else ValueError) for config.iterations
+  Adam iterations, keeping the snapshot with the best
   validate(hierarchy) (config.snapshot's rule). Checkpoints and resumes as train.train_hierarchy does
   (the same log protocol); a checkpoint made with other settings raises CheckpointError. Returns the
   hierarchy and a report {capacity, losses, best_iteration, validation, seconds}."""
-  config = train.prepare(spec, demos, config)
+  if config.training == "levelwise":
+    raise ValueError("training: levelwise; this trains jointly (php_jax.training.train.train_hierarchy trains "
+                     "level-wise)")
+  config = train.prepare(spec, demos, dataclasses.replace(config, training="joint"))
   hierarchy = train.make_hierarchy(spec, config, call_graph.resolve(config.call_graph, demos, spec))
   settings = train.run_settings(spec, demos, config)
   capacity = joint_capacity(demos, spec, config)

@@ -24,7 +24,7 @@ from php_jax.demos import validate as validate_demos
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy, RootLSTM, RootMLP
 from php_jax.training import call_graph, checkpoint
-from php_jax.training.config import WEAK_ONLY_ANNEALING, TrainConfig, check_levels
+from php_jax.training.config import WEAK_ONLY_ANNEALING, TrainConfig, check_levels, fields
 from php_jax.training.objective import LevelModel, counter_capacity, decode, level_loss
 
 
@@ -144,15 +144,28 @@ def prepare(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> T
 
 def resolved(config: TrainConfig, demos: Demonstration, flat_lstm: bool = False) -> TrainConfig:
   """config with the settings that follow the demonstrations resolved where unset (as results.json and a
-  checkpoint record them): the balanced strong weight (`balanced_strong_weight`), and the annealing:
-  WEAK_ONLY_ANNEALING for a PHP trained jointly on demonstrations none of which is annotated, else 1 (none)."""
+  checkpoint record them): the balanced strong weight (`balanced_strong_weight`); the training mode
+  (`training_mode`; levelwise for the flat LSTM, which has no levels, as runs recorded it before); and the annealing: WEAK_ONLY_ANNEALING for a PHP trained jointly on demonstrations none
+  of which is annotated, else 1 (none)."""
   strong = np.asarray(demos.strong)
   strong_weight = balanced_strong_weight(strong) if config.strong_weight is None else config.strong_weight
+  training = training_mode(config, bool(strong.any())) if not flat_lstm else config.training or "levelwise"
   anneal = config.anneal_temperature
   if anneal is None:
-    weak_only = not flat_lstm and config.training == "joint" and not strong.any()
+    weak_only = not flat_lstm and training == "joint" and not strong.any()
     anneal = WEAK_ONLY_ANNEALING if weak_only else 1.0
-  return dataclasses.replace(config, strong_weight=strong_weight, anneal_temperature=anneal)
+  return dataclasses.replace(config, strong_weight=strong_weight, training=training, anneal_temperature=anneal)
+
+
+def training_mode(config: TrainConfig, annotated: bool) -> str:
+  """config.training, or where unset: "joint" if annealing is asked for, or if no demonstration is annotated
+  and every level-wise-only setting is at its default; else "levelwise"."""
+  if config.training is not None:
+    return config.training
+  levelwise_asked = any(getattr(config, f.name) != f.default for f in fields() if f.metadata["levelwise_only"])
+  if config.anneal_temperature not in (None, 1) or not (annotated or levelwise_asked):
+    return "joint"
+  return "levelwise"
 
 
 def run_settings(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> dict:
@@ -167,7 +180,7 @@ def run_settings(spec: HierarchySpec, demos: Demonstration, config: TrainConfig)
 
 
 # Settings whose default differs from what runs did before the setting existed.
-_BEFORE_THEY_EXISTED = {"snapshot": "earliest", "anneal_temperature": 1.0}
+_BEFORE_THEY_EXISTED = {"snapshot": "earliest", "anneal_temperature": 1.0, "training": "levelwise"}
 
 
 def saved_config(saved: dict) -> dict:
@@ -226,7 +239,8 @@ def train_hierarchy(spec: HierarchySpec, demos: Demonstration, config: TrainConf
                     validate: Callable[[PHPHierarchy], float] | None = None,
                     log: Callable[[dict], None] = print,
                     checkpoint_path: str | None = None) -> tuple[PHPHierarchy, dict]:
-  """Trains every level from the lowest to the root. validate(hierarchy) → validation accuracy, used to pick
+  """Trains every level from the lowest to the root, level-wise (config.training unset or "levelwise", else
+  ValueError). validate(hierarchy) → validation accuracy, used to pick
   the root level's snapshot. With checkpoint_path, progress is saved there atomically every eval_every
   iterations and an interrupted run resumes from it, ending with the same result as an uninterrupted one (a
   checkpoint made with other settings raises CheckpointError); on resuming, log gets {"resumed": True, ...,
@@ -300,11 +314,11 @@ def _train_levels(spec: HierarchySpec, demos: list[Demonstration], configs: list
                   validate: list[Callable[[PHPHierarchy], float]] | None, log: Callable[[int, dict], None],
                   store: _Store) -> list[tuple[PHPHierarchy, dict]]:
   """The level-wise loop of train_hierarchy (one seed, not batched) and train_seeds."""
-  configs = [prepare(spec, d, c) for d, c in zip(demos, configs)]
+  if any(c.training == "joint" for c in configs):
+    raise ValueError("training: joint; this trains level-wise (php_jax.training.joint.train_joint trains jointly)")
+  configs = [prepare(spec, d, dataclasses.replace(c, training="levelwise")) for d, c in zip(demos, configs)]
   if len({dataclasses.replace(c, seed=0, strong_weight=None) for c in configs}) != 1:
     raise ValueError("seeds trained together must have the same settings but for their seed")
-  if store.batched and configs[0].training != "levelwise":
-    raise ValueError("seeds are trained together level-wise only (training: levelwise)")
   graph = common_call_graph(spec, demos, configs)
   hierarchies = [make_hierarchy(spec, c, graph) for c in configs]
   settings = [run_settings(spec, d, c) for d, c in zip(demos, configs)]

@@ -44,14 +44,21 @@ def test_annealing_tempers_the_loss_from_its_start_temperature_down_to_1_at_half
   assert want[0] < want[1] and losses[-1] < 0.5 * losses[0]
 
 
-def test_joint_runs_without_annotation_anneal_by_default():
+def test_runs_without_annotation_train_jointly_and_anneal_by_default():
   weak, mixed = datasets.training_demos(NANOCRAFT, 1, 4, 0), datasets.training_demos(NANOCRAFT, 1, 4, 1)
-  joint_config, levelwise = train.TrainConfig(training="joint"), train.TrainConfig()
-  assert train.prepare(NANOCRAFT.spec, weak, joint_config).anneal_temperature == WEAK_ONLY_ANNEALING > 1
-  assert train.prepare(NANOCRAFT.spec, mixed, joint_config).anneal_temperature == 1
-  assert train.prepare(NANOCRAFT.spec, weak, levelwise).anneal_temperature == 1
-  given = dataclasses.replace(joint_config, anneal_temperature=1.0)
-  assert train.prepare(NANOCRAFT.spec, weak, given).anneal_temperature == 1
+  unset, joint_config = train.TrainConfig(), train.TrainConfig(training="joint")
+  levelwise = train.TrainConfig(training="levelwise")
+  mode = lambda demos, config: (lambda c: (c.training, c.anneal_temperature))(train.prepare(NANOCRAFT.spec, demos,
+                                                                                             config))
+  assert mode(weak, unset) == mode(weak, joint_config) == ("joint", WEAK_ONLY_ANNEALING) and WEAK_ONLY_ANNEALING > 1
+  assert mode(mixed, unset) == ("levelwise", 1) and mode(mixed, joint_config) == ("joint", 1)
+  assert mode(weak, levelwise) == ("levelwise", 1)
+  assert mode(weak, dataclasses.replace(unset, call_penalty=(0, 1, 0))) == ("levelwise", 1)  # a level-wise setting
+  assert mode(mixed, dataclasses.replace(unset, anneal_temperature=2.0)) == ("joint", 2.0)
+  assert mode(weak, dataclasses.replace(joint_config, anneal_temperature=1.0)) == ("joint", 1)
+  assert train.resolved(unset, weak, flat_lstm=True).training == "levelwise"  # as flat LSTM runs recorded it
+  with pytest.raises(ValueError, match="training: levelwise; this trains jointly"):
+    joint.train_joint(NANOCRAFT.spec, weak, levelwise)
 
 
 @pytest.mark.slow

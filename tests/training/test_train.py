@@ -177,7 +177,7 @@ def test_corrupt_or_mismatched_saved_files_are_refused_naming_the_file(tmp_path)
 
 
 def test_resume_check_names_what_differs_and_takes_defaults_for_settings_a_checkpoint_predates():
-  config = train.TrainConfig(hidden=(8,), seed=1)
+  config = train.TrainConfig(hidden=(8,), seed=1, training="levelwise")  # resolved, as checkpoints record it
   settings = {"config": json.loads(json.dumps(dataclasses.asdict(config))), "levels": [1, 2], "demonstrations": "x"}
   older = {**settings, "config": {k: v for k, v in settings["config"].items() if k != "training"}}
   train.check_resumable("ckpt", older, settings)  # made before --training existed: level-wise, its default
