@@ -75,7 +75,10 @@ class TrainConfig:
   snapshot: str = _setting("latest", "Which of the equally best-validated snapshots is kept.", "str",
                            fitting.SNAPSHOT_RULES)
   length_buckets: int = _setting(4, "Demonstrations are batched by length into this many buckets.", "int")
-  seed: int = _setting(0, "Seed for data, initialisation and decoding.", "int")
+  seed: int = _setting(0, "Seed for data, and for initialisation and decoding unless --init_seed is given.", "int")
+  init_seed: int | None = _setting(
+      None, "Seed for the networks' initialisation and decoding alone, so that restarts share one training set "
+      "(--seed's data); unset: --seed.", "int")
   training: str | None = _setting(
       None, "levelwise: one level at a time from the lowest, a stand-in root for the levels above (the paper); "
       "joint: every level at once by exact inference over the whole call stack; unset: joint where no "
@@ -92,6 +95,11 @@ class TrainConfig:
                              "show it taking (a procedure or value they never show is unrestricted).", "str",
                              call_graph.CALL_GRAPHS)
 
+  @property
+  def network_seed(self) -> int:
+    """The seed of the networks' initialisation and of decoding: init_seed, else seed."""
+    return self.seed if self.init_seed is None else self.init_seed
+
   def __post_init__(self):
     """Raises ConfigError naming the first setting that is not allowed."""
     for name in ("root_hidden", "capacity", "eval_every", "length_buckets"):
@@ -100,8 +108,11 @@ class TrainConfig:
     for name in ("iterations", "strong_warmup", "seed"):  # 0 iterations: a warm-up alone
       if not (_is_int(getattr(self, name)) and getattr(self, name) >= 0):
         raise ConfigError(name, f"must be a non-negative integer; got {getattr(self, name)!r}")
-    if self.seed > MAX_SEED:
-      raise ConfigError("seed", f"must be at most {MAX_SEED} (a 32-bit seed); got {self.seed}")
+    if self.init_seed is not None and not (_is_int(self.init_seed) and 0 <= self.init_seed):
+      raise ConfigError("init_seed", f"must be a non-negative integer; got {self.init_seed!r}")
+    for name in ("seed", "init_seed"):
+      if (getattr(self, name) or 0) > MAX_SEED:
+        raise ConfigError(name, f"must be at most {MAX_SEED} (a 32-bit seed); got {getattr(self, name)}")
     for name in ("learning_rate", "strong_weight", "root_strong_weight"):
       value = getattr(self, name)
       if (value is not None or name == "learning_rate") and not (_is_number(value) and value > 0):

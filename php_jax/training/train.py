@@ -120,14 +120,14 @@ def balanced_strong_weight(strong) -> float:
 def make_hierarchy(spec: HierarchySpec, config: TrainConfig, graph: tuple | None = None) -> PHPHierarchy:
   """A freshly initialised hierarchy; graph: its call graph (`call_graph`), None: every call allowed."""
   return PHPHierarchy(spec, hidden=config.hidden, tau_in_termination=config.tau_in_termination,
-                      tau_limit=config.tau_limit, allowed_ops=graph, rngs=nnx.Rngs(config.seed))
+                      tau_limit=config.tau_limit, allowed_ops=graph, rngs=nnx.Rngs(config.network_seed))
 
 
 def make_root(spec: HierarchySpec, level: int, config: TrainConfig) -> nnx.Module | None:
   """The root network standing in for the untrained levels above `level` (None for the root level)."""
   if level == 0:
     return None
-  rngs = nnx.Rngs(config.seed + 1000 + level)
+  rngs = nnx.Rngs(config.network_seed + 1000 + level)
   if config.root == "lstm":
     return RootLSTM(spec.obs_dim, spec.num_procs(level), config.root_hidden, rngs=rngs)
   return RootMLP(spec.obs_dim, spec.num_procs(level), (config.root_hidden,), rngs=rngs)
@@ -383,7 +383,7 @@ def finish_level(demos: Demonstration, view: views.LevelView, level: int, model:
            "validation": progress.best_score}
   if level == 0:
     return entry, None
-  key = jax.random.fold_in(jax.random.key(config.seed), level)
+  key = jax.random.fold_in(jax.random.key(config.network_seed), level)
   procs, taus = decode(model, view, capacity, config.decode, key)
   known = view.strong[:, None] & (view.procedures != UNKNOWN)  # a strong view's path follows its annotation
   frames = (np.where(known, view.procedures, procs), np.where(known, view.counters, taus))

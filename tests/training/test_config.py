@@ -4,12 +4,16 @@ import pathlib
 import subprocess
 import sys
 
+import jax
+import numpy as np
 import pytest
 from absl import flags
+from flax import nnx
 
 from experiments import config_flags
 from php_jax.envs import tasks
 from php_jax.training import config as config_lib
+from php_jax.training import train
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 
@@ -53,6 +57,7 @@ def test_flags_override_the_task_which_overrides_the_defaults():
     (["--tau_in_termination=1,maybe"], "--tau_in_termination must list 0/1 (or true/false)"),
     (["--call_penalty=0,nan"], "--call_penalty: must list one finite non-negative number per level"),
     (["--seed=-1"], "--seed: must be a non-negative integer; got -1"),
+    (["--init_seed=-1"], "--init_seed: must be a non-negative integer; got -1"),
     (["--iterations=0"], "--iterations: must be a positive integer; got 0"),
     (["--learning_rate=inf"], "--learning_rate: must be a positive finite number"),
     (["--eval_every=0"], "--eval_every: must be a positive integer"),
@@ -107,3 +112,14 @@ def test_help_read_in_part_ends_quietly():
 def test_a_seed_beyond_32_bits_is_refused():
   with pytest.raises(config_lib.ConfigError, match=r"seed: must be at most 2147483647 \(a 32-bit seed\)"):
     config_lib.TrainConfig(seed=2**31)
+  with pytest.raises(config_lib.ConfigError, match=r"init_seed: must be at most 2147483647"):
+    config_lib.TrainConfig(init_seed=2**31)
+
+
+def test_init_seed_alone_sets_the_networks_initialisation():
+  spec = tasks.get("nanocraft").spec
+  params = lambda **kw: jax.tree.leaves(nnx.state(train.make_hierarchy(spec, config_lib.TrainConfig(hidden=(4,),
+                                                                                                    **kw))))
+  restart, same_seed, other_seed = params(seed=1, init_seed=2), params(seed=2), params(seed=1)
+  assert all(np.array_equal(a, b) for a, b in zip(restart, same_seed))
+  assert not all(np.array_equal(a, b) for a, b in zip(restart, other_seed))
