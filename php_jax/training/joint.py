@@ -45,8 +45,8 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
                 validate: Callable[[PHPHierarchy], float] | None = None, log: Callable[[dict], None] = print,
                 checkpoint_path: str | None = None) -> tuple[PHPHierarchy, dict]:
   """Trains every level together (config.training unset or "joint", else ValueError) for config.iterations
-  Adam iterations, keeping the snapshot with the best
-  validate(hierarchy) (config.snapshot's rule). Checkpoints and resumes as train.train_hierarchy does
+  Adam iterations, keeping the snapshot with the best validate(hierarchy) (config.snapshot's rule).
+  Checkpoints and resumes as train.train_hierarchy does
   (the same log protocol); a checkpoint made with other settings raises CheckpointError. Returns the
   hierarchy and a report {capacity, losses, best_iteration, validation, seconds}."""
   if config.training == "levelwise":

@@ -145,8 +145,8 @@ def prepare(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> T
 def resolved(config: TrainConfig, demos: Demonstration, flat_lstm: bool = False) -> TrainConfig:
   """config with the settings that follow the demonstrations resolved where unset (as results.json and a
   checkpoint record them): the balanced strong weight (`balanced_strong_weight`); the training mode
-  (`training_mode`; levelwise for the flat LSTM, which has no levels, as runs recorded it before); and the annealing: WEAK_ONLY_ANNEALING for a PHP trained jointly on demonstrations none
-  of which is annotated, else 1 (none)."""
+  (`training_mode`; levelwise for the flat LSTM, which has no levels); and the annealing: WEAK_ONLY_ANNEALING
+  for a PHP trained jointly on demonstrations none of which is annotated, else 1 (none)."""
   strong = np.asarray(demos.strong)
   strong_weight = balanced_strong_weight(strong) if config.strong_weight is None else config.strong_weight
   training = training_mode(config, bool(strong.any())) if not flat_lstm else config.training or "levelwise"
