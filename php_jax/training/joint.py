@@ -6,7 +6,6 @@ Demonstrations are batched by length into buckets.
 """
 from __future__ import annotations
 
-import dataclasses
 import time
 from typing import Callable
 
@@ -49,10 +48,7 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   Checkpoints and resumes as train.train_hierarchy does
   (the same log protocol); a checkpoint made with other settings raises CheckpointError. Returns the
   hierarchy and a report {capacity, losses, best_iteration, validation, seconds}."""
-  if config.training == "levelwise":
-    raise ValueError("training: levelwise; this trains jointly (php_jax.training.train.train_hierarchy trains "
-                     "level-wise)")
-  config = train.prepare(spec, demos, dataclasses.replace(config, training="joint"))
+  config = train.prepare(spec, demos, train.in_mode(config, "joint"))
   hierarchy = train.make_hierarchy(spec, config, call_graph.resolve(config.call_graph, demos, spec))
   settings = train.run_settings(spec, demos, config)
   capacity = joint_capacity(demos, spec, config)

@@ -115,8 +115,7 @@ def train_and_evaluate_seeds(experiments: list[Experiment], configs: list[TrainC
   in workdir/seeds_checkpoint/ and resumed from there. The run holds the locks of workdir and of every
   seed's workdir throughout."""
   workdirs = [os.path.join(workdir, f"seed={c.seed}") for c in configs]
-  configs = [train.resolved(dataclasses.replace(c, training=c.training or "levelwise"), e.demos)
-             for c, e in zip(configs, experiments)]
+  configs = [train.resolved(train.in_mode(c, "levelwise"), e.demos) for c, e in zip(configs, experiments)]
   commit, spec = provenance.code_version(), experiments[0].spec
   with contextlib.ExitStack() as stack:
     for locked in (workdir, *workdirs):  # each seed's workdir too, as its separate run would

@@ -168,6 +168,18 @@ def training_mode(config: TrainConfig, annotated: bool) -> str:
   return "levelwise"
 
 
+_TRAINED_BY = {"levelwise": "level-wise (php_jax.training.joint.train_joint trains jointly)",
+               "joint": "jointly (php_jax.training.train.train_hierarchy trains level-wise)"}
+
+
+def in_mode(config: TrainConfig, mode: str) -> TrainConfig:
+  """config for a trainer of one mode ("levelwise" or "joint"): its training set to mode; ValueError if it
+  names the other."""
+  if config.training not in (None, mode):
+    raise ValueError(f"training: {config.training}; this trains {_TRAINED_BY[mode]}")
+  return dataclasses.replace(config, training=mode)
+
+
 def run_settings(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> dict:
   """What a checkpoint must have been made with to be resumed: the config, the hierarchy and a digest of the
   demonstrations (so another seed, data set or annotation is noticed)."""
@@ -314,9 +326,7 @@ def _train_levels(spec: HierarchySpec, demos: list[Demonstration], configs: list
                   validate: list[Callable[[PHPHierarchy], float]] | None, log: Callable[[int, dict], None],
                   store: _Store) -> list[tuple[PHPHierarchy, dict]]:
   """The level-wise loop of train_hierarchy (one seed, not batched) and train_seeds."""
-  if any(c.training == "joint" for c in configs):
-    raise ValueError("training: joint; this trains level-wise (php_jax.training.joint.train_joint trains jointly)")
-  configs = [prepare(spec, d, dataclasses.replace(c, training="levelwise")) for d, c in zip(demos, configs)]
+  configs = [prepare(spec, d, in_mode(c, "levelwise")) for d, c in zip(demos, configs)]
   if len({dataclasses.replace(c, seed=0, strong_weight=None) for c in configs}) != 1:
     raise ValueError("seeds trained together must have the same settings but for their seed")
   graph = common_call_graph(spec, demos, configs)
