@@ -2,12 +2,14 @@ r"""Records an expert's episodes in a Gymnasium environment as a demonstration f
 
   python -m experiments.record --env=ENV --expert=MODULE:ATTR --episodes=N --annotated=K --seed=S \
       --out=FILE.jsonl [--hierarchy=H.json]
+  python -m experiments.record ... --annotate=SUGGESTED.jsonl   # stacks on the episodes suggest chose
 
 ENV is a registered Gymnasium id (`Taxi-v3`) or MODULE:ATTR, a callable returning a gymnasium.Env. The
 expert's MODULE:ATTR is a callable that takes the environment and returns an object with
 `act(observation, info)` (an action, or `(action, stack)` with the call stack that chose it) and optionally
 `reset(observation, info)`; see php_jax.envs.gym. Episode i is reset with seed S + i; the first K episodes keep
-their call stacks, the others are actions only. A stack that breaks the call-stack rules (or, with
+their call stacks (with --annotate instead: the episodes whose "index" its lines give, as
+`experiments.suggest` writes them), the others are actions only. A stack that breaks the call-stack rules (or, with
 --hierarchy, names a procedure the hierarchy does not have) is refused naming the episode and step; every
 refusal is one line with exit status 2 and nothing written.
 """
@@ -26,6 +28,9 @@ _EXPERT = flags.DEFINE_string("expert", None, "module:attribute of a callable th
 _EPISODES = flags.DEFINE_integer("episodes", None, "Episodes to record.", lower_bound=1)
 _ANNOTATED = flags.DEFINE_integer("annotated", 0, "How many of the first episodes keep the expert's call "
                                   "stacks.", lower_bound=0)
+_ANNOTATE = flags.DEFINE_string("annotate", None, "Which episodes keep the expert's call stacks: the \"index\" "
+                                "(0-based) of each line of this file (experiments.suggest's output), instead of "
+                                "--annotated.")
 _OUT = flags.DEFINE_string("out", None, "Output demonstration file (JSON lines).")
 _HIERARCHY = flags.DEFINE_string("hierarchy", None, "Optional hierarchy file: stacks are also checked "
                                  "against its procedures.")
@@ -38,9 +43,12 @@ def main(argv):
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
   cli.exit_on_interrupt(f"--out={_OUT.value} not written")
   try:
-    cli.check_outputs({"out": _OUT.value}, {"hierarchy": _HIERARCHY.value})
+    cli.check_outputs({"out": _OUT.value}, {"hierarchy": _HIERARCHY.value, "annotate": _ANNOTATE.value})
     if _ANNOTATED.value > _EPISODES.value:
       raise ValueError(f"--annotated={_ANNOTATED.value} is more than --episodes={_EPISODES.value}")
+    if _ANNOTATE.value is not None and flags.FLAGS["annotated"].present:
+      raise ValueError("--annotate and --annotated: give one of them")
+    annotate = _annotate()
     spec = demo_files.read_hierarchy(_HIERARCHY.value).spec if _HIERARCHY.value else None
     env = gym.env_maker(environment_flags.ENV.value)()
     expert = gym.expert_maker(_EXPERT.value)(env)
@@ -50,13 +58,24 @@ def main(argv):
                        f"{list(gym.action_sizes(env.action_space))}")
     with progress.counting(_EPISODES.value, "episodes") as on_episode:
       lines = gym.record(env, expert, _EPISODES.value, environment_flags.SEED.value, _ANNOTATED.value, spec,
-                         environment_flags.MAX_STEPS.value, on_episode)
+                         environment_flags.MAX_STEPS.value, on_episode, annotate)
   except (OSError, ValueError) as e:  # GymError and DemoFileError are ValueErrors
     cli.fail(str(e))
   with cli.output_errors("out", _OUT.value):
     files.write_atomically(_OUT.value, "".join(json.dumps(line) + "\n" for line in lines).encode())
   steps = sum(len(line["actions"]) for line in lines)
-  print(f"{len(lines)} episodes ({_ANNOTATED.value} annotated), {steps} steps -> {_OUT.value}")
+  annotated = sum("stack" in line for line in lines)
+  print(f"{len(lines)} episodes ({annotated} annotated), {steps} steps -> {_OUT.value}")
+
+
+def _annotate() -> list[int] | None:
+  """The episodes --annotate names (None without it); ValueError naming the file's problem."""
+  if _ANNOTATE.value is None:
+    return None
+  try:
+    return demo_files.read_indices(_ANNOTATE.value, _EPISODES.value)
+  except demo_files.DemoFileError as e:
+    raise ValueError(f"--annotate: {e}") from None
 
 
 if __name__ == "__main__":

@@ -6,8 +6,9 @@ against the expert's stacks.
   python examples/taxi/measure.py --workdir=runs/doorkey_measure --env=examples.doorkey.doorkey:make_env \
       --expert=examples.doorkey.doorkey:ThreePartExpert --hierarchy=examples/doorkey/doorkey.json
 
-Seed s records its training episodes from seed 10000·s (each configuration's own demonstrations) and fits
-with --seed=s; every run acts in the same 1,000 episodes (seeds 100000..100999) and decodes the same 200
+Seed s records its training episodes from seed 10000·s (each configuration's own demonstrations), the first
+--annotated of them with the expert's stacks (--choose=suggest: those experiments.suggest chooses from their
+actions), and fits with --seed=s; every run acts in the same 1,000 episodes (seeds 100000..100999) and decodes the same 200
 (seeds 500000..500199), none of which any training set holds. --model=flat_lstm fits the flat LSTM on the
 same demonstrations instead. Finished runs are kept, so a rerun resumes (and stops, exit status 2, at a
 finished run measured with another environment, expert, hierarchy file or fit flags); WORKDIR/rows.jsonl
@@ -41,11 +42,26 @@ def _record(setup: argparse.Namespace, path: str, episodes: int, annotated: int,
          f"--annotated={annotated}", f"--seed={seed}", f"--out={path}", f"--hierarchy={setup.hierarchy}")
 
 
+def _record_chosen(setup: argparse.Namespace, path: str, episodes: int, annotated: int, seed: int) -> None:
+  """Records the episodes with the expert's stacks on the `annotated` of them that experiments.suggest
+  chooses from their actions alone, as a user would: record actions only, suggest, record again with
+  --annotate."""
+  if os.path.exists(path):
+    return
+  stem = path[:-len(".jsonl")]
+  _record(setup, stem + "_actions.jsonl", episodes, 0, seed)
+  _run("experiments.suggest", f"--demos={stem}_actions.jsonl", f"--hierarchy={setup.hierarchy}",
+       f"--budget={annotated}", f"--out={stem}_suggested.jsonl")
+  _run("experiments.record", f"--env={setup.env}", f"--expert={setup.expert}", f"--episodes={episodes}",
+       f"--annotate={stem}_suggested.jsonl", f"--seed={seed}", f"--out={path}", f"--hierarchy={setup.hierarchy}")
+
+
 def measure(setup: argparse.Namespace, workdir: str, demos: int, annotated: int, seed: int, model: str,
             fit_flags: list[str]) -> dict:
   """One configuration and seed, run through record, fit, act and decode (setup: the environment, expert and
-  hierarchy flags); returns its row."""
-  name = f"{model}_d{demos}_a{annotated}_s{seed}"
+  hierarchy flags, and which episodes are annotated); returns its row."""
+  chosen = "" if setup.choose == "first" else f"_{setup.choose}"
+  name = f"{model}_d{demos}_a{annotated}{chosen}_s{seed}"
   run, done = os.path.join(workdir, name), os.path.join(workdir, name, "row.json")
   measured_with = _setup(setup, fit_flags)
   if os.path.exists(done):
@@ -55,8 +71,9 @@ def measure(setup: argparse.Namespace, workdir: str, demos: int, annotated: int,
       print(f"{done} was measured with other settings ({row['setup']}); use another --workdir", file=sys.stderr)
       sys.exit(2)
     return row
-  train, held = os.path.join(workdir, f"train_d{demos}_a{annotated}_s{seed}.jsonl"), os.path.join(workdir, "held.jsonl")
-  _record(setup, train, demos, annotated, 10000 * seed)
+  train = os.path.join(workdir, f"train_d{demos}_a{annotated}{chosen}_s{seed}.jsonl")
+  held = os.path.join(workdir, "held.jsonl")
+  (_record if setup.choose == "first" else _record_chosen)(setup, train, demos, annotated, 10000 * seed)
   _record(setup, held, 200, 200, 500000)
   _run("experiments.fit", f"--demos={train}", f"--hierarchy={setup.hierarchy}", f"--workdir={run}", f"--seed={seed}",
        f"--model={model}", *fit_flags)
@@ -64,7 +81,8 @@ def measure(setup: argparse.Namespace, workdir: str, demos: int, annotated: int,
                "--num_envs=64",
                f"--out={os.path.join(run, 'episodes.jsonl')}")
   success = float(re.search(r"success ([0-9.]+)", acted).group(1))
-  row = {"model": model, "demos": demos, "annotated": annotated, "seed": seed, "success": success}
+  row = {"model": model, "demos": demos, "annotated": annotated, "chosen": setup.choose, "seed": seed,
+         "success": success}
   if model == "php":
     decoded = _run("experiments.decode", f"--policy={run}", f"--demos={held}",
                    f"--out={os.path.join(run, 'decoded.jsonl')}")
@@ -98,6 +116,8 @@ def main() -> None:
   parser.add_argument("--env", default=ENV, help="the environment's MODULE:ATTR (or Gymnasium id)")
   parser.add_argument("--expert", default=EXPERT, help="the expert's MODULE:ATTR")
   parser.add_argument("--hierarchy", default=HIERARCHY, help="the hierarchy file")
+  parser.add_argument("--choose", default="first", choices=["first", "suggest"],
+                      help="which episodes keep their stacks: the first --annotated, or those experiments.suggest chooses")
   parser.add_argument("fit_flags", nargs="*", help="further experiments.fit flags, after --")
   args = parser.parse_args()
   os.makedirs(args.workdir, exist_ok=True)
@@ -109,18 +129,20 @@ def main() -> None:
   for done in glob.glob(os.path.join(args.workdir, "*", "row.json")):  # this and earlier invocations' runs
     with open(done) as f:
       rows.append(json.load(f))
-  rows.sort(key=lambda r: (r["model"], r["demos"], r["annotated"], r["seed"]))
+  for row in rows:
+    row.setdefault("chosen", "first")
+  rows.sort(key=lambda r: (r["model"], r["demos"], r["annotated"], r["chosen"], r["seed"]))
   with open(os.path.join(args.workdir, "rows.jsonl.tmp"), "w") as f:
     f.writelines(json.dumps(row) + "\n" for row in rows)
   os.replace(os.path.join(args.workdir, "rows.jsonl.tmp"), os.path.join(args.workdir, "rows.jsonl"))
-  print("| model | demos | annotated | success per seed | seeds ≥ 0.99 | level 1, 2 agreement (renamed), mean |")
-  print("|---|---|---|---|---|---|")
-  for key in sorted({(r["model"], r["demos"], r["annotated"]) for r in rows}):
-    group = [r for r in rows if (r["model"], r["demos"], r["annotated"]) == key]
+  print("| model | demos | annotated | chosen | success per seed | seeds ≥ 0.99 | level 1, 2 agreement (renamed), mean |")
+  print("|---|---|---|---|---|---|---|")
+  for key in sorted({(r["model"], r["demos"], r["annotated"], r["chosen"]) for r in rows}):
+    group = [r for r in rows if (r["model"], r["demos"], r["annotated"], r["chosen"]) == key]
     agreement = ", ".join(f"{sum(r[f'level{k}_renamed'] for r in group) / len(group):.3f}"
                           for k in (1, 2) if f"level{k}_renamed" in group[0]) or "–"
     successes = " ".join(f"{r['success']:.3f}" for r in group)
-    print(f"| {key[0]} | {key[1]} | {key[2]} | {successes} | "
+    print(f"| {key[0]} | {key[1]} | {key[2]} | {key[3]} | {successes} | "
           f"{sum(r['success'] >= 0.99 for r in group)}/{len(group)} | {agreement} |")
 
 

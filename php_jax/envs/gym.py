@@ -13,7 +13,7 @@ Episode i is reset with seed + i, in `record` and in `act` alike.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from typing import Any, NamedTuple
 
 import gymnasium
@@ -217,10 +217,11 @@ def _stack_spec(stacks: list, sizes: tuple[int, ...], episode: int) -> Hierarchy
 
 def record(env: gymnasium.Env, expert, episodes: int, seed: int, annotated: int = 0,
            spec: HierarchySpec | None = None, max_steps: int | None = None,
-           on_episode: Callable[[], None] | None = None) -> list[dict]:
+           on_episode: Callable[[], None] | None = None, annotate: Collection[int] | None = None) -> list[dict]:
   """The expert's episodes as demonstration lines (dicts in the demonstration file's format).
 
-  The first `annotated` episodes keep the stacks the expert gives; the others are actions only. Every line
+  The first `annotated` episodes keep the stacks the expert gives (or, where given, the episodes whose
+  0-based numbers `annotate` holds, e.g. those `experiments.suggest` chose); the others are actions only. Every line
   is checked as the demonstration file reader checks it (against spec where given: procedure ids in range),
   so the stacks follow the call-stack rules. Raises GymError naming the episode and step of the first
   problem. An episode ends when the environment terminates or truncates it, or after max_steps actions
@@ -232,6 +233,7 @@ def record(env: gymnasium.Env, expert, episodes: int, seed: int, annotated: int 
   _check_observation_space(observation_space)
   sizes = action_sizes(action_space)
   limit = _max_steps(env, max_steps)
+  keep = set(range(annotated) if annotate is None else annotate)
   lines = []
   for episode in range(episodes):
     observation, info = env.reset(seed=seed + episode)
@@ -254,7 +256,7 @@ def record(env: gymnasium.Env, expert, episodes: int, seed: int, annotated: int 
       observations.append(flatten_observation(observation_space, observation).tolist())
       done = terminated or truncated
     line = {"observations": observations, "actions": actions}
-    if episode < annotated:
+    if episode in keep:
       if all(s is None for s in stacks):
         raise GymError(f"episode {episode} is to be annotated, but the expert gave no call stack (its act() "
                        "returns a bare action, not (action, stack))")

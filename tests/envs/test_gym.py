@@ -170,6 +170,9 @@ def test_record_keeps_the_first_episodes_stacks_and_writes_readable_lines(tmp_pa
   path.write_text("".join(json.dumps(line) + "\n" for line in lines))
   batch, spec = demo_files.read_demonstrations(str(path), SPEC)
   assert spec.obs_dim == 8 and list(batch.strong) == [True, True, False, False, False]
+  chosen = gym.record(make_corridor(), CorridorExpert(None), episodes=5, seed=3, annotate=[4, 1])
+  assert ["stack" in line for line in chosen] == [False, True, False, False, True]
+  assert chosen[1] == lines[1] and chosen[0] == {k: lines[0][k] for k in ("observations", "actions")}
 
 
 def test_record_refuses_a_broken_stack_a_bad_action_and_missing_stacks_naming_episode_and_step():
@@ -278,6 +281,14 @@ def test_record_fit_act_commands_on_an_environment_php_jax_has_never_seen(tmp_pa
   proc = _run("experiments.record", env, expert, "--episodes=24", "--annotated=4", "--seed=0", f"--out={demos}",
               f"--hierarchy={hierarchy}")
   assert proc.returncode == 0 and "24 episodes (4 annotated)" in proc.stdout, proc.stderr
+  suggested, chosen = tmp_path / "suggested.jsonl", tmp_path / "chosen.jsonl"
+  suggested.write_text('{"index": 7, "score": 3, "why": "-"}\n{"index": 5, "score": 3, "why": "-"}\n')
+  proc = _run("experiments.record", env, expert, "--episodes=24", f"--annotate={suggested}", "--seed=0",
+              f"--out={chosen}")
+  assert proc.returncode == 0 and "24 episodes (2 annotated)" in proc.stdout, proc.stderr
+  lines = [json.loads(line) for line in chosen.read_text().splitlines()]
+  assert [i for i, line in enumerate(lines) if "stack" in line] == [5, 7]
+  assert [line["actions"] for line in lines] == [json.loads(line)["actions"] for line in demos.read_text().splitlines()]
   proc = _run("experiments.fit", f"--demos={demos}", f"--hierarchy={hierarchy}", f"--workdir={run}",
               "--iterations=150", "--eval_every=50", "--hidden=16", "--learning_rate=0.03")
   assert proc.returncode == 0, proc.stderr
@@ -321,7 +332,11 @@ def test_record_and_act_refusals_end_in_one_line_and_exit_2(tmp_path):
   checkpoint.save_flat_lstm(str(flat), "c", FlatLSTMPolicy(8, (2,), 4, rngs=nnx.Rngs(0)), SPEC)
   env, expert = "--env=tests.envs.test_gym:make_corridor", "--expert=tests.envs.test_gym:CorridorExpert"
   record = ("experiments.record", env, expert, f"--out={out}")
+  chosen = tmp_path / "chosen.jsonl"
+  chosen.write_text('{"index": 0}\n{"index": 2}\n')
   cases = [
+      ((*record, "--episodes=2", f"--annotate={chosen}"), f"--annotate: {chosen}:2: each line needs an \"index\" in 0..1"),
+      ((*record, "--episodes=3", "--annotated=1", f"--annotate={chosen}"), "--annotate and --annotated: give one of them"),
       (("experiments.record", env, "--expert=tests.envs.test_gym:BrokenExpert", "--episodes=2", "--annotated=1",
         "--seed=1", f"--out={out}"), "episode 0: stack step 1: "),
       (("experiments.act", f"--policy={wide}", env, f"--out={out}"),
