@@ -86,6 +86,8 @@ def measure(setup: argparse.Namespace, workdir: str, demos: int, annotated: int,
   if model == "php":
     decoded = _run("experiments.decode", f"--policy={run}", f"--demos={held}",
                    f"--out={os.path.join(run, 'decoded.jsonl')}")
+    row["held_out_replayed"] = int(re.search(r"(\d+)/\d+ replayed", decoded).group(1))
+    row["held_out_log_likelihood"] = float(re.search(r"log-likelihood: ([-0-9.]+) per step", decoded).group(1))
     for level, exact, renamed in re.findall(r"level (\d+): .* on ([0-9.]+) of annotated steps \(([0-9.]+)", decoded):
       row[f"level{level}"], row[f"level{level}_renamed"] = float(exact), float(renamed)
     for level, f1 in re.findall(r"level (\d+): .*call boundaries: F1 ([0-9.]+)", decoded):

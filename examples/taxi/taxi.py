@@ -49,6 +49,20 @@ class TaxiFactorsAndLandmarks(TaxiFactors):
     return np.array([row, col, passenger, destination, *on], np.int64)
 
 
+class TaxiFactorsAndWaiting(TaxiFactors):
+  """TaxiFactors and whether the taxi stands where the passenger waits: the one conjunction (the taxi's cell
+  and the passenger's landmark) on which Get's first choice, Pickup or a Navigate, depends."""
+
+  def __init__(self, env: gymnasium.Env):
+    super().__init__(env)
+    self.observation_space = spaces.MultiDiscrete([5, 5, 5, 4, 2])
+
+  def observation(self, observation):
+    row, col, passenger, destination = super().observation(observation)
+    waiting = passenger != IN_TAXI and (row, col) == tuple(self.env.unwrapped.locs[passenger])
+    return np.array([row, col, passenger, destination, int(waiting)], np.int64)
+
+
 def make_env() -> gymnasium.Env:
   """Taxi-v3 with factored observations (the `--env` of record and act)."""
   return TaxiFactors(gymnasium.make("Taxi-v3"))
@@ -57,6 +71,11 @@ def make_env() -> gymnasium.Env:
 def make_env_with_landmarks() -> gymnasium.Env:
   """Taxi-v3 with factored observations and the landmarks the taxi stands on."""
   return TaxiFactorsAndLandmarks(gymnasium.make("Taxi-v3"))
+
+
+def make_env_with_waiting() -> gymnasium.Env:
+  """Taxi-v3 with factored observations and whether the taxi stands where the passenger waits."""
+  return TaxiFactorsAndWaiting(gymnasium.make("Taxi-v3"))
 
 
 def _moves(desc: np.ndarray, row: int, col: int):

@@ -58,3 +58,20 @@ def test_the_landmark_factors_say_which_landmark_the_taxi_stands_on():
       seen.add(tuple(on))
       observation, *_ = env.step(int(rng.integers(4)))  # a move (or a bump into a wall)
   assert len(seen) == 5  # off every landmark, and on each of the four
+
+
+def test_the_waiting_factor_says_whether_the_taxi_stands_where_the_passenger_waits():
+  env, plain = taxi.make_env_with_waiting(), taxi.make_env()
+  expert, landmarks, seen = taxi.MaxqExpert(env), ((0, 0), (0, 4), (4, 0), (4, 3)), []
+  for seed in range(40):
+    observation, info = env.reset(seed=seed)
+    assert list(observation[:4]) == list(plain.reset(seed=seed)[0])  # the four factors, then the bit
+    expert.reset(observation, info)
+    terminated = False
+    while not terminated:
+      row, col, passenger = observation[:3]
+      assert observation[4] == int(passenger < 4 and (row, col) == landmarks[passenger])
+      seen.append(int(observation[4]))
+      action, _ = expert.act(observation, info)
+      observation, _, terminated, _, info = env.step(action)
+  assert 0 < sum(seen) < len(seen)  # the expert reaches every passenger, so the bit is set before each pickup
