@@ -1,9 +1,10 @@
 """examples/taxi: the expert solves Taxi by MAXQ's hierarchy, and its stacks are ones the hierarchy file admits."""
 import json
 
+import gymnasium
 import numpy as np
 
-from examples.taxi import taxi
+from examples.taxi import failures, taxi
 from php_jax.data import demo_files
 from php_jax.envs import gym
 from php_jax.training import call_graph
@@ -75,3 +76,14 @@ def test_the_waiting_factor_says_whether_the_taxi_stands_where_the_passenger_wai
       action, _ = expert.act(observation, info)
       observation, _, terminated, _, info = env.step(action)
   assert 0 < sum(seen) < len(seen)  # the expert reaches every passenger, so the bit is set before each pickup
+
+
+def test_failures_names_the_start_pairs_where_get_must_leave_a_landmark():
+  env, pairs = gymnasium.make("Taxi-v3"), set()
+  for seed in range(300):
+    pair = failures.start_pair(env, seed)
+    row, col, passenger, _ = env.unwrapped.decode(env.unwrapped.s)
+    on = [i for i, landmark in enumerate(env.unwrapped.locs) if (row, col) == tuple(landmark)]
+    assert pair == ((on[0], passenger) if on and on[0] != passenger else None)
+    pairs.add(pair)
+  assert None in pairs and len(pairs) > 6  # most episodes start elsewhere; many pairs occur
