@@ -8,12 +8,12 @@ against the expert's stacks.
 
 Seed s records its training episodes from seed 10000·s (each configuration's own demonstrations), the first
 --annotated of them with the expert's stacks (--choose=suggest: those experiments.suggest chooses from their
-actions), and fits with --seed=s; every run acts in the same 1,000 episodes (seeds 100000..100999) and decodes the same 200
-(seeds 500000..500199), none of which any training set holds. --model=flat_lstm fits the flat LSTM on the
-same demonstrations instead. Finished runs are kept, so a rerun resumes (and stops, exit status 2, at a
-finished run measured with another environment, expert, hierarchy file or fit flags); WORKDIR/rows.jsonl
-holds the row of every finished run in WORKDIR (this invocation's and earlier ones'), and their table is
-printed at the end.
+actions), and fits with --seed=s; every run acts in the same 1,000 episodes (seeds 100000..100999) and
+decodes the same 200 (seeds 500000..500199), none of which any training set holds. --model=flat_lstm fits
+the flat LSTM on the same demonstrations instead. Finished runs are kept, so a rerun resumes (and stops,
+exit status 2, at a finished run measured with another environment, expert, hierarchy file or fit flags);
+WORKDIR/rows.jsonl holds the row of every finished run in WORKDIR (this invocation's and earlier ones'), and
+their table is printed at the end.
 """
 from __future__ import annotations
 
@@ -119,7 +119,8 @@ def main() -> None:
   parser.add_argument("--expert", default=EXPERT, help="the expert's MODULE:ATTR")
   parser.add_argument("--hierarchy", default=HIERARCHY, help="the hierarchy file")
   parser.add_argument("--choose", default="first", choices=["first", "suggest"],
-                      help="which episodes keep their stacks: the first --annotated, or those experiments.suggest chooses")
+                      help="which episodes keep their stacks: the first --annotated, or those "
+                      "experiments.suggest chooses")
   parser.add_argument("fit_flags", nargs="*", help="further experiments.fit flags, after --")
   args = parser.parse_args()
   os.makedirs(args.workdir, exist_ok=True)
@@ -137,7 +138,8 @@ def main() -> None:
   with open(os.path.join(args.workdir, "rows.jsonl.tmp"), "w") as f:
     f.writelines(json.dumps(row) + "\n" for row in rows)
   os.replace(os.path.join(args.workdir, "rows.jsonl.tmp"), os.path.join(args.workdir, "rows.jsonl"))
-  print("| model | demos | annotated | chosen | success per seed | seeds ≥ 0.99 | level 1, 2 agreement (renamed), mean |")
+  print("| model | demos | annotated | chosen | success per seed | seeds ≥ 0.99 "
+        "| level 1, 2 agreement (renamed), mean |")
   print("|---|---|---|---|---|---|---|")
   for key in sorted({(r["model"], r["demos"], r["annotated"], r["chosen"]) for r in rows}):
     group = [r for r in rows if (r["model"], r["demos"], r["annotated"], r["chosen"]) == key]

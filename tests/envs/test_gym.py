@@ -335,8 +335,10 @@ def test_record_and_act_refusals_end_in_one_line_and_exit_2(tmp_path):
   chosen = tmp_path / "chosen.jsonl"
   chosen.write_text('{"index": 0}\n{"index": 2}\n')
   cases = [
-      ((*record, "--episodes=2", f"--annotate={chosen}"), f"--annotate: {chosen}:2: each line needs an \"index\" in 0..1"),
-      ((*record, "--episodes=3", "--annotated=1", f"--annotate={chosen}"), "--annotate and --annotated: give one of them"),
+      ((*record, "--episodes=2", f"--annotate={chosen}"),
+       f"--annotate: {chosen}:2: each line needs an \"index\" in 0..1"),
+      ((*record, "--episodes=3", "--annotated=1", f"--annotate={chosen}"),
+       "--annotate and --annotated: give one of them"),
       (("experiments.record", env, "--expert=tests.envs.test_gym:BrokenExpert", "--episodes=2", "--annotated=1",
         "--seed=1", f"--out={out}"), "episode 0: stack step 1: "),
       (("experiments.act", f"--policy={wide}", env, f"--out={out}"),
