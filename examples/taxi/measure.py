@@ -84,18 +84,26 @@ def measure(setup: argparse.Namespace, workdir: str, demos: int, annotated: int,
   row = {"model": model, "demos": demos, "annotated": annotated, "chosen": setup.choose, "seed": seed,
          "success": success}
   if model == "php":
-    decoded = _run("experiments.decode", f"--policy={run}", f"--demos={held}",
-                   f"--out={os.path.join(run, 'decoded.jsonl')}")
-    row["held_out_replayed"] = int(re.search(r"(\d+)/\d+ replayed", decoded).group(1))
-    row["held_out_log_likelihood"] = float(re.search(r"log-likelihood: ([-0-9.]+) per step", decoded).group(1))
-    for level, exact, renamed in re.findall(r"level (\d+): .* on ([0-9.]+) of annotated steps \(([0-9.]+)", decoded):
-      row[f"level{level}"], row[f"level{level}_renamed"] = float(exact), float(renamed)
-    for level, f1 in re.findall(r"level (\d+): .*call boundaries: F1 ([0-9.]+)", decoded):
-      row[f"level{level}_boundary_f1"] = float(f1)
+    row.update(decode(run, held))
   row["setup"] = measured_with
   with open(done + ".tmp", "w") as f:
     json.dump(row, f)
   os.replace(done + ".tmp", done)
+  return row
+
+
+def decode(run: str, held: str) -> dict:
+  """The fitted hierarchy in `run` decoding the annotated episodes of `held` (experiments.decode): how many
+  it replays, their log-likelihood per step, and per level the agreement with the expert's stacks (exact and
+  up to renaming) and the call-boundary F1."""
+  decoded = _run("experiments.decode", f"--policy={run}", f"--demos={held}",
+                 f"--out={os.path.join(run, 'decoded.jsonl')}")
+  row = {"held_out_replayed": int(re.search(r"(\d+)/\d+ replayed", decoded).group(1)),
+         "held_out_log_likelihood": float(re.search(r"log-likelihood: ([-0-9.]+) per step", decoded).group(1))}
+  for level, exact, renamed in re.findall(r"level (\d+): .* on ([0-9.]+) of annotated steps \(([0-9.]+)", decoded):
+    row[f"level{level}"], row[f"level{level}_renamed"] = float(exact), float(renamed)
+  for level, f1 in re.findall(r"level (\d+): .*call boundaries: F1 ([0-9.]+)", decoded):
+    row[f"level{level}_boundary_f1"] = float(f1)
   return row
 
 
