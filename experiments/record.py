@@ -9,9 +9,9 @@ expert's MODULE:ATTR is a callable that takes the environment and returns an obj
 `act(observation, info)` (an action, or `(action, stack)` with the call stack that chose it) and optionally
 `reset(observation, info)`; see php_jax.envs.gym. Episode i is reset with seed S + i; the first K episodes keep
 their call stacks (with --annotate instead: the episodes whose "index" its lines give, as
-`experiments.suggest` writes them), the others are actions only. A stack that breaks the call-stack rules (or, with
---hierarchy, names a procedure the hierarchy does not have) is refused naming the episode and step; every
-refusal is one line with exit status 2 and nothing written.
+`experiments.suggest` writes them), the others are actions only. A stack that breaks the call-stack rules
+(or, with --hierarchy, names a procedure the hierarchy does not have) is refused naming the episode and
+step; every refusal is one line with exit status 2 and nothing written.
 """
 from __future__ import annotations
 

@@ -27,12 +27,11 @@ def main() -> None:
   parser.add_argument("--choose", default="first", choices=["first", "suggest"])
   parser.add_argument("--seeds", default="1,2,3,4,5")
   args = parser.parse_args()
-  chosen = "" if args.choose == "first" else f"_{args.choose}"
   picked = []
   for seed in map(int, args.seeds.split(",")):
     restarts = []
     for workdir in args.workdirs.split(","):
-      run = os.path.join(workdir, f"php_d{args.demos}_a{args.annotated}{chosen}_s{seed}")
+      run = os.path.join(workdir, measure.run_name("php", args.demos, args.annotated, args.choose, seed))
       with open(os.path.join(run, "row.json")) as f:
         success = json.load(f)["success"]
       likelihood = measure.decode(run, os.path.join(workdir, "held.jsonl"))["held_out_log_likelihood"]

@@ -56,12 +56,18 @@ def _record_chosen(setup: argparse.Namespace, path: str, episodes: int, annotate
        f"--annotate={stem}_suggested.jsonl", f"--seed={seed}", f"--out={path}", f"--hierarchy={setup.hierarchy}")
 
 
+def run_name(model: str, demos: int, annotated: int, choose: str, seed: int) -> str:
+  """The name of one configuration's run of one seed in a workdir (with model "train": its training file's,
+  which every model of the configuration shares)."""
+  chosen = "" if choose == "first" else f"_{choose}"
+  return f"{model}_d{demos}_a{annotated}{chosen}_s{seed}"
+
+
 def measure(setup: argparse.Namespace, workdir: str, demos: int, annotated: int, seed: int, model: str,
             fit_flags: list[str]) -> dict:
   """One configuration and seed, run through record, fit, act and decode (setup: the environment, expert and
   hierarchy flags, and which episodes are annotated); returns its row."""
-  chosen = "" if setup.choose == "first" else f"_{setup.choose}"
-  name = f"{model}_d{demos}_a{annotated}{chosen}_s{seed}"
+  name = run_name(model, demos, annotated, setup.choose, seed)
   run, done = os.path.join(workdir, name), os.path.join(workdir, name, "row.json")
   measured_with = _setup(setup, fit_flags)
   if os.path.exists(done):
@@ -71,7 +77,7 @@ def measure(setup: argparse.Namespace, workdir: str, demos: int, annotated: int,
       print(f"{done} was measured with other settings ({row['setup']}); use another --workdir", file=sys.stderr)
       sys.exit(2)
     return row
-  train = os.path.join(workdir, f"train_d{demos}_a{annotated}{chosen}_s{seed}.jsonl")
+  train = os.path.join(workdir, run_name("train", demos, annotated, setup.choose, seed) + ".jsonl")
   held = os.path.join(workdir, "held.jsonl")
   (_record if setup.choose == "first" else _record_chosen)(setup, train, demos, annotated, 10000 * seed)
   _record(setup, held, 200, 200, 500000)

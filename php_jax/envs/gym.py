@@ -221,8 +221,8 @@ def record(env: gymnasium.Env, expert, episodes: int, seed: int, annotated: int 
   """The expert's episodes as demonstration lines (dicts in the demonstration file's format).
 
   The first `annotated` episodes keep the stacks the expert gives (or, where given, the episodes whose
-  0-based numbers `annotate` holds, e.g. those `experiments.suggest` chose); the others are actions only. Every line
-  is checked as the demonstration file reader checks it (against spec where given: procedure ids in range),
+  0-based numbers `annotate` holds, e.g. those `experiments.suggest` chose); the others are actions only.
+  Every line is checked as the demonstration file reader checks it (against spec where given: procedure ids in range),
   so the stacks follow the call-stack rules. Raises GymError naming the episode and step of the first
   problem. An episode ends when the environment terminates or truncates it, or after max_steps actions
   (default: the environment's time limit, else DEFAULT_MAX_STEPS). on_episode() is called as each episode
