@@ -34,12 +34,14 @@ class Progress(NamedTuple):
 class Schedule(NamedTuple):
   """How a fit runs: `iterations` Adam updates at `learning_rate`; every `eval_every` iterations and at the
   end, an evaluation (a validation score, a logged row, a save); `snapshot`, which of the equally
-  best-validated snapshots is kept (SNAPSHOT_RULES); a save also whenever `save_seconds` have passed."""
+  best-validated snapshots is kept (SNAPSHOT_RULES); a save also whenever `save_seconds` have passed;
+  `weight_decay`, AdamW's decoupled decay of every parameter (0: plain Adam)."""
   iterations: int
   learning_rate: float
   eval_every: int
   snapshot: str = "latest"
   save_seconds: float = 30.0
+  weight_decay: float = 0.0
 
 
 class Hooks(NamedTuple):
@@ -121,6 +123,8 @@ def fit_seeds(models: Sequence[nnx.Module], loss_fn: Callable[..., jax.Array], s
 def _optimizer(schedule: Schedule) -> optax.GradientTransformation:
   if schedule.snapshot not in SNAPSHOT_RULES:
     raise ValueError(f"snapshot must be one of {SNAPSHOT_RULES}; got {schedule.snapshot!r}")
+  if schedule.weight_decay:
+    return optax.adamw(schedule.learning_rate, weight_decay=schedule.weight_decay)
   return optax.adam(schedule.learning_rate)
 
 

@@ -43,6 +43,8 @@ class TrainConfig:
   """Hyper-parameters of Expectation–Gradient training; the defaults follow the paper where it says."""
   iterations: int = _setting(2000, "Adam iterations per level (level-wise) or in all (joint).", "int")
   learning_rate: float = _setting(3e-3, "Adam learning rate.", "float")
+  weight_decay: float = _setting(0.0, "AdamW's decoupled weight decay of every network parameter, per unit "
+                                 "learning rate; 0: plain Adam.", "float")
   hidden: tuple[int, ...] = _setting((64, 64), "Hidden layer sizes of every operation and termination network.",
                                      "ints")
   root: str = _setting("lstm", "Network standing in, below the root level, for the levels above while they are "
@@ -89,6 +91,10 @@ class TrainConfig:
       "the loss takes its expectation over call stacks under P(stack | actions)^(1/T), flatter for T > 1, T "
       f"falling linearly to 1 at half the iterations; 1: none; unset: {WEAK_ONLY_ANNEALING} where no "
       "demonstration is annotated (it segments better there; RESULTS.md), else 1.", "float")
+  termination_smoothing: float = _setting(
+      0.0, "Joint training: at the first iteration, every termination probability p is mixed with a fair coin, "
+      "(1 − ε) p + ε / 2 for this ε in [0, 1), so that training keeps weighing the calls the networks have all "
+      "but ruled out; ε falls linearly to 0 at half the iterations; 0: none.", "float")
   call_graph: str = _setting("all", "Which operations each procedure may take. all: any; calls: a procedure the "
                              "annotated demonstrations show calling may call only what they show it calling; "
                              "operations: also, a lowest-level procedure only the elementary action values they "
@@ -117,12 +123,19 @@ class TrainConfig:
       value = getattr(self, name)
       if (value is not None or name == "learning_rate") and not (_is_number(value) and value > 0):
         raise ConfigError(name, f"must be a positive finite number; got {value!r}")
+    if not (_is_number(self.weight_decay) and self.weight_decay >= 0):
+      raise ConfigError("weight_decay", f"must be a finite number ≥ 0; got {self.weight_decay!r}")
     if self.anneal_temperature is not None and not (_is_number(self.anneal_temperature)
                                                     and self.anneal_temperature >= 1):
       raise ConfigError("anneal_temperature", f"must be a finite number ≥ 1; got {self.anneal_temperature!r}")
     if self.anneal_temperature not in (None, 1) and self.training == "levelwise":
       raise ConfigError("anneal_temperature", f"applies to joint training only (training=joint); this "
                         f"config trains {self.training!r}")
+    if not (_is_number(self.termination_smoothing) and 0 <= self.termination_smoothing < 1):
+      raise ConfigError("termination_smoothing", f"must be a number in [0, 1); got {self.termination_smoothing!r}")
+    if self.termination_smoothing and self.training == "levelwise":
+      raise ConfigError("termination_smoothing", f"applies to joint training only (training=joint); this config "
+                        f"trains {self.training!r}")
     if not (isinstance(self.hidden, tuple) and self.hidden and all(_is_int(h) and h >= 1 for h in self.hidden)):
       raise ConfigError("hidden", f"must list positive layer sizes; got {self.hidden!r}")
     for name, (allowed, what) in _PER_LEVEL.items():

@@ -75,7 +75,8 @@ class LevelFit:
            resume: list[fitting.Progress] | None) -> list[fitting.Progress]:
     config, mesh = self.configs[0], sharding.data_mesh()
     weights = [level_strong_weight(c, self.is_root) for c in self.configs]
-    schedule = fitting.Schedule(iterations, config.learning_rate, config.eval_every, config.snapshot)
+    schedule = fitting.Schedule(iterations, config.learning_rate, config.eval_every, config.snapshot,
+                                weight_decay=config.weight_decay)
     if not self.batched:
       buckets = [views.device_view(b, mesh) for b in views.length_buckets(parts[0], config.length_buckets)]
       capacity = self.capacities[0]
@@ -158,12 +159,12 @@ def resolved(config: TrainConfig, demos: Demonstration, flat_lstm: bool = False)
 
 
 def training_mode(config: TrainConfig, annotated: bool) -> str:
-  """config.training, or where unset: "joint" if annealing is asked for, or if no demonstration is annotated
-  and every level-wise-only setting is at its default; else "levelwise"."""
+  """config.training, or where unset: "joint" if annealing or termination smoothing is asked for, or if no
+  demonstration is annotated and every level-wise-only setting is at its default; else "levelwise"."""
   if config.training is not None:
     return config.training
   levelwise_asked = any(getattr(config, f.name) != f.default for f in fields() if f.metadata["levelwise_only"])
-  if config.anneal_temperature not in (None, 1) or not (annotated or levelwise_asked):
+  if config.anneal_temperature not in (None, 1) or config.termination_smoothing or not (annotated or levelwise_asked):
     return "joint"
   return "levelwise"
 

@@ -60,6 +60,7 @@ def test_flags_override_the_task_which_overrides_the_defaults():
     (["--init_seed=-1"], "--init_seed: must be a non-negative integer; got -1"),
     (["--iterations=0"], "--iterations: must be a positive integer; got 0"),
     (["--learning_rate=inf"], "--learning_rate: must be a positive finite number"),
+    (["--weight_decay=-0.1"], "--weight_decay: must be a finite number ≥ 0; got -0.1"),
     (["--eval_every=0"], "--eval_every: must be a positive integer"),
     (["--capacity=0"], "--capacity: must be a positive integer"),
     (["--length_buckets=-1"], "--length_buckets: must be a positive integer"),
@@ -69,6 +70,8 @@ def test_flags_override_the_task_which_overrides_the_defaults():
                                           "(--training=joint): add --training=levelwise or drop --root"),
     (["--training=joint", "--anneal_temperature=0.5"], "--anneal_temperature: must be a finite number ≥ 1"),
     (["--training=levelwise", "--anneal_temperature=3"], "--anneal_temperature: applies to joint training only"),
+    (["--termination_smoothing=1"], "--termination_smoothing: must be a number in [0, 1); got 1.0"),
+    (["--training=levelwise", "--termination_smoothing=0.2"], "--termination_smoothing: applies to joint training"),
 ])
 def test_bad_flags_are_refused_naming_the_flag(argv, message):
   with pytest.raises(config_flags.UsageError) as refused:

@@ -401,3 +401,15 @@ def test_fit_can_pass_the_update_count_to_the_loss():
   assert [value for _, value in progress.losses] == [0, 1, 2]
   resumed = fitting.fit(model, loss, schedule, hooks, resume=saved[-1], args=(jnp.ones((2, 1)),), pass_iteration=True)
   assert [value for _, value in resumed.losses] == [0, 1, 2, 3, 4, 5]
+
+
+def test_fit_with_weight_decay_shrinks_what_the_loss_does_not_hold():
+  """Schedule.weight_decay: AdamW's decoupled decay; with a loss that ignores the parameters, each update
+  multiplies them by 1 − learning_rate · weight_decay (the update count still reaches the loss)."""
+  model = nnx.Linear(2, 1, rngs=nnx.Rngs(0))
+  start = np.asarray(model.kernel[...]).copy()
+  progress = fitting.fit(model, lambda m, iteration: jnp.sum(m(jnp.ones((1, 2))) * 0.0) + iteration,
+                         fitting.Schedule(5, 0.1, 1, weight_decay=0.5), fitting.Hooks(log=lambda row: None),
+                         pass_iteration=True)
+  assert [value for _, value in progress.losses] == [0, 1, 2, 3, 4]
+  np.testing.assert_allclose(model.kernel[...], start * 0.95 ** 5, rtol=1e-5)
