@@ -91,10 +91,6 @@ class TrainConfig:
       "the loss takes its expectation over call stacks under P(stack | actions)^(1/T), flatter for T > 1, T "
       f"falling linearly to 1 at half the iterations; 1: none; unset: {WEAK_ONLY_ANNEALING} where no "
       "demonstration is annotated (it segments better there; RESULTS.md), else 1.", "float")
-  termination_smoothing: float = _setting(
-      0.0, "Joint training: at the first iteration, every termination probability p is mixed with a fair coin, "
-      "(1 − ε) p + ε / 2 for this ε in [0, 1), so that training keeps weighing the calls the networks have all "
-      "but ruled out; ε falls linearly to 0 at half the iterations; 0: none.", "float")
   call_graph: str = _setting("all", "Which operations each procedure may take. all: any; calls: a procedure the "
                              "annotated demonstrations show calling may call only what they show it calling; "
                              "operations: also, a lowest-level procedure only the elementary action values they "
@@ -131,11 +127,6 @@ class TrainConfig:
     if self.anneal_temperature not in (None, 1) and self.training == "levelwise":
       raise ConfigError("anneal_temperature", f"applies to joint training only (training=joint); this "
                         f"config trains {self.training!r}")
-    if not (_is_number(self.termination_smoothing) and 0 <= self.termination_smoothing < 1):
-      raise ConfigError("termination_smoothing", f"must be a number in [0, 1); got {self.termination_smoothing!r}")
-    if self.termination_smoothing and self.training == "levelwise":
-      raise ConfigError("termination_smoothing", f"applies to joint training only (training=joint); this config "
-                        f"trains {self.training!r}")
     if not (isinstance(self.hidden, tuple) and self.hidden and all(_is_int(h) and h >= 1 for h in self.hidden)):
       raise ConfigError("hidden", f"must list positive layer sizes; got {self.hidden!r}")
     for name, (allowed, what) in _PER_LEVEL.items():

@@ -19,7 +19,7 @@ from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy
 from php_jax.training import call_graph, checkpoint, train
-from php_jax.training.objective import annealed_temperature, annealing_ramp, counter_capacity, stack_loss
+from php_jax.training.objective import annealed_temperature, counter_capacity, stack_loss
 
 
 def joint_capacity(demos: Demonstration, spec: HierarchySpec, config: train.TrainConfig) -> tuple[int, ...]:
@@ -72,12 +72,11 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
                               weight_decay=config.weight_decay)
   hooks = fitting.Hooks((lambda it, loss: validate(hierarchy)) if validate else None, counted_log,
                         save if checkpoint_path else None)
-  annealed = config.anneal_temperature != 1 or config.termination_smoothing != 0
-  if annealed:  # the loss logged while T > 1 or ε > 0 is the tempered, smoothed one
+  annealed = config.anneal_temperature != 1
+  if annealed:  # the loss logged while T > 1 is the tempered one
     def loss(h, iteration, buckets):
       temperature = annealed_temperature(config.anneal_temperature, iteration, config.iterations)
-      smoothing = config.termination_smoothing * annealing_ramp(iteration, config.iterations)
-      return stack_loss(h, buckets, capacity, config.strong_weight, temperature, smoothing)
+      return stack_loss(h, buckets, capacity, config.strong_weight, temperature)
   else:
     def loss(h, buckets):
       return stack_loss(h, buckets, capacity, config.strong_weight)

@@ -82,13 +82,11 @@ def level_loss(model: LevelModel, buckets: list[views.LevelView], capacity: int,
 
 
 def stack_inputs(hierarchy: PHPHierarchy, capacity: tuple[int, ...], observations: jax.Array, actions: jax.Array,
-                 length: jax.Array, smoothing=0.0) -> stack_lattice.StackInputs:
+                 length: jax.Array) -> stack_lattice.StackInputs:
   """The whole-stack lattice's inputs from the networks of every level, for one demonstration.
 
   observations [T+1, D], actions [T, F], length [], capacity per level (root first) → StackInputs (level i:
   log_call [T, K_i, C_i, K_{i+1}] for i < d−1, log_act [T, K_{d−1}, C_{d−1}], log_stop / log_cont [T, K_i, C_i]).
-  smoothing ε [] in [0, 1) (a Python 0: none) mixes every termination probability with a fair coin,
-  (1 − ε) p + ε / 2 (`smoothed_termination`).
   """
   depth = len(hierarchy.levels)
   log_call, log_stop, log_cont = [], [], []
@@ -97,53 +95,35 @@ def stack_inputs(hierarchy: PHPHierarchy, capacity: tuple[int, ...], observation
     if level < depth - 1:
       log_call.append(php.op_log_probs(observations[:-1], tau)[0])
     z = php.termination_logits(observations[1:], tau)
-    log_stop.append(smoothed_termination(jax.nn.log_sigmoid(z), smoothing))
-    log_cont.append(smoothed_termination(jax.nn.log_sigmoid(-z), smoothing))
+    log_stop.append(jax.nn.log_sigmoid(z))
+    log_cont.append(jax.nn.log_sigmoid(-z))
   tau = jnp.arange(capacity[-1], dtype=jnp.float32)
   log_act = hierarchy.levels[-1].log_op(observations[:-1], tau, actions)
   return stack_lattice.StackInputs(tuple(log_call), log_act, tuple(log_stop), tuple(log_cont), length)
 
 
-def smoothed_termination(log_p: jax.Array, smoothing) -> jax.Array:
-  """log((1 − ε) p + ε / 2) of termination log-probabilities log_p [...]: a termination network mixed with a
-  fair coin by ε [] (a Python 0: log_p itself). The mixture is still a PHP, so its likelihood is a proper
-  one; it keeps every call's stop and continuation possible, so that the posterior (and the gradient) reaches
-  the branches the networks have all but ruled out."""
-  if isinstance(smoothing, (int, float)) and smoothing == 0:
-    return log_p
-  return jnp.logaddexp(jnp.log1p(-smoothing) + log_p, jnp.log(smoothing / 2))
-
-
 def stack_log_likelihoods(hierarchy: PHPHierarchy, batch: Demonstration, capacity: tuple[int, ...],
-                          temperature=1.0, smoothing=0.0) -> jax.Array:
+                          temperature=1.0) -> jax.Array:
   """[B] log P(ζ_known, ξ) of each demonstration of batch under the whole hierarchy; with a posterior
-  temperature T [], its tempered form T · log Σ P(ζ, ξ)^(1/T) (`stack_lattice.log_likelihood`); with a
-  termination smoothing ε [], under the smoothed hierarchy (`stack_inputs`)."""
+  temperature T [], its tempered form T · log Σ P(ζ, ξ)^(1/T) (`stack_lattice.log_likelihood`)."""
   def one(obs, act, procs, taus, n):
-    inputs = stack_inputs(hierarchy, capacity, obs, act, n, smoothing)
-    return stack_lattice.log_likelihood(inputs, procs, taus, temperature)
+    return stack_lattice.log_likelihood(stack_inputs(hierarchy, capacity, obs, act, n), procs, taus, temperature)
   return jax.vmap(one)(batch.observations, batch.actions, batch.procedures, batch.counters, batch.length)
 
 
 def stack_loss(hierarchy: PHPHierarchy, buckets: list[tuple[Demonstration, jax.Array]], capacity: tuple[int, ...],
-               strong_weight: float, temperature=1.0, smoothing=0.0) -> jax.Array:
+               strong_weight: float, temperature=1.0) -> jax.Array:
   """[] weighted negative log-likelihood (`weighted_nll`) of the real demonstrations of every bucket
-  (batch, real [B]) under the whole hierarchy, tempered at a posterior temperature [] other than 1, its
-  terminations smoothed by ε [] other than 0 (`smoothed_termination`)."""
-  return weighted_nll(((stack_log_likelihoods(hierarchy, batch, capacity, temperature, smoothing), real,
-                        batch.strong) for batch, real in buckets), strong_weight)
-
-
-def annealing_ramp(iteration: jax.Array, iterations: int) -> jax.Array:
-  """[] the share of an annealed setting left after `iteration` updates of `iterations`: 1 at the first,
-  falling linearly to 0 at half the iterations, 0 from there on."""
-  return jnp.clip(1.0 - iteration / max(iterations // 2, 1), 0.0, 1.0)
+  (batch, real [B]) under the whole hierarchy, tempered at a posterior temperature [] other than 1."""
+  return weighted_nll(((stack_log_likelihoods(hierarchy, batch, capacity, temperature), real, batch.strong)
+                       for batch, real in buckets), strong_weight)
 
 
 def annealed_temperature(start: float, iteration: jax.Array, iterations: int) -> jax.Array:
   """[] the posterior temperature after `iteration` updates of `iterations` (deterministic annealing): start
-  at the first, falling linearly to 1 at half the iterations (`annealing_ramp`), 1 from there on."""
-  return 1.0 + (start - 1.0) * annealing_ramp(iteration, iterations)
+  at the first, falling linearly to 1 at half the iterations, 1 from there on."""
+  ramp = max(iterations // 2, 1)
+  return 1.0 + (start - 1.0) * jnp.clip(1.0 - iteration / ramp, 0.0, 1.0)
 
 
 def weighted_nll(terms: Iterable[tuple[jax.Array, jax.Array, jax.Array]], strong_weight: float) -> jax.Array:

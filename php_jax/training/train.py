@@ -159,12 +159,12 @@ def resolved(config: TrainConfig, demos: Demonstration, flat_lstm: bool = False)
 
 
 def training_mode(config: TrainConfig, annotated: bool) -> str:
-  """config.training, or where unset: "joint" if annealing or termination smoothing is asked for, or if no
-  demonstration is annotated and every level-wise-only setting is at its default; else "levelwise"."""
+  """config.training, or where unset: "joint" if annealing is asked for, or if no demonstration is annotated
+  and every level-wise-only setting is at its default; else "levelwise"."""
   if config.training is not None:
     return config.training
   levelwise_asked = any(getattr(config, f.name) != f.default for f in fields() if f.metadata["levelwise_only"])
-  if config.anneal_temperature not in (None, 1) or config.termination_smoothing or not (annotated or levelwise_asked):
+  if config.anneal_temperature not in (None, 1) or not (annotated or levelwise_asked):
     return "joint"
   return "levelwise"
 

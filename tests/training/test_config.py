@@ -70,8 +70,6 @@ def test_flags_override_the_task_which_overrides_the_defaults():
                                           "(--training=joint): add --training=levelwise or drop --root"),
     (["--training=joint", "--anneal_temperature=0.5"], "--anneal_temperature: must be a finite number ≥ 1"),
     (["--training=levelwise", "--anneal_temperature=3"], "--anneal_temperature: applies to joint training only"),
-    (["--termination_smoothing=1"], "--termination_smoothing: must be a number in [0, 1); got 1.0"),
-    (["--training=levelwise", "--termination_smoothing=0.2"], "--termination_smoothing: applies to joint training"),
 ])
 def test_bad_flags_are_refused_naming_the_flag(argv, message):
   with pytest.raises(config_flags.UsageError) as refused:

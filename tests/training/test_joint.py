@@ -8,7 +8,6 @@ import pytest
 from flax import nnx
 
 from php_jax.envs import datasets, tasks
-from php_jax.inference import stack_lattice
 from php_jax.training import checkpoint, joint, objective, train
 from php_jax.training.config import WEAK_ONLY_ANNEALING
 
@@ -43,38 +42,6 @@ def test_annealing_tempers_the_loss_from_its_start_temperature_down_to_1_at_half
   # than their −log P(ξ)), and training lowers it.
   np.testing.assert_allclose(losses[0], want[0], rtol=1e-5)
   assert want[0] < want[1] and losses[-1] < 0.5 * losses[0]
-
-
-def test_termination_smoothing_mixes_each_stop_with_a_fair_coin_and_trains_from_the_smoothed_loss():
-  z = jax.numpy.linspace(-60.0, 60.0, 9)
-  stop, cont = (objective.smoothed_termination(jax.nn.log_sigmoid(s * z), 0.3) for s in (1, -1))
-  np.testing.assert_allclose(np.exp(stop), 0.7 * jax.nn.sigmoid(z) + 0.15, rtol=1e-5)
-  np.testing.assert_allclose(np.exp(stop) + np.exp(cont), 1.0, rtol=1e-6)
-  # ε reaches 0 as a traced value once annealed: the same values and gradients as none, nothing NaN.
-  none = jax.grad(lambda z: jax.nn.log_sigmoid(z).sum())(z)
-  traced = jax.grad(lambda z, e: objective.smoothed_termination(jax.nn.log_sigmoid(z), e).sum())(z, jax.numpy.zeros(()))
-  np.testing.assert_array_equal(traced, none)
-
-  batch = datasets.training_demos(NANOCRAFT, 1, 4, 1)
-  config = train.TrainConfig(iterations=40, learning_rate=3e-2, hidden=(16,), eval_every=1, training="joint",
-                             seed=1, length_buckets=1, anneal_temperature=1.0, termination_smoothing=0.4)
-  hierarchy = train.make_hierarchy(NANOCRAFT.spec, train.prepare(NANOCRAFT.spec, batch, config), None)
-  capacity = joint.joint_capacity(batch, NANOCRAFT.spec, config)
-  [(bucket, real)] = joint._buckets(batch, 1)
-  b = 0
-  inputs = objective.stack_inputs(hierarchy, capacity, bucket.observations[b], bucket.actions[b], bucket.length[b])
-  mixed = inputs._replace(log_stop=tuple(jax.numpy.log(0.6 * jax.numpy.exp(x) + 0.2) for x in inputs.log_stop),
-                          log_cont=tuple(jax.numpy.log(0.6 * jax.numpy.exp(x) + 0.2) for x in inputs.log_cont))
-  by_hand = stack_lattice.log_likelihood(mixed, bucket.procedures[b], bucket.counters[b])
-  ours = objective.stack_log_likelihoods(hierarchy, bucket, capacity, 1.0, 0.4)[b]
-  np.testing.assert_allclose(ours, by_hand, rtol=1e-5)
-  want = [float(objective.stack_loss(hierarchy, [(bucket, real)], capacity, 1.0, 1.0, e)) for e in (0.4, 0.0)]
-  _, report = joint.train_joint(NANOCRAFT.spec, batch, dataclasses.replace(config, strong_weight=1.0),
-                                log=lambda row: None)
-  losses = [loss for _, loss in report["losses"]]
-  np.testing.assert_allclose(losses[0], want[0], rtol=1e-5)  # the first update's loss is the smoothed one
-  assert want[0] != want[1] and losses[-1] < 0.5 * losses[0]
-  assert train.prepare(NANOCRAFT.spec, batch, train.TrainConfig(termination_smoothing=0.2)).training == "joint"
 
 
 def test_runs_without_annotation_train_jointly_and_anneal_by_default():
