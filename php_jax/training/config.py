@@ -102,6 +102,11 @@ class TrainConfig:
     """The seed of the networks' initialisation and of decoding: init_seed, else seed."""
     return self.seed if self.init_seed is None else self.init_seed
 
+  def schedule(self, iterations: int | None = None) -> fitting.Schedule:
+    """The fit's schedule from these settings: `iterations` updates (default: self.iterations)."""
+    return fitting.Schedule(self.iterations if iterations is None else iterations, self.learning_rate,
+                            self.eval_every, self.snapshot, weight_decay=self.weight_decay)
+
   def __post_init__(self):
     """Raises ConfigError naming the first setting that is not allowed."""
     for name in ("root_hidden", "capacity", "eval_every", "length_buckets"):

@@ -68,8 +68,7 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   start = time.time()
   mesh = sharding.data_mesh()  # with more than one device, each bucket is split over all of them
   buckets = _buckets(demos, config.length_buckets, mesh)
-  schedule = fitting.Schedule(config.iterations, config.learning_rate, config.eval_every, config.snapshot,
-                              weight_decay=config.weight_decay)
+  schedule = config.schedule()
   hooks = fitting.Hooks((lambda it, loss: validate(hierarchy)) if validate else None, counted_log,
                         save if checkpoint_path else None)
   annealed = config.anneal_temperature != 1

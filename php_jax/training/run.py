@@ -336,8 +336,7 @@ def _train_flat_lstm(experiment: Experiment, config: TrainConfig, hidden: int, l
   learning rate, seed and snapshot rule."""
   spec = experiment.spec
   policy = flat_lstm.FlatLSTMPolicy(spec.obs_dim, spec.action_sizes, hidden, rngs=nnx.Rngs(config.network_seed))
-  schedule = fitting.Schedule(config.iterations, config.learning_rate, config.eval_every, config.snapshot,
-                              weight_decay=config.weight_decay)
+  schedule = config.schedule()
   report = flat_lstm.train(policy, experiment.demos, schedule,
                            fitting.Hooks(lambda iteration, loss: experiment.validate(policy), log))
   return policy, {"flat_lstm": {"hidden": hidden, "best_iteration": report["best_iteration"],

@@ -75,8 +75,7 @@ class LevelFit:
            resume: list[fitting.Progress] | None) -> list[fitting.Progress]:
     config, mesh = self.configs[0], sharding.data_mesh()
     weights = [level_strong_weight(c, self.is_root) for c in self.configs]
-    schedule = fitting.Schedule(iterations, config.learning_rate, config.eval_every, config.snapshot,
-                                weight_decay=config.weight_decay)
+    schedule = config.schedule(iterations)
     if not self.batched:
       buckets = [views.device_view(b, mesh) for b in views.length_buckets(parts[0], config.length_buckets)]
       capacity = self.capacities[0]
