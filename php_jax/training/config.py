@@ -65,8 +65,9 @@ class TrainConfig:
   strong_warmup: int = _setting(0, "Per level below the root, Adam iterations on the annotated demonstrations "
                                 "alone before --iterations on all of them.", "int", levelwise_only=True)
   call_penalty: tuple[float, ...] | None = _setting(
-      None, "Per level, root first (the root's 0), a log-prior cost of each call the stand-in root pushes: weak "
-      "views' posteriors then favour fewer, longer calls; unset: 0 everywhere.", "floats", levelwise_only=True)
+      None, "Per level, root first (the root's 0), a log-prior cost of each call to a procedure of that level (level-"
+      "wise: each call the stand-in root pushes): posteriors then favour fewer, longer calls; unset: 0 everywhere.",
+      "floats")
   decode: str = _setting("sample", "How weak views are decoded for the level above (the paper sampled).", "str",
                          objective.DECODERS, True)
   capacity: int = _setting(8, "Counter capacity below the root level where no call is annotated.", "int")

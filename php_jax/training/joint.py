@@ -75,10 +75,10 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   if annealed:  # the loss logged while T > 1 is the tempered one
     def loss(h, iteration, buckets):
       temperature = annealed_temperature(config.anneal_temperature, iteration, config.iterations)
-      return stack_loss(h, buckets, capacity, config.strong_weight, temperature)
+      return stack_loss(h, buckets, capacity, config.strong_weight, temperature, config.call_penalty)
   else:
     def loss(h, buckets):
-      return stack_loss(h, buckets, capacity, config.strong_weight)
+      return stack_loss(h, buckets, capacity, config.strong_weight, call_penalty=config.call_penalty)
   progress = fitting.fit(hierarchy, loss, schedule, hooks, resume, args=(buckets,), mesh=mesh,
                          pass_iteration=annealed)
   return hierarchy, {"capacity": list(capacity), "losses": progress.losses, "best_iteration": progress.best_iteration,

@@ -11,7 +11,8 @@ The loss is −(w_strong Σ_strong log P(ζ, ξ) + Σ_weak log P(ξ)) / N, each 
 - jointly (`stack_loss`), of the demonstrations' elementary actions under the whole hierarchy, summed over
   every call stack that agrees with their (complete, partial or absent) annotation (`stack_lattice`);
   optionally tempered (deterministic annealing, `annealed_temperature`): −T log Σ_ζ P(ζ, ξ)^(1/T), whose
-  gradient takes the EG expectation under the flatter P(ζ | ξ)^(1/T).
+  gradient takes the EG expectation under the flatter P(ζ | ξ)^(1/T); optionally with the call penalty too,
+  λ_i off every call of a level-i procedure.
 """
 from __future__ import annotations
 
@@ -82,18 +83,21 @@ def level_loss(model: LevelModel, buckets: list[views.LevelView], capacity: int,
 
 
 def stack_inputs(hierarchy: PHPHierarchy, capacity: tuple[int, ...], observations: jax.Array, actions: jax.Array,
-                 length: jax.Array) -> stack_lattice.StackInputs:
+                 length: jax.Array, call_penalty: tuple[float, ...] | None = None) -> stack_lattice.StackInputs:
   """The whole-stack lattice's inputs from the networks of every level, for one demonstration.
 
   observations [T+1, D], actions [T, F], length [], capacity per level (root first) → StackInputs (level i:
   log_call [T, K_i, C_i, K_{i+1}] for i < d−1, log_act [T, K_{d−1}, C_{d−1}], log_stop / log_cont [T, K_i, C_i]).
+  call_penalty (per level, root first): λ_{i+1} is subtracted from every log_call of level i, a prior cost of
+  each call of a level-(i+1) procedure (λ_0, the root's, is not used: the root is called once).
   """
   depth = len(hierarchy.levels)
   log_call, log_stop, log_cont = [], [], []
   for level, php in enumerate(hierarchy.levels):
     tau = jnp.arange(capacity[level], dtype=jnp.float32)
     if level < depth - 1:
-      log_call.append(php.op_log_probs(observations[:-1], tau)[0])
+      penalty = call_penalty[level + 1] if call_penalty else 0.0
+      log_call.append(php.op_log_probs(observations[:-1], tau)[0] - penalty)
     z = php.termination_logits(observations[1:], tau)
     log_stop.append(jax.nn.log_sigmoid(z))
     log_cont.append(jax.nn.log_sigmoid(-z))
@@ -103,20 +107,23 @@ def stack_inputs(hierarchy: PHPHierarchy, capacity: tuple[int, ...], observation
 
 
 def stack_log_likelihoods(hierarchy: PHPHierarchy, batch: Demonstration, capacity: tuple[int, ...],
-                          temperature=1.0) -> jax.Array:
+                          temperature=1.0, call_penalty: tuple[float, ...] | None = None) -> jax.Array:
   """[B] log P(ζ_known, ξ) of each demonstration of batch under the whole hierarchy; with a posterior
-  temperature T [], its tempered form T · log Σ P(ζ, ξ)^(1/T) (`stack_lattice.log_likelihood`)."""
+  temperature T [], its tempered form T · log Σ P(ζ, ξ)^(1/T) (`stack_lattice.log_likelihood`); with a
+  call_penalty (`stack_inputs`), each stack's probability times its prior exp(−Σ λ · calls)."""
   def one(obs, act, procs, taus, n):
-    return stack_lattice.log_likelihood(stack_inputs(hierarchy, capacity, obs, act, n), procs, taus, temperature)
+    inputs = stack_inputs(hierarchy, capacity, obs, act, n, call_penalty)
+    return stack_lattice.log_likelihood(inputs, procs, taus, temperature)
   return jax.vmap(one)(batch.observations, batch.actions, batch.procedures, batch.counters, batch.length)
 
 
 def stack_loss(hierarchy: PHPHierarchy, buckets: list[tuple[Demonstration, jax.Array]], capacity: tuple[int, ...],
-               strong_weight: float, temperature=1.0) -> jax.Array:
+               strong_weight: float, temperature=1.0, call_penalty: tuple[float, ...] | None = None) -> jax.Array:
   """[] weighted negative log-likelihood (`weighted_nll`) of the real demonstrations of every bucket
-  (batch, real [B]) under the whole hierarchy, tempered at a posterior temperature [] other than 1."""
-  return weighted_nll(((stack_log_likelihoods(hierarchy, batch, capacity, temperature), real, batch.strong)
-                       for batch, real in buckets), strong_weight)
+  (batch, real [B]) under the whole hierarchy, tempered at a posterior temperature [] other than 1, with a
+  prior cost per call (`stack_inputs`) where call_penalty is given."""
+  return weighted_nll(((stack_log_likelihoods(hierarchy, batch, capacity, temperature, call_penalty), real,
+                        batch.strong) for batch, real in buckets), strong_weight)
 
 
 def annealed_temperature(start: float, iteration: jax.Array, iterations: int) -> jax.Array:

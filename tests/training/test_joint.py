@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
+from php_jax.data import agreement
 from php_jax.envs import datasets, tasks
 from php_jax.training import checkpoint, joint, objective, train
 from php_jax.training.config import WEAK_ONLY_ANNEALING
@@ -53,12 +54,34 @@ def test_runs_without_annotation_train_jointly_and_anneal_by_default():
   assert mode(weak, unset) == mode(weak, joint_config) == ("joint", WEAK_ONLY_ANNEALING) and WEAK_ONLY_ANNEALING > 1
   assert mode(mixed, unset) == ("levelwise", 1) and mode(mixed, joint_config) == ("joint", 1)
   assert mode(weak, levelwise) == ("levelwise", 1)
-  assert mode(weak, dataclasses.replace(unset, call_penalty=(0, 1, 0))) == ("levelwise", 1)  # a level-wise setting
+  assert mode(weak, dataclasses.replace(unset, strong_warmup=10)) == ("levelwise", 1)  # a level-wise setting
+  assert mode(weak, dataclasses.replace(unset, call_penalty=(0, 1, 0))) == ("joint", WEAK_ONLY_ANNEALING)  # both modes'
   assert mode(mixed, dataclasses.replace(unset, anneal_temperature=2.0)) == ("joint", 2.0)
   assert mode(weak, dataclasses.replace(joint_config, anneal_temperature=1.0)) == ("joint", 1)
   assert train.resolved(unset, weak, flat_lstm=True).training == "levelwise"  # as flat LSTM runs recorded it
   with pytest.raises(ValueError, match="training: levelwise; this trains jointly"):
     joint.train_joint(NANOCRAFT.spec, weak, levelwise)
+
+
+def test_the_call_penalty_costs_each_call_of_a_level_its_lambda():
+  batch = datasets.training_demos(NANOCRAFT, 1, 3, 3)
+  config = train.TrainConfig(hidden=(8,), training="joint", seed=1)
+  hierarchy = train.make_hierarchy(NANOCRAFT.spec, train.prepare(NANOCRAFT.spec, batch, config), None)
+  capacity, penalty = joint.joint_capacity(batch, NANOCRAFT.spec, config), (0.0, 0.7, 0.2)
+  plain = objective.stack_log_likelihoods(hierarchy, batch, capacity)
+  penalized = objective.stack_log_likelihoods(hierarchy, batch, capacity, call_penalty=penalty)
+  procedures, counters = np.asarray(batch.procedures), np.asarray(batch.counters)
+  cost = [sum(penalty[level] * agreement.call_starts(procedures[b, :n], counters[b, :n], level).sum()
+              for level in (1, 2)) for b, n in enumerate(np.asarray(batch.length))]
+  assert min(cost) > 1  # every demonstration makes calls at both levels
+  np.testing.assert_allclose(np.asarray(plain) - np.asarray(penalized), cost, rtol=1e-4)
+  # Without annotation every stack pays for its calls: the likelihood falls, and falls further with a larger λ.
+  weak = batch._replace(procedures=np.full_like(procedures, -1), counters=np.full_like(counters, -1),
+                        strong=np.zeros_like(batch.strong))
+  falls = [np.asarray(objective.stack_log_likelihoods(hierarchy, weak, capacity)
+                      - objective.stack_log_likelihoods(hierarchy, weak, capacity, call_penalty=(0.0, 0.0, lam)))
+           for lam in (0.1, 0.4)]
+  assert np.all(0 < falls[0]) and np.all(falls[0] < falls[1])
 
 
 @pytest.mark.slow

@@ -172,7 +172,7 @@ def test_the_training_command_refuses_seeds_with_flags_they_do_not_go_with(tmp_p
       (BASE, "--seed=2", "--seeds and --seed: give one"), (BASE, "--seeds=1,1", "distinct"),
       (without_root, "--training=joint", "--seeds trains level-wise only; this run trains jointly (--training=joint)"),
       (nanocraft, "--num_strong=1", "jointly (--training=joint, the task default): add --training=levelwise"),
-      (nanocraft, "--call_penalty=0,1,0", "--call_penalty: applies to level-wise training only")]
+      (nanocraft, "--strong_warmup=10", "--strong_warmup: applies to level-wise training only")]
   # Run at the same time, each with its own workdir.
   procs = processes.run_all([command + ["--seeds=0,1", flag, f"--workdir={tmp_path / f'bad{i}'}"]
                              for i, (command, flag, _) in enumerate(cases)], capture_output=True, text=True,
