@@ -1,6 +1,7 @@
 """Settings for a pytest run: a persistent compilation cache in a fresh temporary directory, so that the many
 identical computations the training tests compile again (each training run jits its own closures) are
-compiled by XLA once per run, and removed at the end of the run; XLA without LLVM's optimizations. Also puts
+compiled by XLA once per run, and removed at the end of the run; with pytest-xdist (`-n 2`), the workers
+share the cache of the process that started them. XLA without LLVM's optimizations. Also puts
 the checkout on the PYTHONPATH of the commands the tests run: experiments/ is not installed, and
 `python -m experiments.X` must find it whatever the working directory."""
 import os
@@ -13,7 +14,8 @@ import jax
 ROOT = str(pathlib.Path(__file__).resolve().parents[1])
 os.environ["PYTHONPATH"] = os.pathsep.join([ROOT, *filter(None, [os.environ.get("PYTHONPATH")])])
 
-CACHE = tempfile.mkdtemp(prefix="php_jax_xla_cache_")
+WORKER = "PYTEST_XDIST_WORKER" in os.environ  # a pytest-xdist worker: its parent made the cache and removes it
+CACHE = os.environ["JAX_COMPILATION_CACHE_DIR"] if WORKER else tempfile.mkdtemp(prefix="php_jax_xla_cache_")
 jax.config.update("jax_compilation_cache_dir", CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
@@ -28,4 +30,5 @@ os.environ["XLA_FLAGS"] = " ".join(filter(None, ["--xla_backend_optimization_lev
 
 def pytest_sessionfinish(session, exitstatus):
   """Leaves nothing behind in the temporary directory: the cache goes with the run."""
-  shutil.rmtree(CACHE, ignore_errors=True)
+  if not WORKER:
+    shutil.rmtree(CACHE, ignore_errors=True)
