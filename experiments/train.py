@@ -159,7 +159,8 @@ def _experiment(task_name: str, task, seed: int, num_demos: int, num_test: int, 
                                    for key, problems in test_sets.items()},
                     {"seed": seed, "num_demos": num_demos, "num_strong": int(demos.strong.sum()),
                      "num_test": num_test, **({"annotated": annotated} if annotated is not None else {})},
-                    action_name=task.action_name)
+                    action_name=task.action_name,
+                    validation_demos=datasets.problem_demonstrations(task, validation, 0))
 
 
 def main_for(task_name: str | None):

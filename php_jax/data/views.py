@@ -88,6 +88,12 @@ def device_demonstrations(demos: Demonstration, mesh: Mesh | None = None) -> tup
   return sharding.put(sharding.pad(strong_annotations_only(demos), mesh), mesh)
 
 
+def demonstration_buckets(demos: Demonstration, num_buckets: int,
+                          mesh: Mesh | None = None) -> list[tuple[Demonstration, jax.Array]]:
+  """`length_buckets` of demos as device arrays (`device_demonstrations`): (batch, real [B]) each."""
+  return [device_demonstrations(bucket, mesh) for bucket in length_buckets(demos, num_buckets)]
+
+
 def stack_seeds(buckets: list[list[LevelView]], mesh: Mesh | None = None) -> list[LevelView]:
   """Several seeds' length buckets (buckets[s][i]: seed s's bucket i, as `length_buckets` makes them; every
   seed with as many) → bucket i of every seed stacked [S, B_i, ...] as device arrays, with annotations only on

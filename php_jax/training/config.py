@@ -27,15 +27,18 @@ class ConfigError(ValueError):
     self.field, self.message = field, message
 
 
-def _setting(default: Any, help: str, kind: str, choices: tuple[str, ...] = (), levelwise_only: bool = False):
+def _setting(default: Any, help: str, kind: str, choices: tuple[str, ...] = (), levelwise_only: bool = False,
+             joint_off: tuple | None = None):
   """A TrainConfig field. kind says how a flag spells it: int, float, str (one of choices), or a per-level list
-  (root first) of ints, floats, bools or ints_or_none ('none' for no value)."""
+  (root first) of ints, floats, bools or ints_or_none ('none' for no value). joint_off: for a setting of joint
+  training only, the values that leave it off (any other asks for joint training)."""
   return dataclasses.field(default=default, metadata={"help": help, "kind": kind, "choices": choices,
-                                                      "levelwise_only": levelwise_only})
+                                                      "levelwise_only": levelwise_only, "joint_off": joint_off})
 
 
 MAX_SEED = 2**31 - 1
 WEAK_ONLY_ANNEALING = 1.5  # the start temperature of joint runs without annotation (RESULTS.md, NanoCraft weak only)
+DISCOVERY_SPLIT_ROUNDS = 2  # split-search rounds of joint runs without annotation whose actions show loops
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,7 +94,26 @@ class TrainConfig:
       None, "Joint training: the posterior temperature T ≥ 1 at the first iteration (deterministic annealing): "
       "the loss takes its expectation over call stacks under P(stack | actions)^(1/T), flatter for T > 1, T "
       f"falling linearly to 1 at half the iterations; 1: none; unset: {WEAK_ONLY_ANNEALING} where no "
-      "demonstration is annotated (it segments better there; RESULTS.md), else 1.", "float")
+      "demonstration is annotated (it segments better there; RESULTS.md), else 1.", "float", joint_off=(None, 1))
+  segment_iterations: int | None = _setting(
+      None, "Joint training: for this many of the first iterations, the demonstrations without annotation take "
+      "the counters of the two lowest levels from the loop segmentation of their actions, as a partial "
+      "annotation (an action value that never follows itself in the demonstrations ends the call it follows, "
+      "any other starts a call; consecutive calls that start with the same action are one call of the level "
+      "above); 0: none; unset: half of --iterations where no demonstration is annotated and the actions show "
+      "loops (one value follows itself, another never does), else 0.", "int", joint_off=(None, 0))
+  split_rounds: int | None = _setting(
+      None, "Joint training: rounds of the split search after the iterations. Each candidate move gives a "
+      "procedure that two callers share (or that the root calls at two of its counters) a copy for one of them, "
+      "in place of the least-used procedure of its level; every candidate and the unchanged hierarchy train "
+      "--split_iterations more, and the one most likely on the validation demonstrations is kept; a round "
+      f"that keeps the unchanged one ends the search. unset: {DISCOVERY_SPLIT_ROUNDS} where "
+      "--segment_iterations is on by default, else 0.", "int", joint_off=(None, 0))
+  split_iterations: int = _setting(150, "Adam iterations each candidate of a split-search round trains.", "int",
+                                   joint_off=(150,))
+  split_hint_iterations: int = _setting(
+      50, "Of those, the first iterations of a split by the root's counter, which learn it from the relabelled "
+      "most likely level-1 procedures as a partial annotation.", "int", joint_off=(50,))
   call_graph: str = _setting("all", "Which operations each procedure may take. all: any; calls: a procedure the "
                              "annotated demonstrations show calling may call only what they show it calling; "
                              "operations: also, a lowest-level procedure only the elementary action values they "
@@ -113,7 +135,8 @@ class TrainConfig:
     for name in ("root_hidden", "capacity", "eval_every", "length_buckets"):
       if not (_is_int(getattr(self, name)) and getattr(self, name) >= 1):
         raise ConfigError(name, f"must be a positive integer; got {getattr(self, name)!r}")
-    for name in ("iterations", "strong_warmup", "seed"):  # 0 iterations: a warm-up alone
+    # 0 iterations: a warm-up alone
+    for name in ("iterations", "strong_warmup", "seed", "split_iterations", "split_hint_iterations"):
       if not (_is_int(getattr(self, name)) and getattr(self, name) >= 0):
         raise ConfigError(name, f"must be a non-negative integer; got {getattr(self, name)!r}")
     if self.init_seed is not None and not (_is_int(self.init_seed) and 0 <= self.init_seed):
@@ -130,9 +153,19 @@ class TrainConfig:
     if self.anneal_temperature is not None and not (_is_number(self.anneal_temperature)
                                                     and self.anneal_temperature >= 1):
       raise ConfigError("anneal_temperature", f"must be a finite number ≥ 1; got {self.anneal_temperature!r}")
-    if self.anneal_temperature not in (None, 1) and self.training == "levelwise":
-      raise ConfigError("anneal_temperature", f"applies to joint training only (training=joint); this "
-                        f"config trains {self.training!r}")
+    for name in ("segment_iterations", "split_rounds"):
+      if getattr(self, name) is not None and not (_is_int(getattr(self, name)) and getattr(self, name) >= 0):
+        raise ConfigError(name, f"must be a non-negative integer; got {getattr(self, name)!r}")
+    if (self.segment_iterations or 0) > self.iterations:
+      raise ConfigError("segment_iterations", f"must be at most --iterations ({self.iterations}); got "
+                        f"{self.segment_iterations}")
+    if self.split_hint_iterations > self.split_iterations:
+      raise ConfigError("split_hint_iterations", f"must be at most --split_iterations ({self.split_iterations}); "
+                        f"got {self.split_hint_iterations}")
+    joint_asked = [f.name for f in fields() if asks_joint(self, f)]
+    if joint_asked and self.training == "levelwise":
+      raise ConfigError(joint_asked[0], f"applies to joint training only (training=joint); this config trains "
+                        f"{self.training!r}")
     if not (isinstance(self.hidden, tuple) and self.hidden and all(_is_int(h) and h >= 1 for h in self.hidden)):
       raise ConfigError("hidden", f"must list positive layer sizes; got {self.hidden!r}")
     for name, (allowed, what) in _PER_LEVEL.items():
@@ -158,6 +191,12 @@ _PER_LEVEL = {  # the per-level settings: each value's check, and its words in a
     "tau_limit": (lambda v: v is None or (_is_int(v) and v >= 0), "non-negative integer or None"),
     "min_capacity": (lambda v: _is_int(v) and v >= 0, "non-negative integer"),
     "call_penalty": (lambda v: _is_number(v) and v >= 0, "finite non-negative number")}
+
+
+def asks_joint(config: TrainConfig, field: dataclasses.Field) -> bool:
+  """Whether config's value of field turns on a setting of joint training only."""
+  off = field.metadata["joint_off"]
+  return off is not None and getattr(config, field.name) not in off
 
 
 def fields() -> tuple[dataclasses.Field, ...]:

@@ -9,16 +9,16 @@ from __future__ import annotations
 import time
 from typing import Callable
 
-import jax
 import numpy as np
-from jax.sharding import Mesh
+from flax import nnx
 
 from php_jax import fitting, sharding
 from php_jax.data import views
 from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy
-from php_jax.training import call_graph, checkpoint, train
+from php_jax.training import call_graph, checkpoint, segmentation, split_search, train
+from php_jax.training.config import ConfigError
 from php_jax.training.objective import annealed_temperature, counter_capacity, stack_loss
 
 
@@ -34,43 +34,74 @@ def joint_capacity(demos: Demonstration, spec: HierarchySpec, config: train.Trai
                for level in range(spec.num_levels))
 
 
-def _buckets(demos: Demonstration, num_buckets: int,
-             mesh: Mesh | None = None) -> list[tuple[Demonstration, jax.Array]]:
-  """`views.length_buckets` of demos as device arrays (`views.device_demonstrations`): (batch, real [B])."""
-  return [views.device_demonstrations(bucket, mesh) for bucket in views.length_buckets(demos, num_buckets)]
-
-
 def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainConfig,
                 validate: Callable[[PHPHierarchy], float] | None = None, log: Callable[[dict], None] = print,
-                checkpoint_path: str | None = None) -> tuple[PHPHierarchy, dict]:
+                checkpoint_path: str | None = None,
+                validation_demos: Demonstration | None = None) -> tuple[PHPHierarchy, dict]:
   """Trains every level together (config.training unset or "joint", else ValueError) for config.iterations
-  Adam iterations, keeping the snapshot with the best validate(hierarchy) (config.snapshot's rule).
-  Checkpoints and resumes as train.train_hierarchy does
-  (the same log protocol); a checkpoint made with other settings raises CheckpointError. Returns the
-  hierarchy and a report {capacity, losses, best_iteration, validation, seconds}."""
+  Adam iterations, keeping the snapshot with the best validate(hierarchy) (config.snapshot's rule); the
+  first config.segment_iterations of them on the loop segmentation's partial annotation (`segmentation`;
+  ConfigError if the actions show no loops). Then config.split_rounds rounds of the split search
+  (`split_search`), judged on validation_demos (default: demos), each logged as {"split_search": entry}.
+  Checkpoints and resumes as train.train_hierarchy does (the same log protocol); a checkpoint made with
+  other settings raises CheckpointError. Returns the hierarchy and a report {capacity, losses,
+  best_iteration, validation, seconds, and split_search: the rounds' entries where there were any}."""
   config = train.prepare(spec, demos, train.in_mode(config, "joint"))
-  hierarchy = train.make_hierarchy(spec, config, call_graph.resolve(config.call_graph, demos, spec))
+  graph = call_graph.resolve(config.call_graph, demos, spec)
+  if config.split_rounds and any(g is not None for g in graph):
+    raise ConfigError("split_rounds", "needs every procedure free to take any operation; this run's call graph "
+                      f"restricts some (the hierarchy's, or --call_graph={config.call_graph}'s)")
+  hierarchy = train.make_hierarchy(spec, config, graph)
   settings = train.run_settings(spec, demos, config)
   capacity = joint_capacity(demos, spec, config)
+  hinted = segmentation.hinted_demonstrations(demos, capacity) if config.segment_iterations else None
+  if config.segment_iterations and hinted is None:
+    raise ConfigError("segment_iterations", "the demonstrations' actions show no loops to segment (no action "
+                      "value follows itself, or every one does); use 0")
   saved = checkpoint.read_training(checkpoint_path)
-  counted_log, resume = train.CountedLog(log), None
+  counted_log, resume, report = train.CountedLog(log), None, None
   if saved is not None:
     counted_log.resumed(train.resume_from(checkpoint_path, saved, settings, hierarchy))
     resume = checkpoint.restore_progress(checkpoint_path, saved, hierarchy) if saved[0]["progress"] else None
-  if resume is None:
+    report = saved[0]["report"] or None
+  if resume is None and report is None:
     counted_log({"training": "joint", "capacity": list(capacity)})
 
-  def save(progress: fitting.Progress) -> None:
+  def save(progress: fitting.Progress | None, report: dict | None = None) -> None:
     if checkpoint_path:
-      checkpoint.write_training(checkpoint_path, hierarchy, {"level": "joint", "report": {}, "settings": settings,
-                                                             "logged": counted_log.logged}, progress, {})
+      checkpoint.write_training(checkpoint_path, hierarchy, {"level": "joint", "report": report or {},
+                                                             "settings": settings, "logged": counted_log.logged},
+                                progress, {})
 
-  start = time.time()
+  if report is None:
+    start = time.time()
+    progress = _fit(hierarchy, demos, hinted, capacity, config, resume,
+                    fitting.Hooks((lambda it, loss: validate(hierarchy)) if validate else None, counted_log,
+                                  save if checkpoint_path else None))
+    report = {"capacity": list(capacity), "losses": progress.losses, "best_iteration": progress.best_iteration,
+              "validation": progress.best_score, "seconds": time.time() - start}
+    if config.split_rounds:
+      report["split_search"] = []
+      save(None, report)
+  if config.split_rounds:
+    start, seconds_before = time.time(), report["seconds"]
+
+    def on_round(kept: PHPHierarchy, rounds: list[dict]) -> None:
+      nnx.update(hierarchy, nnx.state(kept, nnx.Param))
+      counted_log({"split_search": rounds[-1]})
+      report.update(split_search=rounds, seconds=seconds_before + time.time() - start)
+      save(None, report)
+
+    judge = demos if validation_demos is None else validation_demos
+    split_search.search(hierarchy, capacity, demos, judge, config, report["split_search"], on_round)
+  return hierarchy, report
+
+
+def _fit(hierarchy: PHPHierarchy, demos: Demonstration, hinted: Demonstration | None, capacity: tuple[int, ...],
+         config: train.TrainConfig, resume: fitting.Progress | None, hooks: fitting.Hooks) -> fitting.Progress:
+  """config.iterations of full-batch Adam on the stack loss (annealed where config.anneal_temperature ≠ 1),
+  the first config.segment_iterations on hinted, the rest on demos; from resume where given."""
   mesh = sharding.data_mesh()  # with more than one device, each bucket is split over all of them
-  buckets = _buckets(demos, config.length_buckets, mesh)
-  schedule = config.schedule()
-  hooks = fitting.Hooks((lambda it, loss: validate(hierarchy)) if validate else None, counted_log,
-                        save if checkpoint_path else None)
   annealed = config.anneal_temperature != 1
   if annealed:  # the loss logged while T > 1 is the tempered one
     def loss(h, iteration, buckets):
@@ -79,7 +110,13 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   else:
     def loss(h, buckets):
       return stack_loss(h, buckets, capacity, config.strong_weight, call_penalty=config.call_penalty)
-  progress = fitting.fit(hierarchy, loss, schedule, hooks, resume, args=(buckets,), mesh=mesh,
-                         pass_iteration=annealed)
-  return hierarchy, {"capacity": list(capacity), "losses": progress.losses, "best_iteration": progress.best_iteration,
-                     "validation": progress.best_score, "seconds": time.time() - start}
+
+  def fit(data: Demonstration, iterations: int, resume: fitting.Progress | None) -> fitting.Progress:
+    return fitting.fit(hierarchy, loss, config.schedule(iterations), hooks, resume,
+                       args=(views.demonstration_buckets(data, config.length_buckets, mesh),), mesh=mesh,
+                       pass_iteration=annealed)
+
+  if hinted is not None and (resume is None or resume.iteration < config.segment_iterations):
+    resume = fit(hinted, config.segment_iterations, resume)
+    nnx.update(hierarchy, resume.params)  # fit left the best-validated snapshot; training goes on from the last
+  return fit(demos, config.iterations, resume)

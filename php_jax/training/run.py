@@ -55,6 +55,8 @@ class Experiment:
     action_name: an elementary action (a list of ints, one per factor) → its text, for messages.
     numbers: per demonstration, its number in messages (e.g. its place among a file's demonstrations, from 0);
       None: its index in demos.
+    validation_demos: held-out demonstrations, on which the split search judges its candidates
+      (`TrainConfig.split_rounds`); None: the training demonstrations.
   """
   name: str
   spec: HierarchySpec
@@ -64,6 +66,7 @@ class Experiment:
   extra: dict
   action_name: Callable[[list[int]], str] = str
   numbers: tuple[int, ...] | None = None
+  validation_demos: Demonstration | None = None
 
 
 def print_row(row: dict) -> None:
@@ -314,7 +317,8 @@ def _train_php(experiment: Experiment, config: TrainConfig, log, path: str):
   level-wise, {"joint": summary} joint."""
   spec, demos, validate = experiment.spec, experiment.demos, experiment.validate
   if config.training == "joint":
-    hierarchy, report = joint.train_joint(spec, demos, config, validate, log=log, checkpoint_path=path)
+    hierarchy, report = joint.train_joint(spec, demos, config, validate, log=log, checkpoint_path=path,
+                                          validation_demos=experiment.validation_demos)
     return hierarchy, {"joint": _summary(report)}, report["capacity"]
   hierarchy, report = train.train_hierarchy(spec, demos, config, validate, log=log, checkpoint_path=path)
   return hierarchy, _levels(report), [report[level]["capacity"] for level in range(spec.num_levels)]

@@ -23,8 +23,9 @@ from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.demos import validate as validate_demos
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy, RootLSTM, RootMLP
-from php_jax.training import call_graph, checkpoint
-from php_jax.training.config import WEAK_ONLY_ANNEALING, TrainConfig, check_levels, fields
+from php_jax.training import call_graph, checkpoint, segmentation
+from php_jax.training.config import (DISCOVERY_SPLIT_ROUNDS, WEAK_ONLY_ANNEALING, TrainConfig, asks_joint,
+                                     check_levels, fields)
 from php_jax.training.objective import LevelModel, counter_capacity, decode, level_loss
 
 
@@ -145,25 +146,34 @@ def prepare(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> T
 def resolved(config: TrainConfig, demos: Demonstration, flat_lstm: bool = False) -> TrainConfig:
   """config with the settings that follow the demonstrations resolved where unset (as results.json and a
   checkpoint record them): the balanced strong weight (`balanced_strong_weight`); the training mode
-  (`training_mode`; levelwise for the flat LSTM, which has no levels); and the annealing: WEAK_ONLY_ANNEALING
-  for a PHP trained jointly on demonstrations none of which is annotated, else 1 (none)."""
+  (`training_mode`; levelwise for the flat LSTM, which has no levels); and for a PHP trained jointly on
+  demonstrations none of which is annotated, WEAK_ONLY_ANNEALING (else 1: none) and, where their actions
+  show loops (`segmentation.attached_actions`), the loop segmentation for half the iterations and
+  DISCOVERY_SPLIT_ROUNDS of the split search (else 0 and 0)."""
   strong = np.asarray(demos.strong)
   strong_weight = balanced_strong_weight(strong) if config.strong_weight is None else config.strong_weight
   training = training_mode(config, bool(strong.any())) if not flat_lstm else config.training or "levelwise"
-  anneal = config.anneal_temperature
-  if anneal is None:
-    weak_only = not flat_lstm and training == "joint" and not strong.any()
-    anneal = WEAK_ONLY_ANNEALING if weak_only else 1.0
-  return dataclasses.replace(config, strong_weight=strong_weight, training=training, anneal_temperature=anneal)
+  weak_only = not flat_lstm and training == "joint" and not strong.any()
+  loops = weak_only and None in (config.segment_iterations, config.split_rounds) and \
+      segmentation.attached_actions(demos) is not None
+
+  def unset_or(value, default):
+    return default if value is None else value
+
+  return dataclasses.replace(
+      config, strong_weight=strong_weight, training=training,
+      anneal_temperature=unset_or(config.anneal_temperature, WEAK_ONLY_ANNEALING if weak_only else 1.0),
+      segment_iterations=unset_or(config.segment_iterations, config.iterations // 2 if loops else 0),
+      split_rounds=unset_or(config.split_rounds, DISCOVERY_SPLIT_ROUNDS if loops else 0))
 
 
 def training_mode(config: TrainConfig, annotated: bool) -> str:
-  """config.training, or where unset: "joint" if annealing is asked for, or if no demonstration is annotated
-  and every level-wise-only setting is at its default; else "levelwise"."""
+  """config.training, or where unset: "joint" if a setting of joint training only is on (`asks_joint`), or
+  if no demonstration is annotated and every level-wise-only setting is at its default; else "levelwise"."""
   if config.training is not None:
     return config.training
   levelwise_asked = any(getattr(config, f.name) != f.default for f in fields() if f.metadata["levelwise_only"])
-  if config.anneal_temperature not in (None, 1) or not (annotated or levelwise_asked):
+  if any(asks_joint(config, f) for f in fields()) or not (annotated or levelwise_asked):
     return "joint"
   return "levelwise"
 
@@ -192,7 +202,8 @@ def run_settings(spec: HierarchySpec, demos: Demonstration, config: TrainConfig)
 
 
 # Settings whose default differs from what runs did before the setting existed.
-_BEFORE_THEY_EXISTED = {"snapshot": "earliest", "anneal_temperature": 1.0, "training": "levelwise"}
+_BEFORE_THEY_EXISTED = {"snapshot": "earliest", "anneal_temperature": 1.0, "training": "levelwise",
+                        "segment_iterations": 0, "split_rounds": 0}
 
 
 def saved_config(saved: dict) -> dict:

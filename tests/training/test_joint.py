@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from php_jax.data import agreement
+from php_jax.data import agreement, views
 from php_jax.envs import datasets, tasks
 from php_jax.training import checkpoint, joint, objective, train
 from php_jax.training.config import WEAK_ONLY_ANNEALING
@@ -34,7 +34,7 @@ def test_annealing_tempers_the_loss_from_its_start_temperature_down_to_1_at_half
                              seed=1, length_buckets=1, anneal_temperature=4.0)
   hierarchy = train.make_hierarchy(NANOCRAFT.spec, train.prepare(NANOCRAFT.spec, batch, config), None)
   capacity = joint.joint_capacity(batch, NANOCRAFT.spec, config)
-  [(bucket, real)] = joint._buckets(batch, 1)
+  [(bucket, real)] = views.demonstration_buckets(batch, 1)
   want = [float(objective.stack_loss(hierarchy, [(bucket, real)], capacity, 1.0, t)) for t in (4.0, 1.0)]
   _, report = joint.train_joint(NANOCRAFT.spec, batch, dataclasses.replace(config, strong_weight=1.0),
                                 log=lambda row: None)

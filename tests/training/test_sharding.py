@@ -103,7 +103,7 @@ graphdef, params, rest = nnx.split(hierarchy, nnx.Param, ...)
 capacities = joint.joint_capacity(demos, task.spec, config)
 joint_grad = jax.jit(jax.value_and_grad(
     lambda p, b: objective.stack_loss(nnx.merge(graphdef, p, rest), b, capacities, config.strong_weight)))
-one, many = joint._buckets(demos, 1), joint._buckets(demos, 1, mesh)
+one, many = views.demonstration_buckets(demos, 1), views.demonstration_buckets(demos, 1, mesh)
 out["joint"] = compare(joint_grad, params, one, many)
 out["joint_shards"] = shards(many)
 print(json.dumps(out))
@@ -117,7 +117,7 @@ def test_one_device_batches_are_unpadded_and_unsplit():
   batch = views.device_view(view)
   assert batch.observations.shape == view.observations.shape and np.all(batch.real)
   np.testing.assert_array_equal(batch.actions, view.actions)
-  for bucket, real in joint._buckets(demos, 2):
+  for bucket, real in views.demonstration_buckets(demos, 2):
     assert len(bucket.length) in (3, 4) and np.all(real)
 
 
