@@ -80,6 +80,13 @@ class TrainingProgress:
       self.console.print(f"resumed from the checkpoint: level {row['level']}, iteration {row['iteration']}")
     elif "capacity" in row:
       self._phase(row.get("level", "joint"))
+    elif "split_rounds" in row:
+      self.tasks["split"] = self.progress.add_task("split search", total=row["split_rounds"],
+                                                   status="round 1 training its candidates")
+    elif "split_search" in row and "split" in self.tasks:
+      entry = row["split_search"]
+      self.progress.update(self.tasks["split"], completed=entry["round"] + 1,
+                           status=f"kept: {entry['kept']} (log-likelihood per step {entry['log_likelihood_per_step']:.4g})")
     elif "iteration" in row:
       phase = row.get("level", "joint" if self.num_levels else "flat")
       task = self.tasks.get(phase) or self._phase(phase)

@@ -29,7 +29,7 @@ def write(workdir: str, demos: Demonstration | None = None) -> str:
   flat = results.get("model") == "flat_lstm"
   run = None if flat else run_view.load(workdir)  # a hierarchy that cannot be read is refused
   title = f"{results.get('task', 'run')}: {workdir}"
-  parts = [_summary(results), "<h2>Learning curves</h2>"]
+  parts = [_summary(results), *_split_search(results), "<h2>Learning curves</h2>"]
   curves = pictures.curves_figure(_metrics(workdir), "flat LSTM" if flat else "every level at once")
   parts.append(pictures.svg(curves) if curves else "<p>No training iterations were logged.</p>")
   if flat:
@@ -107,6 +107,15 @@ def _summary(results: dict) -> str:
   tested = "".join(f"<tr><td>{html.escape(str(k))}</td><td>{_number(v)}</td></tr>" for k, v in test.items())
   return (f"<h2>Settings</h2><table>{settings}</table>"
           f"<h2>Results</h2><table><tr><th>test set</th><th>result</th></tr>{tested}</table>")
+
+
+def _split_search(results: dict) -> list[str]:
+  """A joint run's split-search rounds as a table (none where it made none)."""
+  rounds = (results.get("joint") or {}).get("split_search") or []
+  rows = "".join(f"<tr><td>{r['round'] + 1}</td><td>{html.escape(str(r['kept']))}</td>"
+                 f"<td>{_number(r['log_likelihood_per_step'])}</td><td>{len(r['candidates'])}</td></tr>" for r in rounds)
+  return [f"<h2>Split search</h2><table><tr><th>round</th><th>kept</th><th>validation log-likelihood per step</th>"
+          f"<th>candidates</th></tr>{rows}</table>"] if rounds else []
 
 
 def _number(value) -> str:

@@ -92,6 +92,8 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
       report.update(split_search=rounds, seconds=seconds_before + time.time() - start)
       save(None, report)
 
+    if not report["split_search"]:
+      counted_log({"split_rounds": config.split_rounds})
     judge = demos if validation_demos is None else validation_demos
     split_search.search(hierarchy, capacity, demos, judge, config, report["split_search"], on_round)
   return hierarchy, report

@@ -24,9 +24,9 @@ import numpy as np
 from flax import nnx
 
 from php_jax import fitting
-from php_jax.analysis import decoding
 from php_jax.data import agreement, views
 from php_jax.demos import UNKNOWN, Demonstration
+from php_jax.inference import stack_lattice
 from php_jax.model import PHPHierarchy
 from php_jax.training import objective
 from php_jax.training.config import TrainConfig
@@ -50,7 +50,7 @@ class Move(NamedTuple):
 def candidate_moves(hierarchy: PHPHierarchy, capacity: tuple[int, ...], demos: Demonstration) -> list[Move]:
   """The moves the most likely stacks of demos suggest: up to MOVES_PER_KIND splits by caller at each level
   from 2 down, then up to MOVES_PER_KIND splits by the root's counter at level 1."""
-  decoded = decoding.decode(hierarchy, capacity, demos)
+  decoded = most_likely_stacks(hierarchy, capacity, demos)
   spec, lengths = hierarchy.spec, np.asarray(demos.length)
   stacks = [(decoded.procedures[b, :n], decoded.counters[b, :n]) for b, n in enumerate(lengths)]
   moves = []
@@ -71,7 +71,7 @@ def candidate_moves(hierarchy: PHPHierarchy, capacity: tuple[int, ...], demos: D
   return moves + _counter_moves(decoded, stacks, demos, spec.num_procs(1))[:MOVES_PER_KIND]
 
 
-def _counter_moves(decoded: decoding.Decoded, stacks: list, demos: Demonstration, num_procs: int) -> list[Move]:
+def _counter_moves(decoded: stack_lattice.StackPath, stacks: list, demos: Demonstration, num_procs: int) -> list[Move]:
   """Splits by the root's counter at level 1, each with its hinted demonstrations."""
   counts = np.zeros((num_procs, decoded.counters.shape[1] + 1), int)  # [level-1 procedure, root counter] calls
   for procedures, counters in stacks:
@@ -108,13 +108,34 @@ def apply(hierarchy: PHPHierarchy, move: Move, key: jax.Array, noise: float = 0.
       value = param[...]
       key, sub = jax.random.split(key)
       jitter = noise * jnp.std(value[move.source]) * jax.random.normal(sub, value[move.source].shape)
-      param.value = value.at[move.copy].set(value[move.source] + jitter)
+      param[...] = value.at[move.copy].set(value[move.source] + jitter)
   if move.caller is not None:
     head = hierarchy.levels[move.level - 1].operation
     c, p, q = move.caller, move.source, move.copy
     for param in (head.kernels[-1], head.biases[-1]):
       value = param[...]
-      param.value = value.at[c, ..., q].set(value[c, ..., p]).at[c, ..., p].set(value[c, ..., q])
+      param[...] = value.at[c, ..., q].set(value[c, ..., p]).at[c, ..., p].set(value[c, ..., q])
+
+
+def most_likely_stacks(hierarchy: PHPHierarchy, capacity: tuple[int, ...],
+                       demos: Demonstration) -> stack_lattice.StackPath:
+  """Each demonstration's most likely stack under the hierarchy: procedures, counters [B, T, d] numpy (root
+  first; UNKNOWN on padding) and log_prob [B]."""
+  return jax.device_get(_viterbi(nnx.graphdef(hierarchy), nnx.state(hierarchy), capacity, demos.observations,
+                                 demos.actions, demos.length))
+
+
+@functools.partial(jax.jit, static_argnums=(0, 2))
+def _viterbi(graphdef: nnx.GraphDef, state: nnx.State, capacity: tuple[int, ...], observations: jax.Array,
+             actions: jax.Array, length: jax.Array) -> stack_lattice.StackPath:
+  hierarchy = nnx.merge(graphdef, state)
+
+  def one(obs, act, n):
+    path = stack_lattice.viterbi(objective.stack_inputs(hierarchy, capacity, obs, act, n))
+    valid = (jnp.arange(act.shape[0]) < n)[:, None]
+    return path._replace(procedures=jnp.where(valid, path.procedures, UNKNOWN),
+                         counters=jnp.where(valid, path.counters, UNKNOWN))
+  return jax.vmap(one)(observations, actions, length)
 
 
 def log_likelihood_per_step(candidates: list[PHPHierarchy], capacity: tuple[int, ...],

@@ -44,6 +44,12 @@ def test_joint_and_flat_runs_and_other_seeds():
   text = _display(config, 3, [{"training": "joint", "capacity": [9, 4, 3], "seconds": 1.0},
                               {"iteration": 30, "loss": 2.0, "seconds": 2.0}])
   assert "every level at once" in text and "30/60" in text
+  text = _display(config, 3, [{"training": "joint", "capacity": [9, 4, 3], "seconds": 1.0},
+                              {"iteration": 60, "loss": 2.0, "seconds": 2.0}, {"split_rounds": 2, "seconds": 3.0},
+                              {"split_search": {"round": 0, "kept": "level 2: 3 becomes a copy of 1 for caller 0",
+                                                "log_likelihood_per_step": -0.01234, "candidates": []}}])
+  assert "split search" in text and "1/2" in text and "kept: level 2: 3 becomes a copy of 1 for caller 0" in text
+  assert "-0.01234" in text
   text = _display(config, None, [{"iteration": 60, "loss": 0.3, "seconds": 2.0}])
   assert "flat LSTM" in text and "60/60" in text
   text = _display(config, 3, [{"seed": 1, "level": 2, "capacity": 4, "seconds": 1.0},

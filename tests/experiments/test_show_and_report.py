@@ -76,6 +76,21 @@ def test_the_report_holds_settings_results_curves_call_graph_and_three_drawn_dem
   assert run_report.write_if_stale(str(fitted)) == path
 
 
+def test_a_joint_runs_split_search_is_reported_round_by_round(fitted, tmp_path):
+  workdir = tmp_path / "joint"
+  shutil.copytree(fitted, workdir)
+  results = json.loads((workdir / run.RESULTS_FILE).read_text())
+  rounds = [{"round": 0, "kept": "level 2: 3 becomes a copy of 1 for caller 0", "log_likelihood_per_step": -0.0381,
+             "candidates": [["unchanged", -0.3], ["level 2: 3 becomes a copy of 1 for caller 0", -0.0381]]},
+            {"round": 1, "kept": "unchanged", "log_likelihood_per_step": -0.0004, "candidates": [["unchanged", -0.0004]]}]
+  (workdir / run.RESULTS_FILE).write_text(json.dumps({**results, "joint": {"split_search": rounds}}))
+  page = pathlib.Path(run_report.write(str(workdir))).read_text()
+  assert "<h2>Split search</h2>" in page and "<td>level 2: 3 becomes a copy of 1 for caller 0</td><td>-0.038</td>" in page
+  assert "<td>2</td><td>unchanged</td>" in page
+  (workdir / run.RESULTS_FILE).write_text(json.dumps({**results, "joint": {"seconds": 1.0}}))
+  assert "Split search" not in pathlib.Path(run_report.write(str(workdir))).read_text()
+
+
 def test_a_flat_lstm_is_refused_by_show_and_reported_without_stacks(tmp_path):
   workdir = str(tmp_path / "flat")
   experiment = _flat_experiment()

@@ -70,6 +70,13 @@ def test_flags_override_the_task_which_overrides_the_defaults():
                                           "(--training=joint): add --training=levelwise or drop --root"),
     (["--training=joint", "--anneal_temperature=0.5"], "--anneal_temperature: must be a finite number ≥ 1"),
     (["--training=levelwise", "--anneal_temperature=3"], "--anneal_temperature: applies to joint training only"),
+    (["--split_rounds=-1"], "--split_rounds: must be a non-negative integer; got -1"),
+    (["--segment_iterations=-5"], "--segment_iterations: must be a non-negative integer; got -5"),
+    (["--iterations=100", "--segment_iterations=200"], "--segment_iterations: must be at most --iterations (100)"),
+    (["--split_iterations=40", "--split_hint_iterations=50"],
+     "--split_hint_iterations: must be at most --split_iterations (40); got 50"),
+    (["--training=levelwise", "--split_rounds=2"], "--split_rounds: applies to joint training only"),
+    (["--training=levelwise", "--segment_iterations=10"], "--segment_iterations: applies to joint training only"),
 ])
 def test_bad_flags_are_refused_naming_the_flag(argv, message):
   with pytest.raises(config_flags.UsageError) as refused:

@@ -9,8 +9,8 @@ from flax import nnx
 
 from php_jax.data import agreement, views
 from php_jax.envs import datasets, tasks
-from php_jax.training import checkpoint, joint, objective, train
-from php_jax.training.config import WEAK_ONLY_ANNEALING
+from php_jax.training import checkpoint, joint, objective, segmentation, train
+from php_jax.training.config import DISCOVERY_SPLIT_ROUNDS, WEAK_ONLY_ANNEALING, ConfigError
 
 NANOCRAFT = tasks.get("nanocraft")
 
@@ -59,8 +59,35 @@ def test_runs_without_annotation_train_jointly_and_anneal_by_default():
   assert mode(mixed, dataclasses.replace(unset, anneal_temperature=2.0)) == ("joint", 2.0)
   assert mode(weak, dataclasses.replace(joint_config, anneal_temperature=1.0)) == ("joint", 1)
   assert train.resolved(unset, weak, flat_lstm=True).training == "levelwise"  # as flat LSTM runs recorded it
+  discovery = lambda demos, config: (lambda c: (c.segment_iterations, c.split_rounds))(train.resolved(config, demos))
+  assert discovery(weak, unset) == (unset.iterations // 2, DISCOVERY_SPLIT_ROUNDS)  # NanoCraft's actions loop
+  assert discovery(mixed, unset) == discovery(weak, levelwise) == (0, 0)
+  assert discovery(datasets.training_demos(tasks.get("addition"), 1, 4, 0), unset) == (0, 0)  # no loops
+  assert discovery(weak, dataclasses.replace(unset, split_rounds=0)) == (unset.iterations // 2, 0)
+  assert mode(mixed, dataclasses.replace(unset, split_rounds=1)) == ("joint", 1)  # a joint-only setting
   with pytest.raises(ValueError, match="training: levelwise; this trains jointly"):
     joint.train_joint(NANOCRAFT.spec, weak, levelwise)
+
+
+def test_the_first_segment_iterations_fit_the_loop_segmentation_as_a_partial_annotation():
+  weak = datasets.training_demos(NANOCRAFT, 1, 4, 0)
+  config = train.TrainConfig(iterations=4, learning_rate=1e-2, hidden=(16,), eval_every=1, seed=1, length_buckets=1,
+                             anneal_temperature=1.0, segment_iterations=2, split_rounds=0)
+  hierarchy = train.make_hierarchy(NANOCRAFT.spec, train.prepare(NANOCRAFT.spec, weak, config), None)
+  capacity = joint.joint_capacity(weak, NANOCRAFT.spec, config)
+  hinted = segmentation.hinted_demonstrations(weak, capacity)
+  want = [float(objective.stack_loss(hierarchy, views.demonstration_buckets(d, 1), capacity, 1.0)) for d in (hinted, weak)]
+  _, report = joint.train_joint(NANOCRAFT.spec, weak, config, log=lambda row: None)
+  # The first update's loss is the hinted one: −log P(hinted counters, actions) > −log P(actions).
+  np.testing.assert_allclose(report["losses"][0][1], want[0], rtol=1e-5)
+  assert want[0] > want[1] + 1 and "split_search" not in report
+  addition = datasets.training_demos(tasks.get("addition"), 1, 2, 0)
+  with pytest.raises(ConfigError, match="segment_iterations: the demonstrations' actions show no loops"):
+    joint.train_joint(tasks.get("addition").spec, addition, config)
+  annotated = datasets.training_demos(NANOCRAFT, 1, 4, 4)
+  with pytest.raises(ConfigError, match="split_rounds: needs every procedure free to take any operation"):
+    joint.train_joint(NANOCRAFT.spec, annotated, dataclasses.replace(config, segment_iterations=0, split_rounds=1,
+                                                                     call_graph="calls"))
 
 
 def test_the_call_penalty_costs_each_call_of_a_level_its_lambda():
@@ -105,3 +132,31 @@ def test_interrupted_joint_training_resumes_to_the_same_result(tmp_path):
   with pytest.raises(checkpoint.CheckpointError, match="other settings"):
     joint.train_joint(NANOCRAFT.spec, batch, train.TrainConfig(iterations=30, hidden=(16,), eval_every=10, seed=2),
                       log=lambda row: None, checkpoint_path=path)
+
+
+@pytest.mark.slow
+def test_an_interrupted_split_search_resumes_to_the_same_result(tmp_path):
+  demos = datasets.training_demos(NANOCRAFT, 1, 6, 0)
+  validation = datasets.problem_demonstrations(NANOCRAFT, NANOCRAFT.validation_problems(10_001, 3), 0)
+  config = train.TrainConfig(iterations=6, hidden=(8,), eval_every=3, seed=1, split_rounds=2, split_iterations=3,
+                             split_hint_iterations=1)
+  reference, report = joint.train_joint(NANOCRAFT.spec, demos, config, log=lambda row: None,
+                                        validation_demos=validation)
+  rounds = report["split_search"]
+  assert report["capacity"] and 1 <= len(rounds) <= 2 and rounds[0]["candidates"][0][0] == "unchanged"
+
+  def stop_at_the_first_round(row):
+    if "split_search" in row:
+      raise KeyboardInterrupt
+  path = str(tmp_path / checkpoint.TRAINING_DIR)
+  with pytest.raises(KeyboardInterrupt):
+    joint.train_joint(NANOCRAFT.spec, demos, config, log=stop_at_the_first_round, checkpoint_path=path,
+                      validation_demos=validation)
+  rows = []
+  resumed, resumed_report = joint.train_joint(NANOCRAFT.spec, demos, config, log=rows.append, checkpoint_path=path,
+                                              validation_demos=validation)
+  # The checkpoint after the iterations: the search starts again, and ends as the uninterrupted one did.
+  assert rows[0]["resumed"] and rows[1] == {"split_rounds": 2}
+  assert [r["split_search"] for r in rows[2:]] == rounds and resumed_report["split_search"] == rounds
+  for a, b in zip(jax.tree.leaves(nnx.state(reference, nnx.Param)), jax.tree.leaves(nnx.state(resumed, nnx.Param))):
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
