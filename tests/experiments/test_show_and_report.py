@@ -17,7 +17,7 @@ from php_jax.data import demo_files
 from php_jax.demos import UNKNOWN
 from php_jax.model import PHPHierarchy
 from php_jax.training import checkpoint, run
-from php_jax.training.config import WEAK_ONLY_ANNEALING, TrainConfig
+from php_jax.training.config import DISCOVERY_SPLIT_ROUNDS, WEAK_ONLY_ANNEALING, TrainConfig
 from tests.saved import file_bytes
 
 WAREHOUSE = pathlib.Path(__file__).resolve().parents[2] / "examples" / "warehouse"
@@ -124,18 +124,22 @@ def test_a_finished_run_is_not_trained_again_and_other_settings_are_named(tmp_pa
 
 
 def test_a_finished_php_run_records_its_resolved_settings_and_is_not_trained_again(tmp_path):
-  """The settings that follow the demonstrations (the strong weight; the annealing of a joint run none of
-  whose demonstrations is annotated) are recorded as resolved, so that the same command finds its run
-  finished."""
+  """The settings that follow the demonstrations (the strong weight; the annealing, loop segmentation and
+  split search of a joint run none of whose demonstrations is annotated) are recorded as resolved, so that
+  the same command finds its run finished."""
   flat = _flat_experiment()
   demos = flat.demos._replace(procedures=np.full_like(flat.demos.procedures, UNKNOWN),
                               counters=np.full_like(flat.demos.counters, UNKNOWN),
                               strong=np.zeros_like(flat.demos.strong))
   experiment = run.Experiment("warehouse", flat.spec, demos, validate=flat.validate, test=flat.test,
                               extra=flat.extra)
-  workdir, config = str(tmp_path / "weak"), TrainConfig(iterations=2, eval_every=1, hidden=(4,), training="joint")
+  workdir = str(tmp_path / "weak")
+  config = TrainConfig(iterations=2, eval_every=1, hidden=(4,), training="joint", split_iterations=2,
+                       split_hint_iterations=1)
   first = run.train_and_evaluate(experiment, config, workdir, echo=lambda row: None)
   assert first["config"]["anneal_temperature"] == WEAK_ONLY_ANNEALING
+  assert (first["config"]["segment_iterations"], first["config"]["split_rounds"]) == (1, DISCOVERY_SPLIT_ROUNDS)
+  assert 1 <= len(first["joint"]["split_search"]) <= DISCOVERY_SPLIT_ROUNDS
   rows = []
   run.train_and_evaluate(experiment, config, workdir, echo=rows.append)
   assert rows == [{"test": first["test"], "wall_seconds": first["wall_seconds"], "finished_before": True}]
