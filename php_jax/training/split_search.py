@@ -51,10 +51,15 @@ def candidate_moves(hierarchy: PHPHierarchy, capacity: tuple[int, ...], demos: D
   """The moves the most likely stacks of demos suggest: up to MOVES_PER_KIND splits by caller at each level
   from 2 down, then up to MOVES_PER_KIND splits by the root's counter at level 1."""
   decoded = most_likely_stacks(hierarchy, capacity, demos)
+  fits = np.isfinite(decoded.log_prob)  # the stacks of demonstrations that fit none are not read
+  decoded = decoded._replace(procedures=np.where(fits[:, None, None], decoded.procedures, UNKNOWN),
+                             counters=np.where(fits[:, None, None], decoded.counters, UNKNOWN))
   spec, lengths = hierarchy.spec, np.asarray(demos.length)
-  stacks = [(decoded.procedures[b, :n], decoded.counters[b, :n]) for b, n in enumerate(lengths)]
+  stacks = [(decoded.procedures[b, :n], decoded.counters[b, :n]) for b, n in enumerate(lengths) if fits[b]]
   moves = []
   for level in range(2, spec.num_levels):
+    if min(spec.num_procs(level - 1), spec.num_procs(level)) < 2:
+      continue  # one caller, or no procedure to spare for the copy
     counts = np.zeros((spec.num_procs(level - 1), spec.num_procs(level)), int)  # [caller, callee] calls
     for procedures, counters in stacks:
       starts = agreement.call_starts(procedures, counters, level)
@@ -73,6 +78,8 @@ def candidate_moves(hierarchy: PHPHierarchy, capacity: tuple[int, ...], demos: D
 
 def _counter_moves(decoded: stack_lattice.StackPath, stacks: list, demos: Demonstration, num_procs: int) -> list[Move]:
   """Splits by the root's counter at level 1, each with its hinted demonstrations."""
+  if num_procs < 2:
+    return []
   counts = np.zeros((num_procs, decoded.counters.shape[1] + 1), int)  # [level-1 procedure, root counter] calls
   for procedures, counters in stacks:
     starts = agreement.call_starts(procedures, counters, 1)

@@ -7,8 +7,10 @@ from flax import nnx
 
 from php_jax.analysis import decoding
 from php_jax.data import agreement
-from php_jax.demos import UNKNOWN
+from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.envs import datasets, tasks
+from php_jax.hierarchy import HierarchySpec
+from php_jax.model import PHPHierarchy
 from php_jax.training import objective, split_search, train
 
 NANOCRAFT = tasks.get("nanocraft")
@@ -104,3 +106,12 @@ def test_a_round_keeps_the_best_judged_candidate_and_is_deterministic():
     np.testing.assert_array_equal(a, b)
   np.testing.assert_allclose(split_search.log_likelihood_per_step([kept], CAPACITY, demos)[0],
                              entry["log_likelihood_per_step"], rtol=1e-6)
+
+
+def test_a_level_with_one_caller_or_no_procedure_to_spare_gives_no_move():
+  spec = HierarchySpec("one_caller", (("root",), ("only",), ("x", "y")), (3,), 2)
+  hierarchy = PHPHierarchy(spec, hidden=(4,), rngs=nnx.Rngs(0))
+  actions = np.array([[[0], [0], [1], [2], [2], [1]]], np.int32)
+  unknown = np.full((1, 6, 3), UNKNOWN, np.int32)
+  demos = Demonstration(np.zeros((1, 7, 2), np.float32), actions, unknown, unknown, np.array([6]), np.array([False]))
+  assert split_search.candidate_moves(hierarchy, (8, 8, 8), demos) == []
