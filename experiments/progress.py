@@ -85,8 +85,9 @@ class TrainingProgress:
                                                    status="round 1 training its candidates")
     elif "split_search" in row and "split" in self.tasks:
       entry = row["split_search"]
+      score = entry["log_likelihood_per_step"]
       self.progress.update(self.tasks["split"], completed=entry["round"] + 1,
-                           status=f"kept: {entry['kept']} (log-likelihood per step {entry['log_likelihood_per_step']:.4g})")
+                           status=f"kept: {entry['kept']} (log-likelihood per step {score:.4g})")
     elif "iteration" in row:
       phase = row.get("level", "joint" if self.num_levels else "flat")
       task = self.tasks.get(phase) or self._phase(phase)

@@ -113,7 +113,8 @@ def _split_search(results: dict) -> list[str]:
   """A joint run's split-search rounds as a table (none where it made none)."""
   rounds = (results.get("joint") or {}).get("split_search") or []
   rows = "".join(f"<tr><td>{r['round'] + 1}</td><td>{html.escape(str(r['kept']))}</td>"
-                 f"<td>{_number(r['log_likelihood_per_step'])}</td><td>{len(r['candidates'])}</td></tr>" for r in rounds)
+                 f"<td>{_number(r['log_likelihood_per_step'])}</td><td>{len(r['candidates'])}</td></tr>"
+                 for r in rounds)
   return [f"<h2>Split search</h2><table><tr><th>round</th><th>kept</th><th>validation log-likelihood per step</th>"
           f"<th>candidates</th></tr>{rows}</table>"] if rounds else []
 

@@ -100,8 +100,9 @@ class TrainConfig:
       "the counters of the two lowest levels from the loop segmentation of their actions, as a partial "
       "annotation (an action value that never follows itself in the demonstrations ends the call it follows, "
       "any other starts a call; consecutive calls that start with the same action are one call of the level "
-      "above); 0: none; unset: half of --iterations where no demonstration is annotated and the actions show "
-      "loops (one value follows itself, another never does), else 0.", "int", joint_off=(None, 0))
+      "above); 0: none; unset: half of --iterations where no demonstration is annotated, the actions show "
+      "loops (one value follows itself, another never does) and the hierarchy declares no call graph, else 0.",
+      "int", joint_off=(None, 0))
   split_rounds: int | None = _setting(
       None, "Joint training: rounds of the split search after the iterations. Each candidate move gives a "
       "procedure that two callers share (or that the root calls at two of its counters) a copy for one of them, "

@@ -48,9 +48,10 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   best_iteration, validation, seconds, and split_search: the rounds' entries where there were any}."""
   config = train.prepare(spec, demos, train.in_mode(config, "joint"))
   graph = call_graph.resolve(config.call_graph, demos, spec)
-  if config.split_rounds and any(g is not None for g in graph):
-    raise ConfigError("split_rounds", "needs every procedure free to take any operation; this run's call graph "
-                      f"restricts some (the hierarchy's, or --call_graph={config.call_graph}'s)")
+  for name in ("segment_iterations", "split_rounds"):
+    if getattr(config, name) and any(g is not None for g in graph):
+      raise ConfigError(name, "needs every procedure free to take any operation; this run's call graph "
+                        f"restricts some (the hierarchy's, or --call_graph={config.call_graph}'s)")
   hierarchy = train.make_hierarchy(spec, config, graph)
   settings = train.run_settings(spec, demos, config)
   capacity = joint_capacity(demos, spec, config)

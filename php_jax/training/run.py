@@ -84,7 +84,8 @@ def train_and_evaluate(experiment: Experiment, config: TrainConfig, workdir: str
   not trained again: its results are shown and returned). The run holds the workdir's lock
   throughout (`workdir_lock`; wait: for another run holding it to end). echo(row) shows each logged row and
   last the test results."""
-  config = train.resolved(config, experiment.demos, bool(flat_lstm_hidden))  # so that results.json records it
+  # resolved here, so that results.json records it
+  config = train.resolved(config, experiment.demos, experiment.spec, bool(flat_lstm_hidden))
   commit = provenance.code_version()  # the code as it was when the run started
   spec = experiment.spec
   with workdir_lock(workdir, wait):
@@ -118,7 +119,7 @@ def train_and_evaluate_seeds(experiments: list[Experiment], configs: list[TrainC
   in workdir/seeds_checkpoint/ and resumed from there. The run holds the locks of workdir and of every
   seed's workdir throughout."""
   workdirs = [os.path.join(workdir, f"seed={c.seed}") for c in configs]
-  configs = [train.resolved(train.in_mode(c, "levelwise"), e.demos) for c, e in zip(configs, experiments)]
+  configs = [train.resolved(train.in_mode(c, "levelwise"), e.demos, e.spec) for c, e in zip(configs, experiments)]
   commit, spec = provenance.code_version(), experiments[0].spec
   with contextlib.ExitStack() as stack:
     for locked in (workdir, *workdirs):  # each seed's workdir too, as its separate run would

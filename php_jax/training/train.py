@@ -140,21 +140,23 @@ def prepare(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> T
   demonstration and step, that is wrong)."""
   check_levels(spec, config)
   validate_demos(demos, spec)
-  return resolved(config, demos)
+  return resolved(config, demos, spec)
 
 
-def resolved(config: TrainConfig, demos: Demonstration, flat_lstm: bool = False) -> TrainConfig:
+def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, flat_lstm: bool = False) -> TrainConfig:
   """config with the settings that follow the demonstrations resolved where unset (as results.json and a
   checkpoint record them): the balanced strong weight (`balanced_strong_weight`); the training mode
   (`training_mode`; levelwise for the flat LSTM, which has no levels); and for a PHP trained jointly on
   demonstrations none of which is annotated, WEAK_ONLY_ANNEALING (else 1: none) and, where their actions
-  show loops (`segmentation.attached_actions`), the loop segmentation for half the iterations and
+  show loops (`segmentation.attached_actions`) and spec declares no call graph (which says itself which
+  procedure takes which operation), the loop segmentation for half the iterations and
   DISCOVERY_SPLIT_ROUNDS of the split search (else 0 and 0)."""
   strong = np.asarray(demos.strong)
   strong_weight = balanced_strong_weight(strong) if config.strong_weight is None else config.strong_weight
   training = training_mode(config, bool(strong.any())) if not flat_lstm else config.training or "levelwise"
   weak_only = not flat_lstm and training == "joint" and not strong.any()
-  loops = weak_only and None in (config.segment_iterations, config.split_rounds) and \
+  declared = any(g is not None for g in spec.allowed_ops or ())
+  loops = weak_only and not declared and None in (config.segment_iterations, config.split_rounds) and \
       segmentation.attached_actions(demos) is not None
 
   def unset_or(value, default):

@@ -58,12 +58,18 @@ def test_runs_without_annotation_train_jointly_and_anneal_by_default():
   assert mode(weak, dataclasses.replace(unset, call_penalty=(0, 1, 0))) == ("joint", WEAK_ONLY_ANNEALING)  # both modes'
   assert mode(mixed, dataclasses.replace(unset, anneal_temperature=2.0)) == ("joint", 2.0)
   assert mode(weak, dataclasses.replace(joint_config, anneal_temperature=1.0)) == ("joint", 1)
-  assert train.resolved(unset, weak, flat_lstm=True).training == "levelwise"  # as flat LSTM runs recorded it
-  discovery = lambda demos, config: (lambda c: (c.segment_iterations, c.split_rounds))(train.resolved(config, demos))
+  flat = train.resolved(unset, weak, NANOCRAFT.spec, flat_lstm=True)
+  assert flat.training == "levelwise"  # as flat LSTM runs recorded it
+  def discovery(demos, config, spec=NANOCRAFT.spec):
+    resolved = train.resolved(config, demos, spec)
+    return resolved.segment_iterations, resolved.split_rounds
   assert discovery(weak, unset) == (unset.iterations // 2, DISCOVERY_SPLIT_ROUNDS)  # NanoCraft's actions loop
   assert discovery(mixed, unset) == discovery(weak, levelwise) == (0, 0)
-  assert discovery(datasets.training_demos(tasks.get("addition"), 1, 4, 0), unset) == (0, 0)  # no loops
+  addition = tasks.get("addition")
+  assert discovery(datasets.training_demos(addition, 1, 4, 0), unset, addition.spec) == (0, 0)  # no loops
   assert discovery(weak, dataclasses.replace(unset, split_rounds=0)) == (unset.iterations // 2, 0)
+  declared = dataclasses.replace(NANOCRAFT.spec, allowed_ops=(None, None, ((True,) * 5,) * 6))
+  assert discovery(weak, unset, declared) == (0, 0)  # a declared call graph says who takes what
   assert mode(mixed, dataclasses.replace(unset, split_rounds=1)) == ("joint", 1)  # a joint-only setting
   with pytest.raises(ValueError, match="training: levelwise; this trains jointly"):
     joint.train_joint(NANOCRAFT.spec, weak, levelwise)
@@ -76,7 +82,8 @@ def test_the_first_segment_iterations_fit_the_loop_segmentation_as_a_partial_ann
   hierarchy = train.make_hierarchy(NANOCRAFT.spec, train.prepare(NANOCRAFT.spec, weak, config), None)
   capacity = joint.joint_capacity(weak, NANOCRAFT.spec, config)
   hinted = segmentation.hinted_demonstrations(weak, capacity)
-  want = [float(objective.stack_loss(hierarchy, views.demonstration_buckets(d, 1), capacity, 1.0)) for d in (hinted, weak)]
+  want = [float(objective.stack_loss(hierarchy, views.demonstration_buckets(d, 1), capacity, 1.0))
+          for d in (hinted, weak)]
   _, report = joint.train_joint(NANOCRAFT.spec, weak, config, log=lambda row: None)
   # The first update's loss is the hinted one: −log P(hinted counters, actions) > −log P(actions).
   np.testing.assert_allclose(report["losses"][0][1], want[0], rtol=1e-5)
@@ -84,6 +91,9 @@ def test_the_first_segment_iterations_fit_the_loop_segmentation_as_a_partial_ann
   addition = datasets.training_demos(tasks.get("addition"), 1, 2, 0)
   with pytest.raises(ConfigError, match="segment_iterations: the demonstrations' actions show no loops"):
     joint.train_joint(tasks.get("addition").spec, addition, config)
+  declared = dataclasses.replace(NANOCRAFT.spec, allowed_ops=(None, None, ((True,) * 5,) * 6))
+  with pytest.raises(ConfigError, match="segment_iterations: needs every procedure free to take any operation"):
+    joint.train_joint(declared, weak, config)
   annotated = datasets.training_demos(NANOCRAFT, 1, 4, 4)
   with pytest.raises(ConfigError, match="split_rounds: needs every procedure free to take any operation"):
     joint.train_joint(NANOCRAFT.spec, annotated, dataclasses.replace(config, segment_iterations=0, split_rounds=1,

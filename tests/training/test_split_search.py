@@ -93,7 +93,8 @@ def test_candidate_moves_are_read_off_the_most_likely_stacks():
 @pytest.mark.slow
 def test_a_round_keeps_the_best_judged_candidate_and_is_deterministic():
   demos = datasets.training_demos(NANOCRAFT, 1, 8, 0)
-  config = train.resolved(train.TrainConfig(hidden=(8,), seed=1, split_iterations=3, split_hint_iterations=1), demos)
+  config = train.resolved(train.TrainConfig(hidden=(8,), seed=1, split_iterations=3, split_hint_iterations=1), demos,
+                          NANOCRAFT.spec)
   results = []
   for _ in range(2):
     kept, entry = split_search.search_round(_hierarchy(), CAPACITY, demos, demos, config, 0)
