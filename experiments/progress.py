@@ -86,8 +86,10 @@ class TrainingProgress:
     elif "split_search" in row and "split" in self.tasks:
       entry = row["split_search"]
       score = entry["log_likelihood_per_step"]
+      judged = ("no stack fits a validation demonstration" if score is None
+                else f"log-likelihood per step {score:.4g}")
       self.progress.update(self.tasks["split"], completed=entry["round"] + 1,
-                           status=f"kept: {entry['kept']} (log-likelihood per step {score:.4g})")
+                           status=f"kept: {entry['kept']} ({judged})")
     elif "iteration" in row:
       phase = row.get("level", "joint" if self.num_levels else "flat")
       task = self.tasks.get(phase) or self._phase(phase)

@@ -189,7 +189,8 @@ def _schedule(config: TrainConfig, iterations: int) -> fitting.Schedule:
 def search_round(hierarchy: PHPHierarchy, capacity: tuple[int, ...], demos: Demonstration, judge: Demonstration,
                  config: TrainConfig, round_index: int) -> tuple[PHPHierarchy, dict]:
   """One round from hierarchy: (the kept hierarchy, the round's log entry {"round", "kept",
-  "log_likelihood_per_step", "candidates": [[description, log-likelihood per step], ...]})."""
+  "log_likelihood_per_step", "candidates": [[description, log-likelihood per step], ...]}; a log-likelihood
+  of None where some judging demonstration fits no stack)."""
   moves = candidate_moves(hierarchy, capacity, demos)
   keys = jax.random.split(jax.random.fold_in(jax.random.key(config.network_seed), round_index), max(len(moves), 1))
   candidates = [nnx.clone(hierarchy) for _ in range(len(moves) + 1)]
@@ -200,8 +201,9 @@ def search_round(hierarchy: PHPHierarchy, capacity: tuple[int, ...], demos: Demo
   scores = log_likelihood_per_step(candidates, capacity, judge)
   best = int(np.argmax(scores))
   names = [UNCHANGED] + [m.description for m in moves]
-  return candidates[best], {"round": round_index, "kept": names[best], "log_likelihood_per_step": scores[best],
-                            "candidates": [[n, s] for n, s in zip(names, scores)]}
+  as_json = [s if np.isfinite(s) else None for s in scores]  # None: a judging demonstration fits no stack
+  return candidates[best], {"round": round_index, "kept": names[best], "log_likelihood_per_step": as_json[best],
+                            "candidates": [[n, s] for n, s in zip(names, as_json)]}
 
 
 def search(hierarchy: PHPHierarchy, capacity: tuple[int, ...], demos: Demonstration, judge: Demonstration,

@@ -50,6 +50,10 @@ def test_joint_and_flat_runs_and_other_seeds():
                                                 "log_likelihood_per_step": -0.01234, "candidates": []}}])
   assert "split search" in text and "1/2" in text and "kept: level 2: 3 becomes a copy of 1 for caller 0" in text
   assert "-0.01234" in text
+  text = _display(config, 3, [{"split_rounds": 1, "seconds": 3.0},
+                              {"split_search": {"round": 0, "kept": "unchanged", "log_likelihood_per_step": None,
+                                                "candidates": [["unchanged", None]]}}])
+  assert "kept: unchanged (no stack fits a validation demonstration)" in text
   text = _display(config, None, [{"iteration": 60, "loss": 0.3, "seconds": 2.0}])
   assert "flat LSTM" in text and "60/60" in text
   text = _display(config, 3, [{"seed": 1, "level": 2, "capacity": 4, "seconds": 1.0},
