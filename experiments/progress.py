@@ -77,14 +77,17 @@ class TrainingProgress:
     if row.get("seed", self.seed) != self.seed:
       return
     if row.get("resumed"):
-      self.console.print(f"resumed from the checkpoint: level {row['level']}, iteration {row['iteration']}")
+      at = "" if row["iteration"] is None else f", iteration {row['iteration']}"
+      self.console.print(f"resumed from the checkpoint: level {row['level']}{at}")
     elif "capacity" in row:
       self._phase(row.get("level", "joint"))
     elif "split_rounds" in row:
       self.tasks["split"] = self.progress.add_task("split search", total=row["split_rounds"],
                                                    status="round 1 training its candidates")
-    elif "split_search" in row and "split" in self.tasks:
+    elif "split_search" in row:
       entry = row["split_search"]
+      if "split" not in self.tasks:  # resumed in the search: its number of rounds was logged before
+        self.tasks["split"] = self.progress.add_task("split search", total=None, status="")
       score = entry["log_likelihood_per_step"]
       judged = ("no stack fits a validation demonstration" if score is None
                 else f"log-likelihood per step {score:.4g}")

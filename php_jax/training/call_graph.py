@@ -130,12 +130,17 @@ def intersect(a: tuple, b: tuple) -> tuple:
                                                              for u, v in zip(x, y)) for x, y in zip(a, b))
 
 
+def restricts(graph: tuple | None) -> bool:
+  """Whether a call graph (per level, None: everything allowed) forbids some operation anywhere."""
+  return any(g is not None for g in graph or ())
+
+
 def resolve(name: str, demos: Demonstration, spec: HierarchySpec) -> tuple:
   """The call graph `name` (one of CALL_GRAPHS) asks for, for training on demos, within the one spec declares
   (`spec.allowed_ops`); ValueError as `check`."""
   graph = spec.allowed_ops or (None,) * spec.num_levels
   if name != "all":
     graph = intersect(graph, from_annotation(demos, spec, actions=name == "operations"))
-  if any(g is not None for g in graph):
+  if restricts(graph):
     check(demos, spec, graph)
   return graph

@@ -49,7 +49,7 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   config = train.prepare(spec, demos, train.in_mode(config, "joint"))
   graph = call_graph.resolve(config.call_graph, demos, spec)
   for name in ("segment_iterations", "split_rounds"):
-    if getattr(config, name) and any(g is not None for g in graph):
+    if getattr(config, name) and call_graph.restricts(graph):
       raise ConfigError(name, "needs every procedure free to take any operation; this run's call graph "
                         f"restricts some (the hierarchy's, or --call_graph={config.call_graph}'s)")
   hierarchy = train.make_hierarchy(spec, config, graph)

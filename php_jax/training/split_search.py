@@ -85,16 +85,16 @@ def _counter_moves(decoded: stack_lattice.StackPath, stacks: list, demos: Demons
     starts = agreement.call_starts(procedures, counters, 1)
     np.add.at(counts, (procedures[starts, 1], counters[starts, 0]), 1)
   used, moves = counts.sum(1), []
+  level1, root_counter = decoded.procedures[..., 1], decoded.counters[..., 0]
+  strong = np.asarray(demos.strong)
+  counters = np.where(strong[:, None, None], np.asarray(demos.counters), UNKNOWN).astype(np.int32)
   for p in np.argsort(-used, kind="stable"):
     by_counter = np.argsort(-counts[p], kind="stable")
     if counts[p, by_counter[1]] > 0:
       q, tau = _least_used(used, p), int(by_counter[1])
-      level1, root_counter = decoded.procedures[..., 1], decoded.counters[..., 0]
-      strong = np.asarray(demos.strong)
       procedures = np.full(np.shape(demos.procedures), UNKNOWN, np.int32)
       procedures[..., 1] = np.where(level1 == q, UNKNOWN, np.where((level1 == p) & (root_counter == tau), q, level1))
       procedures[strong] = np.asarray(demos.procedures)[strong]
-      counters = np.where(strong[:, None, None], np.asarray(demos.counters), UNKNOWN).astype(np.int32)
       hinted = demos._replace(procedures=procedures, counters=counters, strong=np.ones_like(strong))
       moves.append(Move(f"level 1: {q} becomes a copy of {p} for root counter {tau}", 1, int(p), q, hinted=hinted))
   return moves

@@ -54,6 +54,11 @@ def test_joint_and_flat_runs_and_other_seeds():
                               {"split_search": {"round": 0, "kept": "unchanged", "log_likelihood_per_step": None,
                                                 "candidates": [["unchanged", None]]}}])
   assert "kept: unchanged (no stack fits a validation demonstration)" in text
+  text = _display(config, 3, [{"resumed": True, "level": "joint", "iteration": None, "logged": 30},
+                              {"split_search": {"round": 1, "kept": "unchanged", "log_likelihood_per_step": -0.5,
+                                                "candidates": [["unchanged", -0.5]]}}])
+  assert "resumed from the checkpoint: level joint\n" in text and "iteration None" not in text
+  assert "split search" in text and "kept: unchanged (log-likelihood per step -0.5)" in text
   text = _display(config, None, [{"iteration": 60, "loss": 0.3, "seconds": 2.0}])
   assert "flat LSTM" in text and "60/60" in text
   text = _display(config, 3, [{"seed": 1, "level": 2, "capacity": 4, "seconds": 1.0},
