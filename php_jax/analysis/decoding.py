@@ -7,6 +7,7 @@ be running at every level and step.
 """
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -15,7 +16,7 @@ import numpy as np
 from php_jax.demos import Demonstration
 from php_jax.inference import stack_lattice
 from php_jax.model import PHPHierarchy
-from php_jax.training.objective import stack_inputs
+from php_jax.training.objective import stack_query
 
 
 class Decoded(NamedTuple):
@@ -30,7 +31,7 @@ def decode(hierarchy: PHPHierarchy, capacity: tuple[int, ...], batch: Demonstrat
            chunk: int = 512) -> Decoded:
   """Decodes every demonstration of batch [B, ...], `chunk` at a time (chunks padded to one shape, so the
   computation compiles once per demonstration length)."""
-  return Decoded(*_chunked(_compiled(hierarchy, tuple(capacity), _most_likely), batch, chunk))
+  return Decoded(*_chunked(functools.partial(stack_query, hierarchy, capacity, _most_likely), batch, chunk))
 
 
 def log_likelihood_per_step(log_likelihood: np.ndarray, length: np.ndarray) -> tuple[float | None, int]:
@@ -46,7 +47,8 @@ def explain(hierarchy: PHPHierarchy, capacity: tuple[int, ...], batch: Demonstra
             chunk: int = 512) -> tuple[Decoded, tuple[np.ndarray, ...]]:
   """decode, and per level, root first, [B, T, K_i] P(level i runs procedure h at step t | actions,
   observations): the posterior frame marginals summed over counters (zero on padding); one program."""
-  *decoded, marginals = _chunked(_compiled(hierarchy, tuple(capacity), _most_likely_and_marginals), batch, chunk)
+  *decoded, marginals = _chunked(functools.partial(stack_query, hierarchy, capacity, _most_likely_and_marginals),
+                                 batch, chunk)
   return Decoded(*decoded), marginals
 
 
@@ -73,12 +75,3 @@ def _most_likely_and_marginals(inputs: stack_lattice.StackInputs):
   path = stack_lattice.viterbi(inputs)
   return (posterior.log_likelihood, path.procedures, path.counters,
           tuple(m.sum(-1) for m in posterior.marginals))
-
-
-def _compiled(hierarchy: PHPHierarchy, capacity: tuple[int, ...], query):
-  @jax.jit
-  def run(observations, actions, length):
-    def one(obs, act, n):
-      return query(stack_inputs(hierarchy, capacity, obs, act, n))
-    return jax.vmap(one)(observations, actions, length)
-  return run

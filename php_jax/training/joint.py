@@ -22,14 +22,19 @@ from php_jax.training.config import ConfigError
 from php_jax.training.objective import annealed_temperature, counter_capacity, stack_loss
 
 
-def joint_capacity(demos: Demonstration, spec: HierarchySpec, config: train.TrainConfig) -> tuple[int, ...]:
+def joint_capacity(demos: Demonstration, spec: HierarchySpec, config: train.TrainConfig,
+                   hinted: Demonstration | None = None) -> tuple[int, ...]:
   """Counter capacity per level, root first (`objective.counter_capacity` of the strong demonstrations'
   counters at that level; config.capacity when nothing is annotated, at least config.min_capacity). The
   root's longest annotated call is scaled by how much longer the longest demonstration is than the longest
-  annotated one: weak demonstrations may need more root operations."""
-  taus, strong, lengths = np.asarray(demos.counters), np.asarray(demos.strong), np.asarray(demos.length)
+  annotated one: weak demonstrations may need more root operations. With hinted (demos with the loop
+  segmentation's partial annotation, `segmentation.hinted_demonstrations`), the levels it annotates take
+  their longest segmented call too: no longer than the calls the actions show, so fewer stack states."""
+  strong, lengths = np.asarray(demos.strong), np.asarray(demos.length)
+  annotated = strong if hinted is None else np.ones_like(strong)
+  taus = np.asarray((demos if hinted is None else hinted).counters)[annotated]
   least = config.min_capacity or (0,) * spec.num_levels
-  return tuple(counter_capacity(taus[strong][..., level], config.capacity, least[level],
+  return tuple(counter_capacity(taus[..., level], config.capacity, least[level],
                                 *((lengths.max(), lengths[strong].max()) if level == 0 and strong.any() else ()))
                for level in range(spec.num_levels))
 
@@ -45,7 +50,9 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   (`split_search`), judged on validation_demos (default: demos), each logged as {"split_search": entry}.
   Checkpoints and resumes as train.train_hierarchy does (the same log protocol); a checkpoint made with
   other settings raises CheckpointError. Returns the hierarchy and a report {capacity, losses,
-  best_iteration, validation, seconds, and split_search: the rounds' entries where there were any}."""
+  best_iteration, validation, seconds, and split_search: the rounds' entries where there were any}; after a
+  search that kept a move, validation is the final hierarchy's score and best_iteration the snapshot the
+  search started from."""
   config = train.prepare(spec, demos, train.in_mode(config, "joint"))
   graph = call_graph.resolve(config.call_graph, demos, spec)
   for name in ("segment_iterations", "split_rounds"):
@@ -59,6 +66,8 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   if config.segment_iterations and hinted is None:
     raise ConfigError("segment_iterations", "the demonstrations' actions show no loops to segment (no action "
                       "value follows itself, or every one does); use 0")
+  if hinted is not None:
+    capacity = joint_capacity(demos, spec, config, hinted)
   saved = checkpoint.read_training(checkpoint_path)
   counted_log, resume, report = train.CountedLog(log), None, None
   if saved is not None:
@@ -96,7 +105,9 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
     if not report["split_search"]:
       counted_log({"split_rounds": config.split_rounds})
     judge = demos if validation_demos is None else validation_demos
-    split_search.search(hierarchy, capacity, demos, judge, config, report["split_search"], on_round)
+    _, rounds = split_search.search(hierarchy, capacity, demos, judge, config, report["split_search"], on_round)
+    if validate and any(entry["kept"] != split_search.UNCHANGED for entry in rounds):
+      report["validation"] = validate(hierarchy)  # the searched hierarchy's; best_iteration: where it started
   return hierarchy, report
 
 

@@ -16,8 +16,9 @@ The loss is −(w_strong Σ_strong log P(ζ, ξ) + Σ_weak log P(ξ)) / N, each 
 """
 from __future__ import annotations
 
+import functools
 import math
-from typing import Iterable
+from typing import Any, Callable, Iterable
 
 import jax
 import jax.numpy as jnp
@@ -104,6 +105,23 @@ def stack_inputs(hierarchy: PHPHierarchy, capacity: tuple[int, ...], observation
   tau = jnp.arange(capacity[-1], dtype=jnp.float32)
   log_act = hierarchy.levels[-1].log_op(observations[:-1], tau, actions)
   return stack_lattice.StackInputs(tuple(log_call), log_act, tuple(log_stop), tuple(log_cont), length)
+
+
+def stack_query(hierarchy: PHPHierarchy, capacity: tuple[int, ...], query: Callable[[stack_lattice.StackInputs], Any],
+                observations: jax.Array, actions: jax.Array, length: jax.Array) -> Any:
+  """query(stack_inputs(...)) of each demonstration (observations [B, T+1, D], actions [B, T, F], length [B]),
+  vmapped: a pytree of [B, ...] arrays. Compiled once per architecture, capacity, query (a function defined
+  once, such as a module's) and shape, whichever hierarchy object of that architecture is asked."""
+  return _stack_query(nnx.graphdef(hierarchy), nnx.state(hierarchy), tuple(capacity), query, observations, actions,
+                      length)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 2, 3))
+def _stack_query(graphdef: nnx.GraphDef, state: nnx.State, capacity: tuple[int, ...], query, observations, actions,
+                 length):
+  hierarchy = nnx.merge(graphdef, state)
+  return jax.vmap(lambda obs, act, n: query(stack_inputs(hierarchy, capacity, obs, act, n)))(
+      observations, actions, length)
 
 
 def stack_log_likelihoods(hierarchy: PHPHierarchy, batch: Demonstration, capacity: tuple[int, ...],

@@ -15,7 +15,6 @@ demonstrations. The search ends after config.split_rounds rounds, or once a roun
 """
 from __future__ import annotations
 
-import functools
 from typing import Callable, NamedTuple
 
 import jax
@@ -128,39 +127,18 @@ def most_likely_stacks(hierarchy: PHPHierarchy, capacity: tuple[int, ...],
                        demos: Demonstration) -> stack_lattice.StackPath:
   """Each demonstration's most likely stack under the hierarchy: procedures, counters [B, T, d] numpy (root
   first; UNKNOWN on padding) and log_prob [B]."""
-  return jax.device_get(_viterbi(nnx.graphdef(hierarchy), nnx.state(hierarchy), capacity, demos.observations,
-                                 demos.actions, demos.length))
-
-
-@functools.partial(jax.jit, static_argnums=(0, 2))
-def _viterbi(graphdef: nnx.GraphDef, state: nnx.State, capacity: tuple[int, ...], observations: jax.Array,
-             actions: jax.Array, length: jax.Array) -> stack_lattice.StackPath:
-  hierarchy = nnx.merge(graphdef, state)
-
-  def one(obs, act, n):
-    path = stack_lattice.viterbi(objective.stack_inputs(hierarchy, capacity, obs, act, n))
-    valid = (jnp.arange(act.shape[0]) < n)[:, None]
-    return path._replace(procedures=jnp.where(valid, path.procedures, UNKNOWN),
-                         counters=jnp.where(valid, path.counters, UNKNOWN))
-  return jax.vmap(one)(observations, actions, length)
+  return jax.device_get(objective.stack_query(hierarchy, capacity, stack_lattice.viterbi, demos.observations,
+                                              demos.actions, demos.length))
 
 
 def log_likelihood_per_step(candidates: list[PHPHierarchy], capacity: tuple[int, ...],
                             demos: Demonstration) -> list[float]:
   """Per candidate, Σ log P(actions) / Σ length of demos (−inf if a demonstration fits no stack): one
   compiled program for every candidate of one architecture."""
-  unknown = np.full(np.shape(demos.procedures), UNKNOWN, np.int32)
-  batch = demos._replace(procedures=unknown, counters=unknown)
-  graphdef = nnx.graphdef(candidates[0])
   steps = float(np.sum(demos.length))
-  return [float(np.sum(np.asarray(_log_likelihoods(graphdef, nnx.state(c), capacity, batch), np.float64))) / steps
+  return [float(np.sum(np.asarray(objective.stack_query(c, capacity, stack_lattice.log_likelihood, demos.observations,
+                                                        demos.actions, demos.length), np.float64))) / steps
           for c in candidates]
-
-
-@functools.partial(jax.jit, static_argnums=(0, 2))
-def _log_likelihoods(graphdef: nnx.GraphDef, state: nnx.State, capacity: tuple[int, ...],
-                     batch: Demonstration) -> jax.Array:
-  return objective.stack_log_likelihoods(nnx.merge(graphdef, state), batch, capacity)
 
 
 def train_candidates(candidates: list[PHPHierarchy], first_data: list[Demonstration], demos: Demonstration,

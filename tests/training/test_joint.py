@@ -80,12 +80,16 @@ def test_the_first_segment_iterations_fit_the_loop_segmentation_as_a_partial_ann
   config = train.TrainConfig(iterations=4, learning_rate=1e-2, hidden=(16,), eval_every=1, seed=1, length_buckets=1,
                              anneal_temperature=1.0, segment_iterations=2, split_rounds=0)
   hierarchy = train.make_hierarchy(NANOCRAFT.spec, train.prepare(NANOCRAFT.spec, weak, config), None)
-  capacity = joint.joint_capacity(weak, NANOCRAFT.spec, config)
-  hinted = segmentation.hinted_demonstrations(weak, capacity)
+  hinted = segmentation.hinted_demonstrations(weak, joint.joint_capacity(weak, NANOCRAFT.spec, config))
+  # The levels the segmentation annotates take its longest calls as their capacity; the root keeps the default.
+  capacity = joint.joint_capacity(weak, NANOCRAFT.spec, config, hinted)
+  segmented = np.asarray(hinted.counters)[..., 1:].reshape(-1, 2).max(0) + 1
+  assert capacity == (config.capacity, *segmented) and max(segmented) < config.capacity
   want = [float(objective.stack_loss(hierarchy, views.demonstration_buckets(d, 1), capacity, 1.0))
           for d in (hinted, weak)]
   _, report = joint.train_joint(NANOCRAFT.spec, weak, config, log=lambda row: None)
   # The first update's loss is the hinted one: −log P(hinted counters, actions) > −log P(actions).
+  assert report["capacity"] == list(capacity)
   np.testing.assert_allclose(report["losses"][0][1], want[0], rtol=1e-5)
   assert want[0] > want[1] + 1 and "split_search" not in report
   addition = datasets.training_demos(tasks.get("addition"), 1, 2, 0)
