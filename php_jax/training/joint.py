@@ -23,18 +23,22 @@ from php_jax.training.objective import annealed_temperature, counter_capacity, s
 
 
 def joint_capacity(demos: Demonstration, spec: HierarchySpec, config: train.TrainConfig,
-                   hinted: Demonstration | None = None) -> tuple[int, ...]:
+                   hinted: tuple[Demonstration, ...] = ()) -> tuple[int, ...]:
   """Counter capacity per level, root first (`objective.counter_capacity` of the strong demonstrations'
   counters at that level; config.capacity when nothing is annotated, at least config.min_capacity). The
   root's longest annotated call is scaled by how much longer the longest demonstration is than the longest
-  annotated one: weak demonstrations may need more root operations. With hinted (demos with the loop
-  segmentation's partial annotation, `segmentation.hinted_demonstrations`), the levels it annotates take
-  their longest segmented call too: no longer than the calls the actions show, so fewer stack states."""
-  strong, lengths = np.asarray(demos.strong), np.asarray(demos.length)
-  annotated = strong if hinted is None else np.ones_like(strong)
-  taus = np.asarray((demos if hinted is None else hinted).counters)[annotated]
+  annotated one: weak demonstrations may need more root operations. hinted: demonstrations with the loop
+  segmentation's partial annotation (`segmentation.hinted_demonstrations`: of demos, and of any others the run
+  reads); below the root, their segmented calls count as annotated ones, so a level the segmentation annotates
+  has no more counters than its calls need."""
+  taus, strong, lengths = np.asarray(demos.counters), np.asarray(demos.strong), np.asarray(demos.length)
   least = config.min_capacity or (0,) * spec.num_levels
-  return tuple(counter_capacity(taus[..., level], config.capacity, least[level],
+
+  def annotated(level: int) -> np.ndarray:
+    found = [taus[strong][..., level].ravel()]
+    return np.concatenate(found + [np.asarray(h.counters)[..., level].ravel() for h in hinted] if level else found)
+
+  return tuple(counter_capacity(annotated(level), config.capacity, least[level],
                                 *((lengths.max(), lengths[strong].max()) if level == 0 and strong.any() else ()))
                for level in range(spec.num_levels))
 
@@ -66,8 +70,10 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   if config.segment_iterations and hinted is None:
     raise ConfigError("segment_iterations", "the demonstrations' actions show no loops to segment (no action "
                       "value follows itself, or every one does); use 0")
-  if hinted is not None:
-    capacity = joint_capacity(demos, spec, config, hinted)
+  if hinted is not None:  # the judge's calls must fit too, or it cannot tell the split search's candidates apart
+    judged = () if validation_demos is None else (segmentation.hinted_demonstrations(
+        validation_demos, capacity, segmentation.attached_actions(demos)),)
+    capacity = joint_capacity(demos, spec, config, (hinted, *judged))
   saved = checkpoint.read_training(checkpoint_path)
   counted_log, resume, report = train.CountedLog(log), None, None
   if saved is not None:

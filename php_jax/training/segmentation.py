@@ -44,12 +44,15 @@ def loop_counters(demos: Demonstration, attached: set[tuple[int, ...]]) -> np.nd
   return counters
 
 
-def hinted_demonstrations(demos: Demonstration, capacity: tuple[int, ...]) -> Demonstration | None:
+def hinted_demonstrations(demos: Demonstration, capacity: tuple[int, ...],
+                          attached: set[tuple[int, ...]] | None = None) -> Demonstration | None:
   """demos with each demonstration without annotation given the loop segmentation's counters of the two
   lowest levels below the root (of the lowest alone in a two-level hierarchy) as a partial annotation, every
   procedure and other counter unknown; a counter at or above its level's capacity (root first) stays unknown.
-  Annotated demonstrations are kept as they are. None where the actions show no loops."""
-  attached = attached_actions(demos)
+  Annotated demonstrations are kept as they are. attached: assumption (1)'s values (default: demos' own,
+  `attached_actions`; another set's, to segment held-out demonstrations as the training ones are). None where
+  the actions show no loops."""
+  attached = attached_actions(demos) if attached is None else attached
   if attached is None:
     return None
   num_levels = len(capacity)

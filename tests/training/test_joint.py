@@ -82,9 +82,17 @@ def test_the_first_segment_iterations_fit_the_loop_segmentation_as_a_partial_ann
   hierarchy = train.make_hierarchy(NANOCRAFT.spec, train.prepare(NANOCRAFT.spec, weak, config), None)
   hinted = segmentation.hinted_demonstrations(weak, joint.joint_capacity(weak, NANOCRAFT.spec, config))
   # The levels the segmentation annotates take its longest calls as their capacity; the root keeps the default.
-  capacity = joint.joint_capacity(weak, NANOCRAFT.spec, config, hinted)
+  capacity = joint.joint_capacity(weak, NANOCRAFT.spec, config, (hinted,))
   segmented = np.asarray(hinted.counters)[..., 1:].reshape(-1, 2).max(0) + 1
   assert capacity == (config.capacity, *segmented) and max(segmented) < config.capacity
+  # A validation demonstration with a longer loop (its first 6 actions one move) widens level 1 for the judge.
+  actions = np.asarray(weak.actions).copy()
+  actions[0, :6] = actions[0, 0]
+  judge = jax.tree.map(lambda x: np.asarray(x)[:1], weak._replace(actions=actions))
+  assert segmentation.loop_counters(judge, segmentation.attached_actions(weak))[0, 5, 0] == 5
+  _, report = joint.train_joint(NANOCRAFT.spec, weak, dataclasses.replace(config, iterations=1, segment_iterations=1),
+                                log=lambda row: None, validation_demos=judge)
+  assert report["capacity"] == [config.capacity, max(6, segmented[0]), segmented[1]]
   want = [float(objective.stack_loss(hierarchy, views.demonstration_buckets(d, 1), capacity, 1.0))
           for d in (hinted, weak)]
   _, report = joint.train_joint(NANOCRAFT.spec, weak, config, log=lambda row: None)
