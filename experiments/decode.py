@@ -12,8 +12,10 @@ call stack at every step, and whether the hierarchy replays it.
                                         recorded action and its root returns after the last
    "first_mismatch": int or null}       the first step where it does not (null when replayed)
 
-It prints how many replay and the demonstrations' log-likelihood per step (an unsupervised score: of
-held-out demonstrations, a way to compare runs or restarts without an environment). Stacks in the input are
+It prints how many replay, the demonstrations' log-likelihood per step (an unsupervised score: of
+held-out demonstrations, a way to compare runs or restarts without an environment), and per level how many
+calls of each procedure the decoded stacks make (a procedure never called is one the hierarchy does not
+need for these demonstrations). Stacks in the input are
 not used for decoding; where they are given, the agreement of the decoded stacks with them is printed per
 level (exact, and up to a renaming of each level's procedures). A bad flag or a malformed line ends in one
 line and exit status 2 before anything runs; the output is written atomically.
@@ -27,7 +29,7 @@ from absl import app, flags
 
 from experiments import cli
 from php_jax.analysis import decoding
-from php_jax.data import agreement, demo_files, files
+from php_jax.data import agreement, call_tree, demo_files, files
 from php_jax.envs import replay
 from php_jax.model import PHPHierarchy
 from php_jax.training import checkpoint
@@ -74,7 +76,17 @@ def main(argv):
   per_step, unfit = decoding.log_likelihood_per_step(decoded.log_likelihood, np.asarray(batch.length))
   print(f"log-likelihood: {'none' if per_step is None else f'{per_step:.4f} per step'}"
         + (f"; {unfit} of {len(lines)} demonstrations fit no call stack" if unfit else ""))
-  for level in range(1, hierarchy.spec.num_levels):
+  spec = hierarchy.spec
+  fits = np.isfinite(decoded.log_likelihood)  # the stacks of demonstrations that fit none mean nothing
+  used = call_tree.calls_per_procedure(decoded.procedures[fits], decoded.counters[fits],
+                                       np.asarray(batch.length)[fits],
+                                       [spec.num_procs(level) for level in range(spec.num_levels)])
+  for level in range(1, spec.num_levels):
+    calls = ", ".join(f"{name} {n}" for name, n in zip(spec.levels[level], used[level]))
+    unused = int(np.sum(used[level] == 0))
+    print(f"level {level} calls: {calls}" + (f"; {unused} of {spec.num_procs(level)} procedures never called"
+                                              if unused else ""))
+  for level in range(1, spec.num_levels):
     measured = agreement.stack_agreement(batch.procedures, batch.counters, decoded.procedures, decoded.counters,
                                          level)
     if measured:

@@ -38,6 +38,20 @@ def call_starts(procedures, counters) -> np.ndarray:
   return starts
 
 
+def calls_per_procedure(procedures, counters, length, num_procs: Sequence[int]) -> list[np.ndarray]:
+  """Per level, root first, [K_k] int: how many calls of each procedure the stacks [B, T, d] make over their
+  first length [B] steps (a procedure with none is one the stacks never use; unknown frames, −1, are not
+  counted)."""
+  procedures, counters = np.asarray(procedures), np.asarray(counters)
+  counts = [np.zeros(k, int) for k in num_procs]
+  for b, n in enumerate(np.asarray(length)):
+    starts = call_starts(procedures[b, :n], counters[b, :n])
+    for level, count in enumerate(counts):
+      called = procedures[b, :n, level][starts[:, level]]
+      np.add.at(count, called[called >= 0], 1)
+  return counts
+
+
 def calls(procedures, counters, length: int | None = None) -> Call:
   """The root's call, holding every call below it, of a stack [T, d] over its first length steps (default
   T; −1 entries, unknown or padding, are read as procedure −1). Raises ValueError for stacks that are not

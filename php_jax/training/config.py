@@ -73,7 +73,8 @@ class TrainConfig:
       "floats")
   decode: str = _setting("sample", "How weak views are decoded for the level above (the paper sampled).", "str",
                          objective.DECODERS, True)
-  capacity: int = _setting(8, "Counter capacity below the root level where no call is annotated.", "int")
+  capacity: int = _setting(8, "Counter capacity below the root level (joint training: the root's too) where no "
+                           "call is annotated; with the loop segmentation, the most its levels get.", "int")
   min_capacity: tuple[int, ...] | None = _setting(
       None, "Per level, root first, the least counter capacity (for calls longer than the annotated ones; the "
       "root's is used by joint training only); unset: the longest annotated call decides.", "ints")

@@ -57,6 +57,13 @@ def test_any_tree_of_calls_is_read_back_from_its_stack(case):
   per_level = call_tree.level_calls(root)
   assert [c.level for c in per_level[depth - 1]] == [depth - 1] * len(per_level[depth - 1])
   assert sum(c.end - c.start for c in per_level[depth - 1]) == root.end  # the lowest calls tile the steps
+  # Counted per procedure, two copies of the stack (one padded) make twice the tree's calls.
+  padded = [np.concatenate([x, -np.ones((2, depth), int)]) for x in (procedures, counters)]
+  counts = call_tree.calls_per_procedure(np.stack([padded[0], padded[0]]), np.stack([padded[1], padded[1]]),
+                                         [root.end, root.end], [1] + [3] * (depth - 1))
+  for level, calls in enumerate(per_level):
+    np.testing.assert_array_equal(counts[level], 2 * np.bincount([c.procedure for c in calls], minlength=len(
+        counts[level])))
 
 
 def test_padding_beyond_the_length_is_ignored():

@@ -1,5 +1,6 @@
 """Your own demonstrations: the file formats (read, written, refused with file:line), partial annotations,
 replay of recorded demonstrations, and the export / fit / decode commands end to end."""
+import collections
 import dataclasses
 import json
 import pathlib
@@ -12,7 +13,7 @@ import pytest
 from flax import nnx
 
 from php_jax import demos
-from php_jax.data import demo_files, views
+from php_jax.data import call_tree, demo_files, views
 from php_jax.demos import UNKNOWN
 from php_jax.envs import datasets, replay, tasks
 from php_jax.flat_lstm import FlatLSTMPolicy
@@ -206,6 +207,10 @@ def test_fit_decode_show_and_report_on_the_warehouse_example(tmp_path):
   steps = sum(len(json.loads(line)["actions"]) for line in held_out.read_text().splitlines())
   per_step = sum(json.loads(line)["log_likelihood"] for line in out.read_text().splitlines()) / steps
   assert f"log-likelihood: {per_step:.4f} per step" in decode.stdout
+  trees = [call_tree.calls(np.asarray(row["stack"])[..., 0], np.asarray(row["stack"])[..., 1]) for row in rows]
+  calls = collections.Counter((c.level, c.procedure) for tree in trees for level in call_tree.level_calls(tree)
+                              for c in level)
+  assert f"level 1 calls: fetch {calls[1, 0]}, deliver {calls[1, 1]}" in decode.stdout
   for row, demo in zip(rows, given):
     assert set(row) == {"log_likelihood", "stack", "replayed", "first_mismatch"}
     assert np.isfinite(row["log_likelihood"]) and row["log_likelihood"] < 0
