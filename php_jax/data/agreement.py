@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from php_jax.data import call_tree
 from php_jax.data.views import LevelView
 from php_jax.demos import UNKNOWN, Demonstration
 
@@ -111,10 +112,7 @@ def call_starts(procedures, counters, level: int) -> np.ndarray:
     raise ValueError(f"need a stack [T, d] with 1 <= level < d; got {list(procedures.shape)}, level {level}")
   if np.any(procedures[:, :level + 1] == UNKNOWN) or np.any(counters[:, :level + 1] == UNKNOWN):
     raise ValueError(f"the stack is not known down to level {level}")
-  upper = np.concatenate([procedures[:, :level], counters[:, :level]], axis=1)
-  starts = np.ones(len(upper), bool)
-  starts[1:] = np.any(upper[1:] != upper[:-1], axis=1)
-  return starts
+  return call_tree.call_starts(procedures, counters)[:, level]
 
 
 def boundary_steps(starts) -> set[int]:

@@ -32,7 +32,7 @@ def call_starts(procedures, counters) -> np.ndarray:
   changed = np.zeros((steps, depth), bool)
   changed[1:] = (procedures[1:] != procedures[:-1]) | (counters[1:] != counters[:-1])
   starts = np.zeros((steps, depth), bool)
-  starts[0] = True
+  starts[:1] = True  # step 0 (if any) starts a call at every level
   for level in range(1, depth):
     starts[:, level] = starts[:, level - 1] | changed[:, level - 1]
   return starts
