@@ -31,21 +31,25 @@ _VALIDATION_FRACTION = flags.DEFINE_float("validation_fraction", 0.1, "Share of 
                                           "--validation is not given (at least one demonstration).")
 DEFAULT_CAPACITY = 8
 _FIT_DEFAULTS = {"hidden": '64, or the hierarchy file\'s "hidden"', "tau_in_termination": "1 at every level",
-                 "min_capacity": f'{DEFAULT_CAPACITY} below the root, or the hierarchy file\'s "capacity"'}
+                 "min_capacity": f'{DEFAULT_CAPACITY} below the root where some demonstration is annotated, or the '
+                                 'hierarchy file\'s "capacity"'}
 config_flags.define_config_flags(lambda name, default: _FIT_DEFAULTS.get(name) or config_flags.default_text(default))
 flags.adopt_module_key_flags(training)
 flags.adopt_module_key_flags(config_flags)
 
 
-def fit_overrides(hierarchy: demo_files.Hierarchy) -> dict:
+def fit_overrides(hierarchy: demo_files.Hierarchy, annotated: bool) -> dict:
   """A hierarchy file's overrides of the training settings: one hidden layer of 64 (or the file's "hidden"),
   ψ sees τ at every level, and below the root a counter capacity of at least the file's "capacity" (default
-  8), more where an annotated call is longer: weak demonstrations may hold longer calls than the few
-  annotated ones."""
+  8 where some demonstration is annotated), more where an annotated call is longer: weak demonstrations may
+  hold longer calls than the few annotated ones. With nothing annotated and no "capacity", no least capacity:
+  a level is 8 counters wide, or as wide as the loop segmentation's longest call where it annotates it."""
   depth = hierarchy.spec.num_levels
-  least = hierarchy.capacity or (None,) * depth
-  return {"hidden": hierarchy.hidden or (64,), "tau_in_termination": (True,) * depth,
-          "min_capacity": (0,) + tuple(DEFAULT_CAPACITY if c is None else c for c in least[1:])}
+  overrides = {"hidden": hierarchy.hidden or (64,), "tau_in_termination": (True,) * depth}
+  if annotated or hierarchy.capacity:
+    least = hierarchy.capacity or (None,) * depth
+    overrides["min_capacity"] = (0,) + tuple(DEFAULT_CAPACITY if c is None else c for c in least[1:])
+  return overrides
 
 
 def split(batch: Demonstration, fraction: float, seed: int) -> tuple[Demonstration, Demonstration, tuple[int, ...]]:
@@ -72,10 +76,13 @@ def run() -> dict:
     hierarchy = demo_files.read_hierarchy(_HIERARCHY.value)
   except demo_files.DemoFileError as e:
     raise config_flags.UsageError(str(e)) from None
-  config = config_flags.config_from_flags(fit_overrides(hierarchy))
-  config_flags.check_levels(hierarchy.spec, config)
   try:
     demos, spec = demo_files.read_demonstrations(_DEMOS.value, hierarchy.spec)
+  except demo_files.DemoFileError as e:
+    raise config_flags.UsageError(str(e)) from None
+  config = config_flags.config_from_flags(fit_overrides(hierarchy, bool(np.any(demos.strong))))
+  config_flags.check_levels(hierarchy.spec, config)
+  try:
     in_file, numbers = demos, None
     if _VALIDATION.value:
       held_out, spec = demo_files.read_demonstrations(_VALIDATION.value, spec)
