@@ -35,8 +35,8 @@ def joint_capacity(demos: Demonstration, spec: HierarchySpec, config: train.Trai
   least = config.min_capacity or (0,) * spec.num_levels
 
   def annotated(level: int) -> np.ndarray:
-    found = [taus[strong][..., level].ravel()]
-    return np.concatenate(found + [np.asarray(h.counters)[..., level].ravel() for h in hinted] if level else found)
+    segmented = [np.asarray(h.counters)[..., level].ravel() for h in hinted] if level else []
+    return np.concatenate([taus[strong][..., level].ravel(), *segmented])
 
   return tuple(counter_capacity(annotated(level), config.capacity, least[level],
                                 *((lengths.max(), lengths[strong].max()) if level == 0 and strong.any() else ()))
