@@ -55,8 +55,8 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   Checkpoints and resumes as train.train_hierarchy does (the same log protocol); a checkpoint made with
   other settings raises CheckpointError. Returns the hierarchy and a report {capacity, losses,
   best_iteration, validation, seconds, and split_search: the rounds' entries where there were any}; after a
-  search that kept a move, validation is the final hierarchy's score and best_iteration the snapshot the
-  search started from."""
+  split search, validation is the final hierarchy's score and best_iteration the snapshot the search started
+  from."""
   config = train.prepare(spec, demos, train.in_mode(config, "joint"))
   graph = call_graph.resolve(config.call_graph, demos, spec)
   for name in ("segment_iterations", "split_rounds"):
@@ -66,13 +66,16 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   hierarchy = train.make_hierarchy(spec, config, graph)
   settings = train.run_settings(spec, demos, config)
   capacity = joint_capacity(demos, spec, config)
-  hinted = segmentation.hinted_demonstrations(demos, capacity) if config.segment_iterations else None
-  if config.segment_iterations and hinted is None:
-    raise ConfigError("segment_iterations", "the demonstrations' actions show no loops to segment (no action "
-                      "value follows itself, or every one does); use 0")
-  if hinted is not None:  # the judge's calls must fit too, or it cannot tell the split search's candidates apart
-    judged = () if validation_demos is None else (segmentation.hinted_demonstrations(
-        validation_demos, capacity, segmentation.attached_actions(demos)),)
+  hinted = None
+  if config.segment_iterations:
+    attached = segmentation.attached_actions(demos)
+    if attached is None:
+      raise ConfigError("segment_iterations", "the demonstrations' actions show no loops to segment (no action "
+                        "value follows itself, or every one does); use 0")
+    hinted = segmentation.hinted_demonstrations(demos, capacity, attached)
+    # The judge's calls must fit too, or it cannot tell the split search's candidates apart.
+    judged = () if validation_demos is None else (
+        segmentation.hinted_demonstrations(validation_demos, capacity, attached),)
     capacity = joint_capacity(demos, spec, config, (hinted, *judged))
   saved = checkpoint.read_training(checkpoint_path)
   counted_log, resume, report = train.CountedLog(log), None, None
@@ -111,9 +114,9 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
     if not report["split_search"]:
       counted_log({"split_rounds": config.split_rounds})
     judge = demos if validation_demos is None else validation_demos
-    _, rounds = split_search.search(hierarchy, capacity, demos, judge, config, report["split_search"], on_round)
-    if validate and any(entry["kept"] != split_search.UNCHANGED for entry in rounds):
-      report["validation"] = validate(hierarchy)  # the searched hierarchy's; best_iteration: where it started
+    split_search.search(hierarchy, capacity, demos, judge, config, report["split_search"], on_round)
+    if validate:  # every round trains what it keeps, "unchanged" too; best_iteration: where the search started
+      report["validation"] = validate(hierarchy)
   return hierarchy, report
 
 

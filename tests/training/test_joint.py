@@ -162,21 +162,24 @@ def test_an_interrupted_split_search_resumes_to_the_same_result(tmp_path):
   validation = datasets.problem_demonstrations(NANOCRAFT, NANOCRAFT.validation_problems(10_001, 3), 0)
   config = train.TrainConfig(iterations=6, hidden=(8,), eval_every=3, seed=1, split_rounds=2, split_iterations=3,
                              split_hint_iterations=1)
-  reference, report = joint.train_joint(NANOCRAFT.spec, demos, config, log=lambda row: None,
+  def parameter_sum(hierarchy) -> float:  # a validation score that tells every hierarchy apart
+    return float(sum(np.sum(np.asarray(x, np.float64)) for x in jax.tree.leaves(nnx.state(hierarchy, nnx.Param))))
+  reference, report = joint.train_joint(NANOCRAFT.spec, demos, config, parameter_sum, log=lambda row: None,
                                         validation_demos=validation)
   rounds = report["split_search"]
   assert report["capacity"] and 1 <= len(rounds) <= 2 and rounds[0]["candidates"][0][0] == "unchanged"
+  assert report["validation"] == parameter_sum(reference)  # the searched hierarchy's, not the snapshot's
 
   def stop_at_the_first_round(row):
     if "split_search" in row:
       raise KeyboardInterrupt
   path = str(tmp_path / checkpoint.TRAINING_DIR)
   with pytest.raises(KeyboardInterrupt):
-    joint.train_joint(NANOCRAFT.spec, demos, config, log=stop_at_the_first_round, checkpoint_path=path,
-                      validation_demos=validation)
+    joint.train_joint(NANOCRAFT.spec, demos, config, parameter_sum, log=stop_at_the_first_round,
+                      checkpoint_path=path, validation_demos=validation)
   rows = []
-  resumed, resumed_report = joint.train_joint(NANOCRAFT.spec, demos, config, log=rows.append, checkpoint_path=path,
-                                              validation_demos=validation)
+  resumed, resumed_report = joint.train_joint(NANOCRAFT.spec, demos, config, parameter_sum, log=rows.append,
+                                              checkpoint_path=path, validation_demos=validation)
   # The checkpoint after the iterations: the search starts again, and ends as the uninterrupted one did.
   assert rows[0]["resumed"] and rows[1] == {"split_rounds": 2}
   assert [r["split_search"] for r in rows[2:]] == rounds and resumed_report["split_search"] == rounds
