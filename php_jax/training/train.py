@@ -155,8 +155,9 @@ def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, fla
   strong_weight = balanced_strong_weight(strong) if config.strong_weight is None else config.strong_weight
   training = training_mode(config, bool(strong.any())) if not flat_lstm else config.training or "levelwise"
   weak_only = not flat_lstm and training == "joint" and not strong.any()
-  loops = weak_only and not call_graph.restricts(spec.allowed_ops) and None in (config.segment_iterations, config.split_rounds) and \
-      segmentation.attached_actions(demos) is not None
+  loops = (weak_only and not call_graph.restricts(spec.allowed_ops)
+           and None in (config.segment_iterations, config.split_rounds)
+           and segmentation.attached_actions(demos) is not None)
 
   def unset_or(value, default):
     return default if value is None else value
