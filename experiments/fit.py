@@ -43,7 +43,7 @@ def fit_overrides(hierarchy: demo_files.Hierarchy, annotated: bool) -> dict:
   ψ sees τ at every level, and below the root a counter capacity of at least the file's "capacity" (default
   8 where some demonstration is annotated), more where an annotated call is longer: weak demonstrations may
   hold longer calls than the few annotated ones. With nothing annotated and no "capacity", no least capacity:
-  a level is 8 counters wide, or as wide as the loop segmentation's longest call where it annotates it."""
+  a level is 8 counters wide, or as wide as the segmentation's longest call where it annotates it."""
   depth = hierarchy.spec.num_levels
   overrides = {"hidden": hierarchy.hidden or (64,), "tau_in_termination": (True,) * depth}
   if annotated or hierarchy.capacity:

@@ -100,11 +100,12 @@ TASK = Task(
     step_budget=lambda width: bubblesort.oracle_step_budget(width - 1),
     parse_problem=parse_problem, outcome=outcome,
     # Every return but the lowest procedures' reads the observation. The root's decisions need no counter and
-    # level 1's only whether an operation is reset's first (so they behave the same on arrays of any length);
-    # level 1's calls grow with the array (reset makes n of them, 9 in the training set), beyond the longest
-    # annotated one when few arrays are annotated.
+    # level 1's only whether an operation is reset's first (so they behave the same on arrays of any length).
+    # The calls grow with the array, beyond the longest annotated one when few arrays are annotated: level 1's
+    # (reset makes n of them, 9 in the training set) and the root's (bubble and reset in turn, 2(n − 1): 16),
+    # which a joint run without annotation has no annotated call to size from.
     defaults=TrainingDefaults(num_demos=128, num_demos_fixed=True, hidden=(64,),
                               tau_in_termination=(False, False, True), tau_limit=(0, 1, None),
-                              min_capacity=(0, 9, 3), test_lengths=(20, 50, 100, 200), num_test=100,
+                              min_capacity=(16, 9, 3), test_lengths=(20, 50, 100, 200), num_test=100,
                               iterations=1000, learning_rate=1e-2),
     action_name=action_name)

@@ -74,7 +74,7 @@ class TrainConfig:
   decode: str = _setting("sample", "How weak views are decoded for the level above (the paper sampled).", "str",
                          objective.DECODERS, True)
   capacity: int = _setting(8, "Counter capacity below the root level (joint training: the root's too) where no "
-                           "call is annotated; with the loop segmentation, the most its levels get.", "int")
+                           "call is annotated; with the segmentation, the most the levels it annotates get.", "int")
   min_capacity: tuple[int, ...] | None = _setting(
       None, "Per level, root first, the least counter capacity (for calls longer than the annotated ones; the "
       "root's is used by joint training only); unset: the longest annotated call decides.", "ints")
@@ -98,11 +98,13 @@ class TrainConfig:
       "demonstration is annotated (it segments better there; RESULTS.md), else 1.", "float", joint_off=(None, 1))
   segment_iterations: int | None = _setting(
       None, "Joint training: for this many of the first iterations, the demonstrations without annotation take "
-      "the counters of the two lowest levels from the loop segmentation of their actions, as a partial "
-      "annotation (an action value that never follows itself in the demonstrations ends the call it follows, "
-      "any other starts a call; consecutive calls that start with the same action are one call of the level "
-      "above); 0: none; unset: half of --iterations where no demonstration is annotated, the actions show "
-      "loops (one value follows itself, another never does) and the hierarchy declares no call graph, else 0.",
+      "counters of the lowest levels from a segmentation of their actions, as a partial annotation. Where the "
+      "actions show loops (one value follows itself, another never does): an action value that never follows "
+      "itself ends the call it follows, any other starts a call, and consecutive calls that start with the same "
+      "action are one call of the level above. Where no value follows itself: an action continues the call of "
+      "the one before it when that value is always followed by the same one (the lowest level alone). 0: none; "
+      "unset: half of --iterations where no demonstration is annotated, one of the two applies and the "
+      "hierarchy declares no call graph, else 0.",
       "int", joint_off=(None, 0))
   split_rounds: int | None = _setting(
       None, "Joint training: rounds of the split search after the iterations. Each candidate move gives a "
@@ -110,7 +112,7 @@ class TrainConfig:
       "in place of the least-used procedure of its level; every candidate and the unchanged hierarchy train "
       "--split_iterations more, and the one most likely on the validation demonstrations is kept; a round "
       f"that keeps the unchanged one ends the search. unset: {DISCOVERY_SPLIT_ROUNDS} where "
-      "--segment_iterations is on by default, else 0.", "int", joint_off=(None, 0))
+      "--segment_iterations is on by default and the actions show loops, else 0.", "int", joint_off=(None, 0))
   split_iterations: int = _setting(150, "Adam iterations each candidate of a split-search round trains.", "int",
                                    joint_off=(150,))
   split_hint_iterations: int = _setting(

@@ -27,7 +27,7 @@ def joint_capacity(demos: Demonstration, spec: HierarchySpec, config: train.Trai
   """Counter capacity per level, root first (`objective.counter_capacity` of the strong demonstrations'
   counters at that level; config.capacity when nothing is annotated, at least config.min_capacity). The
   root's longest annotated call is scaled by how much longer the longest demonstration is than the longest
-  annotated one: weak demonstrations may need more root operations. hinted: demonstrations with the loop
+  annotated one: weak demonstrations may need more root operations. hinted: demonstrations with the
   segmentation's partial annotation (`segmentation.hinted_demonstrations`: of demos, and of any others the run
   reads); below the root, their segmented calls count as annotated ones, so a level the segmentation annotates
   has no more counters than its calls need."""
@@ -49,8 +49,8 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
                 validation_demos: Demonstration | None = None) -> tuple[PHPHierarchy, dict]:
   """Trains every level together (config.training unset or "joint", else ValueError) for config.iterations
   Adam iterations, keeping the snapshot with the best validate(hierarchy) (config.snapshot's rule); the
-  first config.segment_iterations of them on the loop segmentation's partial annotation (`segmentation`;
-  ConfigError if the actions show no loops). Then config.split_rounds rounds of the split search
+  first config.segment_iterations of them on the segmentation's partial annotation (`segmentation`;
+  ConfigError if no rule applies to the actions). Then config.split_rounds rounds of the split search
   (`split_search`), judged on validation_demos (default: demos), each logged as {"split_search": entry}.
   Checkpoints and resumes as train.train_hierarchy does (the same log protocol); a checkpoint made with
   other settings raises CheckpointError. Returns the hierarchy and a report {capacity, losses,
@@ -68,14 +68,14 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   capacity = joint_capacity(demos, spec, config)
   hinted = None
   if config.segment_iterations:
-    attached = segmentation.attached_actions(demos)
-    if attached is None:
-      raise ConfigError("segment_iterations", "the demonstrations' actions show no loops to segment (no action "
-                        "value follows itself, or every one does); use 0")
-    hinted = segmentation.hinted_demonstrations(demos, capacity, attached)
+    rule = segmentation.read_rule(demos)
+    if rule is None:
+      raise ConfigError("segment_iterations", "the demonstrations' actions show nothing to segment (no loops, and no "
+                        "action value always followed by the same one); use 0")
+    hinted = segmentation.hinted_demonstrations(demos, capacity, rule)
     # The judge's calls must fit too, or it cannot tell the split search's candidates apart.
     judged = () if validation_demos is None else (
-        segmentation.hinted_demonstrations(validation_demos, capacity, attached),)
+        segmentation.hinted_demonstrations(validation_demos, capacity, rule),)
     capacity = joint_capacity(demos, spec, config, (hinted, *judged))
   saved = checkpoint.read_training(checkpoint_path)
   counted_log, resume, report = train.CountedLog(log), None, None

@@ -1,33 +1,77 @@
-"""The loop segmentation: calls read off the demonstrations' actions alone, for joint training without
-annotation to start from (`TrainConfig.segment_iterations`).
+"""Segmentations read off the demonstrations' actions alone: calls as a partial annotation for joint training
+without annotation to start from (`TrainConfig.segment_iterations`). Two rules; a run takes the first that
+applies to its training demonstrations (`read_rule`).
 
-It rests on two assumptions. (1) An action value that never follows itself in the demonstrations ends the
-call it follows (that call's counter goes on); every other value starts a call of the lowest level. (2) A
+"loops" rests on two assumptions. (1) An action value that never follows itself in the demonstrations ends
+the call it follows (that call's counter goes on); every other value starts a call of the lowest level. (2) A
 call of the level above repeats one kind of lowest-level call: consecutive lowest-level calls that start with
 the same action value are one call of the level above. On NanoCraft (a loop of moves, then a placement) they
-give the supervisor's counters of both levels at every step; where no action value ever follows itself
-(addition, bubble sort) the actions show no loops and there is no segmentation.
+give the supervisor's counters of both levels at every step. It applies where some action value follows
+itself and another never does.
+
+"successors", where no action value follows itself: an action continues the lowest-level call of the action
+before it when that value is always followed by the same value in the demonstrations (a fixed sequence of
+actions is one call); the level above stays unknown. On bubble sort every call it makes is the supervisor's,
+but `dece` and the `lshift` always after it are one call. It applies where some value has one successor.
 """
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
 from php_jax.demos import UNKNOWN, Demonstration
 
+Action = tuple[int, ...]  # one elementary action: one int per factor
 
-def attached_actions(demos: Demonstration) -> set[tuple[int, ...]] | None:
-  """The action values (one int per factor) that never follow themselves in demos (assumption 1), or None
-  where the actions show no loops: no value follows itself, or every value does."""
-  seen, repeated = set(), set()
+
+class Rule(NamedTuple):
+  """A segmentation rule read off training demonstrations. name: "loops" or "successors"; actions: the values
+  it reads (loops: those that never follow themselves; successors: those always followed by one value)."""
+  name: str
+  actions: frozenset[Action]
+
+
+def _action_rows(demos: Demonstration):
   for actions, n in zip(np.asarray(demos.actions), np.asarray(demos.length)):
-    rows = [tuple(int(a) for a in row) for row in actions[:n]]
+    yield [tuple(int(a) for a in row) for row in actions[:n]]
+
+
+def attached_actions(demos: Demonstration) -> set[Action] | None:
+  """The action values that never follow themselves in demos (the loops rule's assumption 1), or None where
+  the actions show no loops: no value follows itself, or every value does."""
+  seen, repeated = set(), set()
+  for rows in _action_rows(demos):
     seen.update(rows)
     repeated.update(a for a, b in zip(rows, rows[1:]) if a == b)
   attached = seen - repeated
   return attached if repeated and attached else None
 
 
-def loop_counters(demos: Demonstration, attached: set[tuple[int, ...]]) -> np.ndarray:
+def single_successor_actions(demos: Demonstration) -> set[Action]:
+  """The action values always followed by one and the same value in demos (the end of a demonstration counts
+  as a successor)."""
+  successors: dict[Action, set] = {}
+  for rows in _action_rows(demos):
+    for a, b in zip(rows, rows[1:] + [None]):
+      successors.setdefault(a, set()).add(b)
+  return {a for a, following in successors.items() if len(following) == 1}
+
+
+def read_rule(demos: Demonstration) -> Rule | None:
+  """The segmentation rule demos' actions admit: loops where they show loops, else successors where some
+  value has a single successor, else None."""
+  attached = attached_actions(demos)
+  if attached is not None:
+    return Rule("loops", frozenset(attached))
+  if not any(a == b for rows in _action_rows(demos) for a, b in zip(rows, rows[1:])):
+    single = single_successor_actions(demos)
+    if single:
+      return Rule("successors", frozenset(single))
+  return None
+
+
+def loop_counters(demos: Demonstration, attached: set[Action]) -> np.ndarray:
   """[B, T, 2] int32: each step's counters in the loop segmentation with `attached` as assumption (1)'s
   values: the level above the lowest's, then the lowest's (UNKNOWN on padding)."""
   actions, lengths = np.asarray(demos.actions), np.asarray(demos.length)
@@ -44,19 +88,37 @@ def loop_counters(demos: Demonstration, attached: set[tuple[int, ...]]) -> np.nd
   return counters
 
 
+def successor_counters(demos: Demonstration, single: set[Action]) -> np.ndarray:
+  """[B, T, 2] int32: each step's counters in the successor segmentation with `single` as the values that
+  have one successor: the level above the lowest's (UNKNOWN), then the lowest's (UNKNOWN on padding)."""
+  counters = np.full(np.shape(demos.actions)[:2] + (2,), UNKNOWN, np.int32)
+  for b, rows in enumerate(_action_rows(demos)):
+    for t in range(len(rows)):
+      counters[b, t, 1] = counters[b, t - 1, 1] + 1 if t > 0 and rows[t - 1] in single else 0
+  return counters
+
+
+def segment_counters(demos: Demonstration, rule: Rule) -> np.ndarray:
+  """[B, T, 2] int32: the counters of the level above the lowest and of the lowest that rule reads off demos'
+  actions (UNKNOWN where it says nothing, and on padding)."""
+  if rule.name == "loops":
+    return loop_counters(demos, set(rule.actions))
+  return successor_counters(demos, set(rule.actions))
+
+
 def hinted_demonstrations(demos: Demonstration, capacity: tuple[int, ...],
-                          attached: set[tuple[int, ...]] | None = None) -> Demonstration | None:
-  """demos with each demonstration without annotation given the loop segmentation's counters of the two
-  lowest levels below the root (of the lowest alone in a two-level hierarchy) as a partial annotation, every
+                          rule: Rule | None = None) -> Demonstration | None:
+  """demos with each demonstration without annotation given the segmentation's counters of the two lowest
+  levels below the root (of the lowest alone in a two-level hierarchy) as a partial annotation, every
   procedure and other counter unknown; a counter at or above its level's capacity (root first) stays unknown.
-  Annotated demonstrations are kept as they are. attached: assumption (1)'s values (default: demos' own,
-  `attached_actions`; another set's, to segment held-out demonstrations as the training ones are). None where
-  the actions show no loops."""
-  attached = attached_actions(demos) if attached is None else attached
-  if attached is None:
+  Annotated demonstrations are kept as they are. rule: the segmentation rule (default: demos' own,
+  `read_rule`; another set's, to segment held-out demonstrations as the training ones are). None where no
+  rule applies."""
+  rule = read_rule(demos) if rule is None else rule
+  if rule is None:
     return None
   num_levels = len(capacity)
-  counters = loop_counters(demos, attached)[..., -min(2, num_levels - 1):]
+  counters = segment_counters(demos, rule)[..., -min(2, num_levels - 1):]
   levels = range(num_levels - counters.shape[-1], num_levels)
   counters = np.where(counters < np.asarray([capacity[level] for level in levels]), counters, UNKNOWN)
   strong = np.asarray(demos.strong)

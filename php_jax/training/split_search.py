@@ -131,8 +131,8 @@ def most_likely_stacks(hierarchy: PHPHierarchy, capacity: tuple[int, ...],
                                               demos.actions, demos.length))
 
 
-def log_likelihood_per_step(candidates: list[PHPHierarchy], capacity: tuple[int, ...],
-                            demos: Demonstration) -> list[float]:
+def judge_scores(candidates: list[PHPHierarchy], capacity: tuple[int, ...],
+                 demos: Demonstration) -> list[float]:
   """Per candidate, Σ log P(actions) / Σ length of demos (−inf if a demonstration fits no stack): one
   compiled program for every candidate of one architecture."""
   steps = float(np.sum(demos.length))
@@ -176,7 +176,7 @@ def search_round(hierarchy: PHPHierarchy, capacity: tuple[int, ...], demos: Demo
     apply(candidate, move, key)
   train_candidates(candidates, [demos] + [demos if m.hinted is None else m.hinted for m in moves], demos, capacity,
                    config)
-  scores = log_likelihood_per_step(candidates, capacity, judge)
+  scores = judge_scores(candidates, capacity, judge)
   best = int(np.argmax(scores))
   names = [UNCHANGED] + [m.description for m in moves]
   as_json = [s if np.isfinite(s) else None for s in scores]  # None: a judging demonstration fits no stack

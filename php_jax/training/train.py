@@ -147,17 +147,16 @@ def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, fla
   """config with the settings that follow the demonstrations resolved where unset (as results.json and a
   checkpoint record them): the balanced strong weight (`balanced_strong_weight`); the training mode
   (`training_mode`; levelwise for the flat LSTM, which has no levels); and for a PHP trained jointly on
-  demonstrations none of which is annotated, WEAK_ONLY_ANNEALING (else 1: none) and, where their actions
-  show loops (`segmentation.attached_actions`) and spec declares no call graph (which says itself which
-  procedure takes which operation), the loop segmentation for half the iterations and
-  DISCOVERY_SPLIT_ROUNDS of the split search (else 0 and 0)."""
+  demonstrations none of which is annotated, WEAK_ONLY_ANNEALING (else 1: none) and, where spec declares no
+  call graph (which says itself which procedure takes which operation) and a segmentation rule applies to
+  their actions (`segmentation.read_rule`), the segmentation for half the iterations (else 0), and
+  DISCOVERY_SPLIT_ROUNDS of the split search where that rule is "loops" (else 0)."""
   strong = np.asarray(demos.strong)
   strong_weight = balanced_strong_weight(strong) if config.strong_weight is None else config.strong_weight
   training = training_mode(config, bool(strong.any())) if not flat_lstm else config.training or "levelwise"
   weak_only = not flat_lstm and training == "joint" and not strong.any()
-  loops = (weak_only and not call_graph.restricts(spec.allowed_ops)
-           and None in (config.segment_iterations, config.split_rounds)
-           and segmentation.attached_actions(demos) is not None)
+  rule = (segmentation.read_rule(demos) if weak_only and not call_graph.restricts(spec.allowed_ops)
+          and None in (config.segment_iterations, config.split_rounds) else None)
 
   def unset_or(value, default):
     return default if value is None else value
@@ -165,8 +164,8 @@ def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, fla
   return dataclasses.replace(
       config, strong_weight=strong_weight, training=training,
       anneal_temperature=unset_or(config.anneal_temperature, WEAK_ONLY_ANNEALING if weak_only else 1.0),
-      segment_iterations=unset_or(config.segment_iterations, config.iterations // 2 if loops else 0),
-      split_rounds=unset_or(config.split_rounds, DISCOVERY_SPLIT_ROUNDS if loops else 0))
+      segment_iterations=unset_or(config.segment_iterations, config.iterations // 2 if rule else 0),
+      split_rounds=unset_or(config.split_rounds, DISCOVERY_SPLIT_ROUNDS if rule and rule.name == "loops" else 0))
 
 
 def training_mode(config: TrainConfig, annotated: bool) -> str:

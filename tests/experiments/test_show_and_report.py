@@ -124,7 +124,7 @@ def test_a_finished_run_is_not_trained_again_and_other_settings_are_named(tmp_pa
 
 
 def test_a_finished_php_run_records_its_resolved_settings_and_is_not_trained_again(tmp_path):
-  """The settings that follow the demonstrations (the strong weight; the annealing, loop segmentation and
+  """The settings that follow the demonstrations (the strong weight; the annealing, segmentation and
   split search of a joint run none of whose demonstrations is annotated) are recorded as resolved, so that
   the same command finds its run finished."""
   flat = _flat_experiment()

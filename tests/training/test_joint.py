@@ -66,7 +66,8 @@ def test_runs_without_annotation_train_jointly_and_anneal_by_default():
   assert discovery(weak, unset) == (unset.iterations // 2, DISCOVERY_SPLIT_ROUNDS)  # NanoCraft's actions loop
   assert discovery(mixed, unset) == discovery(weak, levelwise) == (0, 0)
   addition = tasks.get("addition")
-  assert discovery(datasets.training_demos(addition, 1, 4, 0), unset, addition.spec) == (0, 0)  # no loops
+  # no loops: the successors rule, without the split search
+  assert discovery(datasets.training_demos(addition, 1, 4, 0), unset, addition.spec) == (unset.iterations // 2, 0)
   assert discovery(weak, dataclasses.replace(unset, split_rounds=0)) == (unset.iterations // 2, 0)
   declared = dataclasses.replace(NANOCRAFT.spec, allowed_ops=(None, None, ((True,) * 5,) * 6))
   assert discovery(weak, unset, declared) == (0, 0)  # a declared call graph says who takes what
@@ -75,7 +76,7 @@ def test_runs_without_annotation_train_jointly_and_anneal_by_default():
     joint.train_joint(NANOCRAFT.spec, weak, levelwise)
 
 
-def test_the_first_segment_iterations_fit_the_loop_segmentation_as_a_partial_annotation():
+def test_the_first_segment_iterations_fit_the_segmentation_as_a_partial_annotation():
   weak = datasets.training_demos(NANOCRAFT, 1, 4, 0)
   config = train.TrainConfig(iterations=4, learning_rate=1e-2, hidden=(16,), eval_every=1, seed=1, length_buckets=1,
                              anneal_temperature=1.0, segment_iterations=2, split_rounds=0)
@@ -100,9 +101,11 @@ def test_the_first_segment_iterations_fit_the_loop_segmentation_as_a_partial_ann
   assert report["capacity"] == list(capacity)
   np.testing.assert_allclose(report["losses"][0][1], want[0], rtol=1e-5)
   assert want[0] > want[1] + 1 and "split_search" not in report
-  addition = datasets.training_demos(tasks.get("addition"), 1, 2, 0)
-  with pytest.raises(ConfigError, match="segment_iterations: the demonstrations' actions show no loops"):
-    joint.train_joint(tasks.get("addition").spec, addition, config)
+  cycle = np.array([0, 1, 2, 0, 2, 1])  # no value follows itself, and each is followed by two others
+  unsegmented = weak._replace(actions=np.broadcast_to(cycle[np.arange(actions.shape[1]) % 6, None],
+                                                      actions.shape).copy())
+  with pytest.raises(ConfigError, match="segment_iterations: the demonstrations' actions show nothing to segment"):
+    joint.train_joint(NANOCRAFT.spec, unsegmented, config)
   declared = dataclasses.replace(NANOCRAFT.spec, allowed_ops=(None, None, ((True,) * 5,) * 6))
   with pytest.raises(ConfigError, match="segment_iterations: needs every procedure free to take any operation"):
     joint.train_joint(declared, weak, config)

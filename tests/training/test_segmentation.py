@@ -1,9 +1,9 @@
-"""The loop segmentation: the counters it reads off the actions, by hand and against NanoCraft's supervisor."""
+"""The segmentations: the counters each rule reads off the actions, by hand and against the supervisors'."""
 import numpy as np
 
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.envs import datasets, tasks
-from php_jax.training import segmentation
+from php_jax.training import joint, segmentation, train
 
 
 def _demos(*action_rows, strong=None):
@@ -22,6 +22,7 @@ def test_counters_follow_both_assumptions_by_hand():
   a, b, p = 1, 2, 9  # a and b follow themselves; p never does
   demos = _demos([a, a, p, a, p, b, b, p, a], [b, p, b, p, b])
   assert segmentation.attached_actions(demos) == {(p,)}
+  assert segmentation.read_rule(demos) == segmentation.Rule("loops", frozenset({(p,)}))
   counters = segmentation.loop_counters(demos, {(p,)})
   # calls of the lowest level: [a] [a p] [a p] [b] [b p] [a]; the level above: [a, a p, a p] [b, b p] [a]
   assert counters[0, :9].tolist() == [[0, 0], [1, 0], [1, 1], [2, 0], [2, 1], [0, 0], [1, 0], [1, 1], [0, 0]]
@@ -41,12 +42,44 @@ def test_the_hints_are_partial_annotations_within_capacity_and_annotated_demonst
   assert (hinted.counters[1] == demos.counters[1]).all()
 
 
-def test_no_loops_no_segmentation():
-  assert segmentation.attached_actions(_demos([1, 2, 1, 3], [2, 3])) is None  # nothing follows itself
-  assert segmentation.attached_actions(_demos([1, 1, 2, 2], [2, 2])) is None  # everything does
-  for name in ("addition", "bubblesort"):
-    demos = datasets.training_demos(tasks.get(name), 1, 16, 0)
-    assert segmentation.hinted_demonstrations(demos, (8, 8, 8)) is None
+def test_without_loops_a_value_with_one_successor_continues_the_call_by_hand():
+  a, b, c, d = 1, 2, 3, 4  # a is always followed by b, d always ends; b and c are followed by several values
+  demos = _demos([a, b, c, a, b, d], [c, b, a, b, c])
+  assert segmentation.attached_actions(demos) is None
+  rule = segmentation.read_rule(demos)
+  assert rule == segmentation.Rule("successors", frozenset({(a,), (d,)}))
+  counters = segmentation.segment_counters(demos, rule)
+  # calls of the lowest level: [a b] [c] [a b] [d] and [c] [b] [a b] [c]; the level above unknown
+  assert counters[0, :, 1].tolist() == [0, 1, 0, 0, 1, 0]
+  assert counters[1, :5, 1].tolist() == [0, 0, 0, 1, 0] and counters[1, 5, 1] == UNKNOWN
+  assert (counters[..., 0] == UNKNOWN).all()
+
+
+def test_no_rule_no_segmentation():
+  assert segmentation.read_rule(_demos([1, 2, 1, 3, 2], [3, 1])) is None  # no loops; every value has 2+ successors
+  assert segmentation.read_rule(_demos([1, 1, 2, 2], [2, 2])) is None  # every value follows itself
+  assert segmentation.hinted_demonstrations(_demos([1, 1, 2, 2], [2, 2]), (8, 8, 8)) is None
+
+
+def test_on_bubble_sort_every_call_the_successors_start_is_the_supervisors():
+  task = tasks.get("bubblesort")
+  weak, annotated = (datasets.training_demos(task, 1, 128, n) for n in (0, 128))
+  rule = segmentation.read_rule(weak)
+  assert rule.name == "successors"
+  hinted = segmentation.hinted_demonstrations(weak, (16, 9, 3), rule)
+  valid = np.arange(weak.actions.shape[1]) < weak.length[:, None]
+  starts, true_starts = hinted.counters[..., 2] == 0, annotated.counters[..., 2] == 0
+  assert (hinted.counters[valid][:, :2] == UNKNOWN).all() and (hinted.counters[valid][:, 2] != UNKNOWN).all()
+  assert (starts[valid] <= true_starts[valid]).all()
+  # the calls it misses are the lshift that always follows dece (procedure 3 of level 2)
+  missed = true_starts & ~starts & valid
+  after_dece = np.zeros_like(missed)
+  after_dece[:, 1:] = annotated.procedures[:, :-1, 2] == 3
+  assert missed.any() and (missed == (true_starts & after_dece & valid)).all()
+  # a run without annotation takes the segmented calls' length as the lowest level's capacity
+  config = train.TrainConfig(**task.defaults.overrides())
+  assert joint.joint_capacity(weak, task.spec, config, (hinted,)) == (16, 9, 3)  # the task's least capacities
+  assert joint.joint_capacity(weak, task.spec, train.TrainConfig(), (hinted,)) == (8, 8, 3)
 
 
 def test_on_nanocraft_the_segmentation_is_the_supervisors_at_both_levels():

@@ -57,7 +57,7 @@ def test_a_copy_computes_what_its_source_computes():
 def test_the_judge_is_the_exact_log_likelihood_per_step_of_every_candidate():
   judge = datasets.training_demos(NANOCRAFT, 3, 5, 5)  # annotated: the judge ignores annotations
   candidates = [_hierarchy(1), _hierarchy(2)]
-  scores = split_search.log_likelihood_per_step(candidates, CAPACITY, judge)
+  scores = split_search.judge_scores(candidates, CAPACITY, judge)
   for candidate, score in zip(candidates, scores):
     decoded = decoding.decode(candidate, CAPACITY, judge)
     np.testing.assert_allclose(score, decoding.log_likelihood_per_step(decoded.log_likelihood, judge.length)[0],
@@ -105,7 +105,7 @@ def test_a_round_keeps_the_best_judged_candidate_and_is_deterministic():
   assert entry == entry_again
   for a, b in zip(jax.tree.leaves(nnx.state(kept, nnx.Param)), jax.tree.leaves(nnx.state(again, nnx.Param))):
     np.testing.assert_array_equal(a, b)
-  np.testing.assert_allclose(split_search.log_likelihood_per_step([kept], CAPACITY, demos)[0],
+  np.testing.assert_allclose(split_search.judge_scores([kept], CAPACITY, demos)[0],
                              entry["log_likelihood_per_step"], rtol=1e-6)
 
 
