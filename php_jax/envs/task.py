@@ -51,6 +51,7 @@ class TrainingDefaults:
     learning_rate: Adam's learning rate.
     training: "levelwise" (one level at a time, the paper's) or "joint" (every level at once).
     call_graph: which operations each procedure may take ("all", "calls" or "operations").
+    segment_rule: the segmentation a joint run without annotation starts from ("loops" or "successors").
   """
   num_demos: int
   num_demos_fixed: bool
@@ -64,11 +65,12 @@ class TrainingDefaults:
   learning_rate: float | None = None
   training: str | None = None
   call_graph: str | None = None
+  segment_rule: str | None = None
 
   def overrides(self) -> dict[str, Any]:
     """{TrainConfig field: value} of the settings this task sets."""
     names = ("hidden", "tau_in_termination", "tau_limit", "min_capacity", "iterations", "learning_rate",
-             "training", "call_graph")
+             "training", "call_graph", "segment_rule")
     return {name: getattr(self, name) for name in names if getattr(self, name) is not None}
 
 

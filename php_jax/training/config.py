@@ -13,7 +13,7 @@ from typing import Any
 
 from php_jax import fitting
 from php_jax.hierarchy import HierarchySpec
-from php_jax.training import call_graph, objective
+from php_jax.training import call_graph, objective, segmentation
 
 ROOTS = ("lstm", "mlp")
 TRAININGS = ("levelwise", "joint")  # one level at a time (the paper), or every level at once (php_jax.training.joint)
@@ -38,7 +38,7 @@ def _setting(default: Any, help: str, kind: str, choices: tuple[str, ...] = (), 
 
 MAX_SEED = 2**31 - 1
 WEAK_ONLY_ANNEALING = 1.5  # the start temperature of joint runs without annotation (RESULTS.md, NanoCraft weak only)
-DISCOVERY_SPLIT_ROUNDS = 2  # split-search rounds of joint runs without annotation whose actions show loops
+DISCOVERY_SPLIT_ROUNDS = 2  # split-search rounds of joint runs without annotation segmented by loops
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,21 +98,23 @@ class TrainConfig:
       "demonstration is annotated (it segments better there; RESULTS.md), else 1.", "float", joint_off=(None, 1))
   segment_iterations: int | None = _setting(
       None, "Joint training: for this many of the first iterations, the demonstrations without annotation take "
-      "counters of the lowest levels from a segmentation of their actions, as a partial annotation. Where the "
-      "actions show loops (one value follows itself, another never does): an action value that never follows "
-      "itself ends the call it follows, any other starts a call, and consecutive calls that start with the same "
-      "action are one call of the level above. Where no value follows itself: an action continues the call of "
-      "the one before it when that value is always followed by the same one (the lowest level alone). 0: none; "
-      "unset: half of --iterations where no demonstration is annotated, one of the two applies and the "
-      "hierarchy declares no call graph, else 0.",
+      "counters of the lowest levels from the segmentation of their actions that --segment_rule names, as a "
+      "partial annotation; 0: none; unset: half of --iterations where no demonstration is annotated, that rule "
+      "applies to the actions and the hierarchy declares no call graph, else 0.",
       "int", joint_off=(None, 0))
+  segment_rule: str = _setting(
+      "loops", "The segmentation --segment_iterations reads off the actions. loops (where some action value "
+      "follows itself and another never does): a value that never follows itself ends the call it follows, any "
+      "other starts a call, and consecutive calls that start with the same action are one call of the level "
+      "above. successors (where no value follows itself): an action continues the call of the one before it "
+      "when that value is always followed by the same one; the lowest level alone.", "str", segmentation.RULES)
   split_rounds: int | None = _setting(
       None, "Joint training: rounds of the split search after the iterations. Each candidate move gives a "
       "procedure that two callers share (or that the root calls at two of its counters) a copy for one of them, "
       "in place of the least-used procedure of its level; every candidate and the unchanged hierarchy train "
       "--split_iterations more, and the one most likely on the validation demonstrations is kept; a round "
       f"that keeps the unchanged one ends the search. unset: {DISCOVERY_SPLIT_ROUNDS} where "
-      "--segment_iterations is on by default and the actions show loops, else 0.", "int", joint_off=(None, 0))
+      "--segment_iterations is on by default with --segment_rule=loops, else 0.", "int", joint_off=(None, 0))
   split_iterations: int = _setting(150, "Adam iterations each candidate of a split-search round trains.", "int",
                                    joint_off=(150,))
   split_hint_iterations: int = _setting(

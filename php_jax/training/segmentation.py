@@ -1,6 +1,6 @@
 """Segmentations read off the demonstrations' actions alone: calls as a partial annotation for joint training
-without annotation to start from (`TrainConfig.segment_iterations`). Two rules; a run takes the first that
-applies to its training demonstrations (`read_rule`).
+without annotation to start from (`TrainConfig.segment_iterations`), by one of two rules
+(`TrainConfig.segment_rule`).
 
 "loops" rests on two assumptions. (1) An action value that never follows itself in the demonstrations ends
 the call it follows (that call's counter goes on); every other value starts a call of the lowest level. (2) A
@@ -9,10 +9,11 @@ the same action value are one call of the level above. On NanoCraft (a loop of m
 give the supervisor's counters of both levels at every step. It applies where some action value follows
 itself and another never does.
 
-"successors", where no action value follows itself: an action continues the lowest-level call of the action
-before it when that value is always followed by the same value in the demonstrations (a fixed sequence of
-actions is one call); the level above stays unknown. On bubble sort every call it makes is the supervisor's,
-but `dece` and the `lshift` always after it are one call. It applies where some value has one successor.
+"successors": an action continues the lowest-level call of the action before it when that value is always
+followed by the same value in the demonstrations (a fixed sequence of actions is one call); the level above
+stays unknown. On bubble sort every call it starts is the supervisor's, but `dece` and the `lshift` always
+after it are one call; on addition it cuts `lshift` in two, after the move it shares with `carry`. It
+applies where no action value follows itself and some value has one successor.
 """
 from __future__ import annotations
 
@@ -58,17 +59,18 @@ def single_successor_actions(demos: Demonstration) -> set[Action]:
   return {a for a, following in successors.items() if len(following) == 1}
 
 
-def read_rule(demos: Demonstration) -> Rule | None:
-  """The segmentation rule demos' actions admit: loops where they show loops, else successors where some
-  value has a single successor, else None."""
-  attached = attached_actions(demos)
-  if attached is not None:
-    return Rule("loops", frozenset(attached))
-  if not any(a == b for rows in _action_rows(demos) for a, b in zip(rows, rows[1:])):
-    single = single_successor_actions(demos)
-    if single:
-      return Rule("successors", frozenset(single))
-  return None
+RULES = ("loops", "successors")
+
+
+def read_rule(demos: Demonstration, name: str) -> Rule | None:
+  """The segmentation rule `name` (one of RULES) read off demos' actions, or None where it does not apply."""
+  if name == "loops":
+    attached = attached_actions(demos)
+    return None if attached is None else Rule(name, frozenset(attached))
+  if any(a == b for rows in _action_rows(demos) for a, b in zip(rows, rows[1:])):
+    return None
+  single = single_successor_actions(demos)
+  return Rule(name, frozenset(single)) if single else None
 
 
 def loop_counters(demos: Demonstration, attached: set[Action]) -> np.ndarray:
@@ -107,14 +109,14 @@ def segment_counters(demos: Demonstration, rule: Rule) -> np.ndarray:
 
 
 def hinted_demonstrations(demos: Demonstration, capacity: tuple[int, ...],
-                          rule: Rule | None = None) -> Demonstration | None:
+                          rule: Rule | str = "loops") -> Demonstration | None:
   """demos with each demonstration without annotation given the segmentation's counters of the two lowest
   levels below the root (of the lowest alone in a two-level hierarchy) as a partial annotation, every
   procedure and other counter unknown; a counter at or above its level's capacity (root first) stays unknown.
-  Annotated demonstrations are kept as they are. rule: the segmentation rule (default: demos' own,
-  `read_rule`; another set's, to segment held-out demonstrations as the training ones are). None where no
-  rule applies."""
-  rule = read_rule(demos) if rule is None else rule
+  Annotated demonstrations are kept as they are. rule: a rule's name (read off demos, `read_rule`), or a
+  Rule read off another set, to segment held-out demonstrations as the training ones are. None where the
+  rule does not apply."""
+  rule = read_rule(demos, rule) if isinstance(rule, str) else rule
   if rule is None:
     return None
   num_levels = len(capacity)

@@ -148,14 +148,15 @@ def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, fla
   checkpoint record them): the balanced strong weight (`balanced_strong_weight`); the training mode
   (`training_mode`; levelwise for the flat LSTM, which has no levels); and for a PHP trained jointly on
   demonstrations none of which is annotated, WEAK_ONLY_ANNEALING (else 1: none) and, where spec declares no
-  call graph (which says itself which procedure takes which operation) and a segmentation rule applies to
+  call graph (which says itself which procedure takes which operation) and config.segment_rule applies to
   their actions (`segmentation.read_rule`), the segmentation for half the iterations (else 0), and
   DISCOVERY_SPLIT_ROUNDS of the split search where that rule is "loops" (else 0)."""
   strong = np.asarray(demos.strong)
   strong_weight = balanced_strong_weight(strong) if config.strong_weight is None else config.strong_weight
   training = training_mode(config, bool(strong.any())) if not flat_lstm else config.training or "levelwise"
   weak_only = not flat_lstm and training == "joint" and not strong.any()
-  rule = (segmentation.read_rule(demos) if weak_only and not call_graph.restricts(spec.allowed_ops)
+  rule = (segmentation.read_rule(demos, config.segment_rule)
+          if weak_only and not call_graph.restricts(spec.allowed_ops)
           and None in (config.segment_iterations, config.split_rounds) else None)
 
   def unset_or(value, default):

@@ -66,8 +66,11 @@ def test_runs_without_annotation_train_jointly_and_anneal_by_default():
   assert discovery(weak, unset) == (unset.iterations // 2, DISCOVERY_SPLIT_ROUNDS)  # NanoCraft's actions loop
   assert discovery(mixed, unset) == discovery(weak, levelwise) == (0, 0)
   addition = tasks.get("addition")
-  # no loops: the successors rule, without the split search
-  assert discovery(datasets.training_demos(addition, 1, 4, 0), unset, addition.spec) == (unset.iterations // 2, 0)
+  assert discovery(datasets.training_demos(addition, 1, 4, 0), unset, addition.spec) == (0, 0)  # no loops
+  bubblesort, successors = tasks.get("bubblesort"), dataclasses.replace(unset, segment_rule="successors")
+  # bubble sort's rule: the segmentation without the split search
+  assert discovery(datasets.training_demos(bubblesort, 1, 4, 0), successors, bubblesort.spec) == (
+      unset.iterations // 2, 0)
   assert discovery(weak, dataclasses.replace(unset, split_rounds=0)) == (unset.iterations // 2, 0)
   declared = dataclasses.replace(NANOCRAFT.spec, allowed_ops=(None, None, ((True,) * 5,) * 6))
   assert discovery(weak, unset, declared) == (0, 0)  # a declared call graph says who takes what
@@ -104,8 +107,10 @@ def test_the_first_segment_iterations_fit_the_segmentation_as_a_partial_annotati
   cycle = np.array([0, 1, 2, 0, 2, 1])  # no value follows itself, and each is followed by two others
   unsegmented = weak._replace(actions=np.broadcast_to(cycle[np.arange(actions.shape[1]) % 6, None],
                                                       actions.shape).copy())
-  with pytest.raises(ConfigError, match="segment_iterations: the demonstrations' actions show nothing to segment"):
-    joint.train_joint(NANOCRAFT.spec, unsegmented, config)
+  for rule in segmentation.RULES:
+    with pytest.raises(ConfigError, match=f"segment_iterations: the demonstrations' actions show nothing that "
+                                          f"--segment_rule={rule} segments"):
+      joint.train_joint(NANOCRAFT.spec, unsegmented, dataclasses.replace(config, segment_rule=rule))
   declared = dataclasses.replace(NANOCRAFT.spec, allowed_ops=(None, None, ((True,) * 5,) * 6))
   with pytest.raises(ConfigError, match="segment_iterations: needs every procedure free to take any operation"):
     joint.train_joint(declared, weak, config)

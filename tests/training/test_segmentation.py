@@ -22,7 +22,8 @@ def test_counters_follow_both_assumptions_by_hand():
   a, b, p = 1, 2, 9  # a and b follow themselves; p never does
   demos = _demos([a, a, p, a, p, b, b, p, a], [b, p, b, p, b])
   assert segmentation.attached_actions(demos) == {(p,)}
-  assert segmentation.read_rule(demos) == segmentation.Rule("loops", frozenset({(p,)}))
+  assert segmentation.read_rule(demos, "loops") == segmentation.Rule("loops", frozenset({(p,)}))
+  assert segmentation.read_rule(demos, "successors") is None  # a and b follow themselves
   counters = segmentation.loop_counters(demos, {(p,)})
   # calls of the lowest level: [a] [a p] [a p] [b] [b p] [a]; the level above: [a, a p, a p] [b, b p] [a]
   assert counters[0, :9].tolist() == [[0, 0], [1, 0], [1, 1], [2, 0], [2, 1], [0, 0], [1, 0], [1, 1], [0, 0]]
@@ -45,8 +46,8 @@ def test_the_hints_are_partial_annotations_within_capacity_and_annotated_demonst
 def test_without_loops_a_value_with_one_successor_continues_the_call_by_hand():
   a, b, c, d = 1, 2, 3, 4  # a is always followed by b, d always ends; b and c are followed by several values
   demos = _demos([a, b, c, a, b, d], [c, b, a, b, c])
-  assert segmentation.attached_actions(demos) is None
-  rule = segmentation.read_rule(demos)
+  assert segmentation.read_rule(demos, "loops") is None
+  rule = segmentation.read_rule(demos, "successors")
   assert rule == segmentation.Rule("successors", frozenset({(a,), (d,)}))
   counters = segmentation.segment_counters(demos, rule)
   # calls of the lowest level: [a b] [c] [a b] [d] and [c] [b] [a b] [c]; the level above unknown
@@ -56,16 +57,19 @@ def test_without_loops_a_value_with_one_successor_continues_the_call_by_hand():
 
 
 def test_no_rule_no_segmentation():
-  assert segmentation.read_rule(_demos([1, 2, 1, 3, 2], [3, 1])) is None  # no loops; every value has 2+ successors
-  assert segmentation.read_rule(_demos([1, 1, 2, 2], [2, 2])) is None  # every value follows itself
-  assert segmentation.hinted_demonstrations(_demos([1, 1, 2, 2], [2, 2]), (8, 8, 8)) is None
+  no_loops_no_single = _demos([1, 2, 1, 3, 2], [3, 1])  # every value has two successors or more
+  loops_only = _demos([1, 1, 2, 2], [2, 2])  # every value follows itself
+  for demos in (no_loops_no_single, loops_only):
+    assert segmentation.read_rule(demos, "loops") is segmentation.read_rule(demos, "successors") is None
+    assert segmentation.hinted_demonstrations(demos, (8, 8, 8), "successors") is None
+  assert segmentation.hinted_demonstrations(datasets.training_demos(tasks.get("addition"), 1, 16, 0), (8, 8, 8)) is None
 
 
 def test_on_bubble_sort_every_call_the_successors_start_is_the_supervisors():
   task = tasks.get("bubblesort")
   weak, annotated = (datasets.training_demos(task, 1, 128, n) for n in (0, 128))
-  rule = segmentation.read_rule(weak)
-  assert rule.name == "successors"
+  rule = segmentation.read_rule(weak, "successors")
+  assert rule.name == "successors" and segmentation.read_rule(weak, "loops") is None
   hinted = segmentation.hinted_demonstrations(weak, (16, 9, 3), rule)
   valid = np.arange(weak.actions.shape[1]) < weak.length[:, None]
   starts, true_starts = hinted.counters[..., 2] == 0, annotated.counters[..., 2] == 0
