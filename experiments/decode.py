@@ -94,8 +94,9 @@ def main(argv):
       boundaries = agreement.stack_boundary_scores(batch.procedures, batch.counters, decoded.procedures,
                                                    decoded.counters, batch.length, level)
       found = f"; call boundaries: F1 {boundaries['f1']:.3f}" if boundaries else ""
+      procedures = agreement.stack_procedure_agreement(batch.procedures, decoded.procedures, level)
       print(f"level {level}: decoded stacks agree with the given ones on {exact:.3f} of annotated steps "
-            f"({renamed:.3f} up to renaming){found}")
+            f"({renamed:.3f} up to renaming; procedures alone, renamed: {procedures:.3f}){found}")
 
 
 if __name__ == "__main__":

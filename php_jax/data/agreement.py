@@ -78,6 +78,17 @@ def stack_agreement(procedures, counters, decoded_procedures, decoded_counters,
   return exact_fraction(counts, known.sum()), relabelled_fraction(counts, known.sum())
 
 
+def stack_procedure_agreement(procedures, decoded_procedures, level: int) -> float | None:
+  """The fraction of the annotated steps of given stacks [..., T, d] (UNKNOWN where not annotated, or
+  padding) whose decoded procedure at level, renamed one to one (`label_agreement`), is the given one,
+  whatever the counters; None if no step is annotated there."""
+  procs = np.asarray(procedures)[..., level]
+  known = procs != UNKNOWN
+  if not known.any():
+    return None
+  return label_agreement(procs[known], np.asarray(decoded_procedures)[..., level][known])[0]
+
+
 def stack_boundary_scores(procedures, counters, decoded_procedures, decoded_counters, length,
                           level: int) -> dict | None:
   """boundary_scores of the calls at level that decoded stacks [B, T, d] start against those of the given

@@ -110,3 +110,19 @@ def test_stack_boundary_scores_compare_decoded_calls_with_the_given_ones():
   assert (scores["hits"], scores["true"]) == (1, 2)
   unknown[1, 0, 0] = UNKNOWN
   assert agreement.stack_boundary_scores(unknown, counters, decoded_procedures, decoded_counters, [6, 6], 1) is None
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_procedures_alone_agree_at_least_as_often_as_frames_and_ignore_the_counters(seed):
+  rng = np.random.default_rng(seed)
+  procedures, counters = rng.integers(0, 3, (4, 7, 2)), rng.integers(0, 3, (4, 7, 2))
+  decoded_procedures, decoded_counters = rng.integers(0, 4, (4, 7, 2)), rng.integers(0, 3, (4, 7, 2))
+  procedures[0, 5:] = UNKNOWN  # padding
+  _, frames = agreement.stack_agreement(procedures, counters, decoded_procedures, decoded_counters, 1)
+  alone = agreement.stack_procedure_agreement(procedures, decoded_procedures, 1)
+  assert frames <= alone + 1e-12
+  renamed = (procedures[..., 1] + 1) % 3  # the same procedures under other names, counters shifted
+  shifted = np.stack([procedures[..., 0], renamed], -1)
+  assert agreement.stack_procedure_agreement(procedures, shifted, 1) == 1.0
+  assert agreement.stack_agreement(procedures, counters, shifted, counters + 1, 1)[1] == 0.0
+  assert agreement.stack_procedure_agreement(np.full((1, 3, 2), UNKNOWN), decoded_procedures[:1, :3], 1) is None
