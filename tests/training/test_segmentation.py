@@ -86,6 +86,18 @@ def test_on_bubble_sort_every_call_the_successors_start_is_the_supervisors():
   assert joint.joint_capacity(weak, task.spec, train.TrainConfig(), (hinted,)) == (8, 8, 3)
 
 
+def test_on_addition_the_successors_cut_calls_where_the_supervisor_does_not():
+  task = tasks.get("addition")
+  weak, annotated = (datasets.training_demos(task, 1, 160, n) for n in (0, 160))
+  hinted = segmentation.hinted_demonstrations(weak, (8, 8, 8), "successors")
+  valid = np.arange(weak.actions.shape[1]) < weak.length[:, None]
+  wrong = (hinted.counters[..., 2] == 0) & (annotated.counters[..., 2] != 0) & valid
+  # MOVE carry LEFT is carry's first action and lshift's third, so the rule cuts both after it
+  carry, lshift = (task.spec.levels[2].index(name) for name in ("carry", "lshift"))
+  frames = set(zip(annotated.procedures[..., 2][wrong].tolist(), annotated.counters[..., 2][wrong].tolist()))
+  assert frames == {(carry, 1), (lshift, 3)}
+
+
 def test_on_nanocraft_the_segmentation_is_the_supervisors_at_both_levels():
   task = tasks.get("nanocraft")
   for seed in (1, 2):
