@@ -106,8 +106,8 @@ class TrainConfig:
       "loops", "The segmentation --segment_iterations reads off the actions. loops (where some action value "
       "follows itself and another never does): a value that never follows itself ends the call it follows, any "
       "other starts a call, and consecutive calls that start with the same action are one call of the level "
-      "above. successors (where no value follows itself): an action continues the call of the one before it "
-      "when that value is always followed by the same one; the lowest level alone.", "str", segmentation.RULES)
+      "above. successors: an action continues the call of the one before it when that value is always followed "
+      "by the same one; the lowest level alone.", "str", segmentation.RULES)
   split_rounds: int | None = _setting(
       None, "Joint training: rounds of the split search after the iterations. Each candidate move gives a "
       "procedure that two callers share (or that the root calls at two of its counters) a copy for one of them, "

@@ -23,7 +23,7 @@ from php_jax.training.objective import annealed_temperature, counter_capacity, s
 
 
 _UNSEGMENTED = {"loops": "no action value follows itself, or every one does",
-                "successors": "some action value follows itself, or none is always followed by the same one"}
+                "successors": "no action value is always followed by the same one"}
 
 
 def joint_capacity(demos: Demonstration, spec: HierarchySpec, config: train.TrainConfig,

@@ -13,7 +13,7 @@ itself and another never does.
 followed by the same value in the demonstrations (a fixed sequence of actions is one call); the level above
 stays unknown. On bubble sort every call it starts is the supervisor's, but `dece` and the `lshift` always
 after it are one call; on addition it cuts `lshift` in two, after the move it shares with `carry`. It
-applies where no action value follows itself and some value has one successor.
+applies where some action value has one successor.
 """
 from __future__ import annotations
 
@@ -67,8 +67,6 @@ def read_rule(demos: Demonstration, name: str) -> Rule | None:
   if name == "loops":
     attached = attached_actions(demos)
     return None if attached is None else Rule(name, frozenset(attached))
-  if any(a == b for rows in _action_rows(demos) for a, b in zip(rows, rows[1:])):
-    return None
   single = single_successor_actions(demos)
   return Rule(name, frozenset(single)) if single else None
 

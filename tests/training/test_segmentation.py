@@ -23,7 +23,7 @@ def test_counters_follow_both_assumptions_by_hand():
   demos = _demos([a, a, p, a, p, b, b, p, a], [b, p, b, p, b])
   assert segmentation.attached_actions(demos) == {(p,)}
   assert segmentation.read_rule(demos, "loops") == segmentation.Rule("loops", frozenset({(p,)}))
-  assert segmentation.read_rule(demos, "successors") is None  # a and b follow themselves
+  assert segmentation.read_rule(demos, "successors") is None  # every value is followed by several
   counters = segmentation.loop_counters(demos, {(p,)})
   # calls of the lowest level: [a] [a p] [a p] [b] [b p] [a]; the level above: [a, a p, a p] [b, b p] [a]
   assert counters[0, :9].tolist() == [[0, 0], [1, 0], [1, 1], [2, 0], [2, 1], [0, 0], [1, 0], [1, 1], [0, 0]]
@@ -58,8 +58,8 @@ def test_without_loops_a_value_with_one_successor_continues_the_call_by_hand():
 
 def test_no_rule_no_segmentation():
   no_loops_no_single = _demos([1, 2, 1, 3, 2], [3, 1])  # every value has two successors or more
-  loops_only = _demos([1, 1, 2, 2], [2, 2])  # every value follows itself
-  for demos in (no_loops_no_single, loops_only):
+  all_loops = _demos([1, 1, 2, 2], [2, 2])  # every value follows itself (and is followed by another)
+  for demos in (no_loops_no_single, all_loops):
     assert segmentation.read_rule(demos, "loops") is segmentation.read_rule(demos, "successors") is None
     assert segmentation.hinted_demonstrations(demos, (8, 8, 8), "successors") is None
   assert segmentation.hinted_demonstrations(datasets.training_demos(tasks.get("addition"), 1, 16, 0), (8, 8, 8)) is None
