@@ -22,10 +22,6 @@ from php_jax.training.config import ConfigError
 from php_jax.training.objective import annealed_temperature, counter_capacity, stack_loss
 
 
-_UNSEGMENTED = {"loops": "no action value follows itself, or every one does",
-                "successors": "no action value is always followed by the same one"}
-
-
 def joint_capacity(demos: Demonstration, spec: HierarchySpec, config: train.TrainConfig,
                    hinted: tuple[Demonstration, ...] = ()) -> tuple[int, ...]:
   """Counter capacity per level, root first (`objective.counter_capacity` of the strong demonstrations'
@@ -56,8 +52,8 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   first config.segment_iterations of them on the segmentation's partial annotation (`segmentation`;
   ConfigError if config.segment_rule does not apply to the actions). Then config.split_rounds rounds of the
   split search (`split_search`), judged on validation_demos (default: demos), each logged as
-  {"split_search": entry}. Checkpoints and resumes as train.train_hierarchy does (the same log protocol); a checkpoint made with
-  other settings raises CheckpointError. Returns the hierarchy and a report {capacity, losses,
+  {"split_search": entry}. Checkpoints and resumes as train.train_hierarchy does (the same log protocol); a
+  checkpoint made with other settings raises CheckpointError. Returns the hierarchy and a report {capacity, losses,
   best_iteration, validation, seconds, and split_search: the rounds' entries where there were any}; after a
   split search, validation is the final hierarchy's score and best_iteration the snapshot the search started
   from."""
@@ -75,7 +71,7 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
     rule = segmentation.read_rule(demos, config.segment_rule)
     if rule is None:
       raise ConfigError("segment_iterations", f"the demonstrations' actions show nothing that --segment_rule="
-                        f"{config.segment_rule} segments ({_UNSEGMENTED[config.segment_rule]}); use 0")
+                        f"{config.segment_rule} segments ({segmentation.UNSEGMENTED[config.segment_rule]}); use 0")
     hinted = segmentation.hinted_demonstrations(demos, capacity, rule)
     # The judge's calls must fit too, or it cannot tell the split search's candidates apart.
     judged = () if validation_demos is None else (

@@ -60,6 +60,8 @@ def single_successor_actions(demos: Demonstration) -> set[Action]:
 
 
 RULES = ("loops", "successors")
+UNSEGMENTED = {"loops": "no action value follows itself, or every one does",  # why a rule does not apply
+               "successors": "no action value is always followed by the same one"}
 
 
 def read_rule(demos: Demonstration, name: str) -> Rule | None:

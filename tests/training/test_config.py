@@ -87,7 +87,7 @@ def test_bad_flags_are_refused_naming_the_flag(argv, message):
 def test_config_errors_name_the_field():
   for changes, field in [({"hidden": ()}, "hidden"), ({"capacity": 0}, "capacity"), ({"snapshot": "best"}, "snapshot"),
                          ({"seed": True}, "seed"), ({"min_capacity": (0, -1)}, "min_capacity"),
-                         ({"call_graph": "some"}, "call_graph")]:
+                         ({"call_graph": "some"}, "call_graph"), ({"segment_rule": "pairs"}, "segment_rule")]:
     with pytest.raises(config_lib.ConfigError) as refused:
       config_lib.TrainConfig(**changes)
     assert refused.value.field == field

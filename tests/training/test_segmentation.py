@@ -62,7 +62,8 @@ def test_no_rule_no_segmentation():
   for demos in (no_loops_no_single, all_loops):
     assert segmentation.read_rule(demos, "loops") is segmentation.read_rule(demos, "successors") is None
     assert segmentation.hinted_demonstrations(demos, (8, 8, 8), "successors") is None
-  assert segmentation.hinted_demonstrations(datasets.training_demos(tasks.get("addition"), 1, 16, 0), (8, 8, 8)) is None
+  addition = datasets.training_demos(tasks.get("addition"), 1, 16, 0)
+  assert segmentation.hinted_demonstrations(addition, (8, 8, 8)) is None  # the loops rule: no loops
 
 
 def test_on_bubble_sort_every_call_the_successors_start_is_the_supervisors():
@@ -75,10 +76,10 @@ def test_on_bubble_sort_every_call_the_successors_start_is_the_supervisors():
   starts, true_starts = hinted.counters[..., 2] == 0, annotated.counters[..., 2] == 0
   assert (hinted.counters[valid][:, :2] == UNKNOWN).all() and (hinted.counters[valid][:, 2] != UNKNOWN).all()
   assert (starts[valid] <= true_starts[valid]).all()
-  # the calls it misses are the lshift that always follows dece (procedure 3 of level 2)
+  # the calls it misses are the lshift that always follows dece
   missed = true_starts & ~starts & valid
   after_dece = np.zeros_like(missed)
-  after_dece[:, 1:] = annotated.procedures[:, :-1, 2] == 3
+  after_dece[:, 1:] = annotated.procedures[:, :-1, 2] == task.spec.levels[2].index("dece")
   assert missed.any() and (missed == (true_starts & after_dece & valid)).all()
   # a run without annotation takes the segmented calls' length as the lowest level's capacity
   config = train.TrainConfig(**task.defaults.overrides())
