@@ -11,11 +11,16 @@ side (a gymnasium.vector environment) and each step's decisions for all of them 
 line, in episode order:
 
   {"return": float, "steps": int,
-   "success": bool,                     info["is_success"] at the end where the environment gives it,
-                                        else terminated and not truncated
+   "success": bool or null,             under --success; without it, info["is_success"] at the end where
+                                        the environment reports it, else null (unknown)
    "terminated": bool, "truncated": bool,
    "stack": [[[h, tau], ...], ...]}     per step, root first: the call stack that chose the action (null
                                         for a flat LSTM)
+
+The closing lines give the success rate and the rule it was judged by (or say that success is unknown and
+how to define it), the mean return, and how many episodes the environment terminated or truncated and how
+many the policy ended. Gymnasium does not define success, and termination is not it: FrozenLake ends in a
+hole and BabyAI ends failed missions too. See docs/own-environment.md.
 
 A policy whose observation or action sizes are not the environment's, a bad flag or an unknown environment
 ends in one line with exit status 2 before anything runs; the output is written atomically.
@@ -25,12 +30,11 @@ from __future__ import annotations
 import json
 import time
 
-import numpy as np
 from absl import app, flags
 
 from experiments import cli, environment_flags, progress
 from php_jax.data import files
-from php_jax.envs import gym
+from php_jax.envs import gym, success
 from php_jax.model import PHPHierarchy
 from php_jax.training import checkpoint
 
@@ -50,6 +54,7 @@ def main(argv):
   cli.exit_on_interrupt(f"--out={_OUT.value} not written")
   try:
     cli.check_outputs({"out": _OUT.value}, {"policy": _POLICY.value})
+    rule = environment_flags.success_rule()
     _, policy = checkpoint.load_policy(_POLICY.value)
     if _SAMPLE.value:
       if not isinstance(policy, PHPHierarchy):
@@ -64,16 +69,20 @@ def main(argv):
   except (OSError, ValueError) as e:  # GymError and CheckpointError are ValueErrors
     cli.fail(str(e))
   start = time.perf_counter()
+  endings = []
   with progress.counting(_EPISODES.value, "episodes") as on_episode:
+    def ended(ending: success.Ending) -> None:
+      endings.append(ending)
+      on_episode()
+
     episodes = gym.act(policy, envs, _EPISODES.value, environment_flags.SEED.value,
-                       environment_flags.MAX_STEPS.value, on_episode)
+                       environment_flags.MAX_STEPS.value, ended, rule)
   seconds = time.perf_counter() - start
   with cli.output_errors("out", _OUT.value):
     files.write_atomically(_OUT.value, "".join(json.dumps(e) + "\n" for e in episodes).encode())
   steps = sum(e["steps"] for e in episodes)
   print(f"{len(episodes)} episodes, {steps} steps in {seconds:.1f} s -> {_OUT.value}")
-  print(f"success {np.mean([e['success'] for e in episodes]):.3f}, "
-        f"mean return {np.mean([e['return'] for e in episodes]):.2f}")
+  print("\n".join(success.summary(rule, endings)))
 
 
 if __name__ == "__main__":

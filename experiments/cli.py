@@ -48,10 +48,12 @@ def exit_on_interrupt(message: str) -> None:
   threading.Thread(target=watch, name="interrupt watcher", daemon=True).start()
 
 
-def check_outputs(outputs: dict[str, str | None], inputs: dict[str, str | None]) -> None:
+def check_outputs(outputs: dict[str, str | None], inputs: dict[str, str | None], make_folders: bool = False
+                  ) -> None:
   """Raises ValueError naming the flag of the first output ({flag: path}; None: not asked for) that could
-  not be written, before any work: an empty path, a directory, a file in a missing or unwritable directory,
-  one of the inputs ({flag: path}; a --policy workdir's flag: its model files) or another output."""
+  not be written, before any work: an empty path, a directory, a file in a missing (unless make_folders: the
+  command makes it) or unwritable directory, one of the inputs ({flag: path}; a --policy workdir's flag: its
+  model files) or another output."""
   seen = {}
   for flag, path in inputs.items():
     if flag == "policy" and path:
@@ -66,8 +68,12 @@ def check_outputs(outputs: dict[str, str | None], inputs: dict[str, str | None])
     if os.path.isdir(path):
       raise ValueError(f"--{flag}={path} is a directory")
     directory = os.path.dirname(os.path.realpath(path))  # a symbolic link writes the file it names
-    if not os.path.isdir(directory):
+    while make_folders and not os.path.exists(directory):  # the folder that making it would write in
+      directory = os.path.dirname(directory)
+    if not os.path.exists(directory):
       raise ValueError(f"--{flag}={path}: directory {directory} does not exist")
+    if not os.path.isdir(directory):
+      raise ValueError(f"--{flag}={path}: {directory} is a file, not a directory")
     if not os.access(directory, os.W_OK | os.X_OK):
       raise ValueError(f"--{flag}={path}: directory {directory} is not writable")
     for other, other_path in seen.items():

@@ -12,11 +12,29 @@ from typing import Callable, Iterator
 
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.progress import (BarColumn, MofNCompleteColumn, Progress, ProgressColumn, Task, TextColumn,
+                           TimeElapsedColumn, TimeRemainingColumn)
 from rich.table import Table
+from rich.text import Text
 
 from php_jax.training import run
 from php_jax.training.config import TrainConfig
+
+
+class TimeLeftColumn(ProgressColumn):
+  """"H:MM:SS left" for a task whose total is known and not yet reached; nothing otherwise (elapsed time is
+  its own column)."""
+
+  def __init__(self):
+    super().__init__()
+    self.remaining = TimeRemainingColumn()
+
+  def render(self, task: Task) -> Text:
+    if task.total is None or task.finished:
+      return Text("")
+    left = self.remaining.render(task)
+    left.append(" left")
+    return left
 
 
 @contextlib.contextmanager
@@ -25,8 +43,8 @@ def counting(total: int, what: str) -> Iterator[Callable[[], None]]:
   if not sys.stdout.isatty():
     yield lambda: None
     return
-  with Progress(TextColumn(what), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TextColumn("left"),
-                TimeRemainingColumn(), transient=True) as bar:
+  with Progress(TextColumn(what), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeLeftColumn(),
+                transient=True) as bar:
     task = bar.add_task(what, total=total)
     yield lambda: bar.advance(task)
 
@@ -55,8 +73,8 @@ class TrainingProgress:
     self.config, self.num_levels, self.workdir = config, num_levels, workdir
     self.console = console or Console()
     self.progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                             TextColumn("{task.fields[status]}"), TimeElapsedColumn(), TextColumn("left"),
-                             TimeRemainingColumn(), console=self.console)
+                             TextColumn("{task.fields[status]}"), TimeElapsedColumn(), TimeLeftColumn(),
+                             console=self.console)
     self.tasks, self.seed = {}, None
     self.progress.start()
     self.starting = self.progress.add_task("building the data and compiling", total=None, status="")

@@ -11,17 +11,23 @@ expert's MODULE:ATTR is a callable that takes the environment and returns an obj
 their call stacks (with --annotate instead: the episodes whose "index" its lines give, as
 `experiments.suggest` writes them), the others are actions only. A stack that breaks the call-stack rules
 (or, with --hierarchy, names a procedure the hierarchy does not have) is refused naming the episode and
-step; every refusal is one line with exit status 2 and nothing written.
+step; every refusal is one line with exit status 2 and nothing written. --out's folder is made if missing.
+
+The expert sees the environment's own observations (a dict stays a dict); the file holds them flattened
+(`gymnasium.spaces.flatten`). The closing lines say how the expert did: its success rate under --success
+(or that success is unknown, as in `experiments.act`), its mean return and how its episodes ended. The expert
+and the file format: docs/own-environment.md and docs/own-demonstrations.md.
 """
 from __future__ import annotations
 
 import json
+import os
 
 from absl import app, flags
 
 from experiments import cli, environment_flags, progress
 from php_jax.data import demo_files, files
-from php_jax.envs import gym
+from php_jax.envs import gym, success
 
 _EXPERT = flags.DEFINE_string("expert", None, "module:attribute of a callable that takes the environment and "
                               "returns the expert.")
@@ -43,7 +49,9 @@ def main(argv):
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
   cli.exit_on_interrupt(f"--out={_OUT.value} not written")
   try:
-    cli.check_outputs({"out": _OUT.value}, {"hierarchy": _HIERARCHY.value, "annotate": _ANNOTATE.value})
+    cli.check_outputs({"out": _OUT.value}, {"hierarchy": _HIERARCHY.value, "annotate": _ANNOTATE.value},
+                      make_folders=True)
+    rule = environment_flags.success_rule()
     if _ANNOTATED.value > _EPISODES.value:
       raise ValueError(f"--annotated={_ANNOTATED.value} is more than --episodes={_EPISODES.value}")
     if _ANNOTATE.value is not None and flags.FLAGS["annotated"].present:
@@ -56,16 +64,23 @@ def main(argv):
       raise ValueError(f"--hierarchy={_HIERARCHY.value} has action factor sizes {list(spec.action_sizes)}; "
                        f"--env={environment_flags.ENV.value}'s {env.action_space} has "
                        f"{list(gym.action_sizes(env.action_space))}")
+    endings = []
     with progress.counting(_EPISODES.value, "episodes") as on_episode:
+      def ended(ending: success.Ending) -> None:
+        endings.append(ending)
+        on_episode()
+
       lines = gym.record(env, expert, _EPISODES.value, environment_flags.SEED.value, _ANNOTATED.value, spec,
-                         environment_flags.MAX_STEPS.value, on_episode, annotate)
+                         environment_flags.MAX_STEPS.value, ended, annotate)
   except (OSError, ValueError) as e:  # GymError and DemoFileError are ValueErrors
     cli.fail(str(e))
   with cli.output_errors("out", _OUT.value):
+    os.makedirs(os.path.dirname(os.path.abspath(_OUT.value)), exist_ok=True)
     files.write_atomically(_OUT.value, "".join(json.dumps(line) + "\n" for line in lines).encode())
   steps = sum(len(line["actions"]) for line in lines)
   annotated = sum("stack" in line for line in lines)
   print(f"{len(lines)} episodes ({annotated} annotated), {steps} steps -> {_OUT.value}")
+  print("the expert: " + "\n".join(success.summary(rule, endings)))
 
 
 def _annotate() -> list[int] | None:

@@ -7,8 +7,9 @@ MultiBinary, and Dict and Tuple of these). A `Discrete` action space is one acti
 
 An expert is any object with `act(observation, info)` returning an action, or a pair `(action, stack)`
 whose stack is the call stack that chose it (`[[procedure, counter], ...]`, root first, the demonstration
-file's format, or None), and optionally `reset(observation, info)`, called at each episode's start.
-Episode i is reset with seed + i, in `record` and in `act` alike.
+file's format, any sequences of ints, or None), and optionally `reset(observation, info)`, called at each
+episode's start. The expert sees the environment's own observations (a dict stays a dict); the files hold
+them flattened. Episode i is reset with seed + i, in `record` and in `act` alike.
 """
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ from gymnasium import spaces
 
 from php_jax import executor
 from php_jax.data import demo_files
-from php_jax.envs import import_path
+from php_jax.envs import import_path, success
 from php_jax.flat_lstm import FlatLSTMPolicy
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy
@@ -139,15 +140,25 @@ def action_factors(space: spaces.Space, action) -> list[int]:
   return (np.ravel(np.asarray(action, np.int64)) - np.ravel(space.start)).tolist()
 
 
+def _registered(name: str) -> Callable[[], gymnasium.Env]:
+  try:
+    gymnasium.spec(name)
+  except gymnasium.error.Error as e:
+    raise GymError(f"unknown environment {name!r}: {e}") from None
+  return lambda: gymnasium.make(name)
+
+
 def env_maker(name: str) -> Callable[[], gymnasium.Env]:
-  """A function making the environment `name`: a registered Gymnasium id ("Taxi-v3") or "module:attribute",
-  a callable returning a gymnasium.Env. Raises GymError for an unknown id or an unloadable callable."""
+  """A function making the environment `name`: a registered Gymnasium id ("Taxi-v3"); Gymnasium's
+  "module:EnvId", which imports module (registering its environments) and makes EnvId
+  ("minigrid:BabyAI-GoToLocal-v0"); or "module:attribute", a callable returning a gymnasium.Env. Raises
+  GymError for an unknown id or an unloadable callable."""
   if ":" not in name:
-    try:
-      gymnasium.spec(name)
-    except gymnasium.error.Error as e:
-      raise GymError(f"unknown environment {name!r}: {e}") from None
-    return lambda: gymnasium.make(name)
+    return _registered(name)
+  module_name, _, attribute = name.partition(":")
+  if module_name and attribute and not attribute.isidentifier():  # an id such as BabyAI-GoToLocal-v0
+    import_path.load_module(module_name, "environment", GymError)
+    return _registered(attribute)
   make = import_path.load_attribute(name, "environment", GymError)
   if not callable(make):
     raise GymError(f"environment {name!r} is a {type(make).__name__}, not a callable returning a gymnasium.Env")
@@ -190,25 +201,43 @@ def _max_steps(env: gymnasium.Env | gymnasium.vector.VectorEnv, max_steps: int |
   return (spec.max_episode_steps if spec and spec.max_episode_steps else None) or DEFAULT_MAX_STEPS
 
 
+def _is_sequence(value) -> bool:
+  return isinstance(value, (list, tuple, np.ndarray))
+
+
 def _expert_output(output) -> tuple[Any, Any]:
-  """(action, stack or None) from an expert's act()."""
-  if isinstance(output, tuple) and len(output) == 2 and (output[1] is None or isinstance(output[1], list)):
+  """(action, stack or None) from an expert's act(): a pair whose second item is None or a sequence of
+  sequences (the frames) is (action, stack); anything else is a bare action."""
+  if (isinstance(output, tuple) and len(output) == 2
+      and (output[1] is None or (_is_sequence(output[1]) and all(_is_sequence(f) for f in output[1])))):
     return output
   return output, None
 
 
+def _as_lists(value):
+  """Sequences (lists, tuples, arrays) as lists, NumPy scalars as Python numbers, all the way down."""
+  if _is_sequence(value):
+    return [_as_lists(v) for v in value]
+  return value.item() if isinstance(value, np.generic) else value
+
+
 def _stack_spec(stacks: list, sizes: tuple[int, ...], episode: int) -> HierarchySpec:
-  """A spec that admits every procedure id in an episode's stacks (for checking them without a hierarchy)."""
-  given = [frames for frames in stacks if frames is not None]
+  """A spec that admits every procedure id in an episode's stacks (for checking them without a hierarchy).
+  Raises GymError naming the first step whose stack is not [[procedure, counter], ...] with as many levels as
+  the first stack's."""
+  given = [(t, frames) for t, frames in enumerate(stacks) if frames is not None]
   if not given:  # nothing to check
     return HierarchySpec("expert", (("p",), ("p",)), sizes, 0)
-  depths = {len(frames) if isinstance(frames, list) else 0 for frames in given}
-  if len(depths) != 1 or 0 in depths:
-    raise GymError(f"episode {episode}: every step's stack must list one [procedure, counter] pair per level, "
-                   "root first, the same number of levels at every step")
-  depth = depths.pop()
+  first, depth = given[0][0], len(given[0][1])
+  for t, frames in given:
+    if depth < 2:
+      raise GymError(f"episode {episode}, step {t}: the expert's stack {frames!r} has fewer than two levels (a "
+                     "stack lists one [procedure, counter] pair per level, root first)")
+    if len(frames) != depth:
+      raise GymError(f"episode {episode}, step {t}: the expert's stack has {len(frames)} levels; at step {first} "
+                     f"it had {depth} (one [procedure, counter] pair per level, root first, at every step)")
   widths = [1] * depth
-  for frames in given:
+  for _, frames in given:
     for level, frame in enumerate(frames[1:], 1):  # the root level has one procedure
       if isinstance(frame, list) and frame and isinstance(frame[0], int):
         widths[level] = max(widths[level], frame[0] + 1)
@@ -217,7 +246,8 @@ def _stack_spec(stacks: list, sizes: tuple[int, ...], episode: int) -> Hierarchy
 
 def record(env: gymnasium.Env, expert, episodes: int, seed: int, annotated: int = 0,
            spec: HierarchySpec | None = None, max_steps: int | None = None,
-           on_episode: Callable[[], None] | None = None, annotate: Collection[int] | None = None) -> list[dict]:
+           on_episode: Callable[[success.Ending], None] | None = None,
+           annotate: Collection[int] | None = None) -> list[dict]:
   """The expert's episodes as demonstration lines (dicts in the demonstration file's format).
 
   The first `annotated` episodes keep the stacks the expert gives (or, where given, the episodes whose
@@ -225,10 +255,11 @@ def record(env: gymnasium.Env, expert, episodes: int, seed: int, annotated: int 
   Every line is checked as the demonstration file reader checks it (against spec where given: procedure ids in range),
   so the stacks follow the call-stack rules. Raises GymError naming the episode and step of the first
   problem. An episode ends when the environment terminates or truncates it, or after max_steps actions
-  (default: the environment's time limit, else DEFAULT_MAX_STEPS). on_episode() is called as each episode
-  ends (for a progress display).
+  (default: the environment's time limit, else DEFAULT_MAX_STEPS; then it counts as truncated).
+  on_episode(ending) is called as each episode ends, with how it ended (`success.Ending`: for a progress
+  display and for judging the expert's success).
   """
-  on_episode = on_episode or (lambda: None)
+  on_episode = on_episode or (lambda _: None)
   observation_space, action_space = env.observation_space, env.action_space
   _check_observation_space(observation_space)
   sizes = action_sizes(action_space)
@@ -240,8 +271,8 @@ def record(env: gymnasium.Env, expert, episodes: int, seed: int, annotated: int 
     if hasattr(expert, "reset"):
       expert.reset(observation, info)
     observations, actions, stacks = [flatten_observation(observation_space, observation).tolist()], [], []
-    done = False
-    while not done and len(actions) < limit:
+    rewards, terminated, truncated = [], False, False
+    while not (terminated or truncated):
       try:
         action, stack = _expert_output(expert.act(observation, info))
       except Exception as e:  # the user's code, failing in any way: one line naming where
@@ -251,22 +282,25 @@ def record(env: gymnasium.Env, expert, episodes: int, seed: int, annotated: int 
         raise GymError(f"episode {episode}, step {len(actions)}: the expert's action {action!r} is not in the "
                        f"action space {action_space}")
       actions.append(action_factors(action_space, action))
-      stacks.append(stack)
-      observation, _, terminated, truncated, info = env.step(action)
+      stacks.append(None if stack is None else _as_lists(stack))
+      observation, reward, terminated, truncated, info = env.step(action)
       observations.append(flatten_observation(observation_space, observation).tolist())
-      done = terminated or truncated
+      rewards.append(float(reward))
+      truncated = bool(truncated) or (len(actions) >= limit and not terminated)
     line = {"observations": observations, "actions": actions}
     if episode in keep:
       if all(s is None for s in stacks):
         raise GymError(f"episode {episode} is to be annotated, but the expert gave no call stack (its act() "
                        "returns a bare action, not (action, stack))")
       line["stack"] = stacks
+    check = spec or _stack_spec(line.get("stack", []), sizes, episode)
     try:
-      demo_files.parse_demonstration(line, spec or _stack_spec(line.get("stack", []), sizes, episode))
+      demo_files.parse_demonstration(line, check)
     except ValueError as e:
       raise GymError(f"episode {episode}: {e}") from None
     lines.append(line)
-    on_episode()
+    on_episode(success.Ending(sum(rewards), rewards[-1] if rewards else None, bool(terminated), truncated,
+                              dict(info)))
   return lines
 
 
@@ -367,8 +401,11 @@ class _Episodes:
     self.episode = np.full(num_copies, -1)    # the episode each copy runs; −1: idle
     self.steps = np.zeros(num_copies, np.int64)
     self.returns = np.zeros(num_copies)
+    self.last_rewards = np.zeros(num_copies)
+    self.infos: list[dict] = [{} for _ in range(num_copies)]  # each copy's info of its last step or reset
     self.stacks = [[] for _ in range(num_copies)] if with_stacks else None
     self.results: list[dict | None] = [None] * episodes
+    self.endings: list[success.Ending | None] = [None] * episodes
 
   def assign(self, copies: np.ndarray) -> list[int | None]:
     """Starts the next episodes on copies; returns each copy's reset seed (None for copies left idle)."""
@@ -380,29 +417,47 @@ class _Episodes:
       else:
         self.episode[m] = -1
         seeds.append(None)
-      self.steps[m], self.returns[m] = 0, 0.0
+      self.steps[m], self.returns[m], self.last_rewards[m] = 0, 0.0, 0.0
       if self.stacks is not None:
         self.stacks[m] = []
     return seeds
 
-  def finish(self, m: int, terminated: bool, truncated: bool, success) -> None:
+  def finish(self, m: int, terminated: bool, truncated: bool) -> success.Ending:
+    """Ends copy m's episode; returns how it ended."""
+    steps = int(self.steps[m])
+    ending = success.Ending(float(self.returns[m]), float(self.last_rewards[m]) if steps else None,
+                            bool(terminated), bool(truncated), self.infos[m])
+    self.endings[self.episode[m]] = ending
     self.results[self.episode[m]] = {
-        "return": float(self.returns[m]), "steps": int(self.steps[m]),
-        "success": bool(terminated and not truncated) if success is None else bool(success),
-        "terminated": bool(terminated), "truncated": bool(truncated),
-        "stack": self.stacks[m] if self.stacks is not None else None}
+        "return": ending.episode_return, "steps": steps, "success": None, "terminated": ending.terminated,
+        "truncated": ending.truncated, "stack": self.stacks[m] if self.stacks is not None else None}
     self.episode[m] = -1
+    return ending
+
+  def judged(self, rule: success.SuccessRule | None) -> list[dict]:
+    """The episodes' results, each with its success under rule (`success.judge_all`)."""
+    _, successes = success.judge_all(rule, self.endings)
+    for result, succeeded in zip(self.results, successes):
+      result["success"] = succeeded
+    return self.results
 
 
-def _info_value(infos: dict, key: str, m: int):
-  """infos[key] of copy m in a vector environment's infos, or None where that copy did not give it."""
-  if key in infos and infos.get(f"_{key}", np.ones(len(infos[key]), bool))[m]:
-    return infos[key][m]
-  return None
+def _copy_infos(infos: dict, num: int) -> list[dict]:
+  """A vector environment's infos as one dict per copy, each with the entries that copy gave (arrays only:
+  the entries Gymnasium batches per copy)."""
+  per_copy = [{} for _ in range(num)]
+  for key, values in infos.items():
+    if key.startswith("_") or not isinstance(values, np.ndarray):
+      continue
+    given = infos.get(f"_{key}", np.ones(num, bool))
+    for m in np.flatnonzero(given):
+      per_copy[m][key] = values[m].item() if values[m].ndim == 0 else values[m]
+  return per_copy
 
 
 def act(policy: PHPHierarchy | FlatLSTMPolicy, env: gymnasium.Env | gymnasium.vector.VectorEnv, episodes: int,
-        seed: int, max_steps: int | None = None, on_episode: Callable[[], None] | None = None) -> list[dict]:
+        seed: int, max_steps: int | None = None, on_episode: Callable[[success.Ending], None] | None = None,
+        success_rule: success.SuccessRule | None = None) -> list[dict]:
   """Runs a learned policy for `episodes` episodes in the real environment; episode i is reset with seed + i.
 
   A hierarchy runs by the executor's semantics (greedy, or sampling when built with sample=True): push the
@@ -412,18 +467,19 @@ def act(policy: PHPHierarchy | FlatLSTMPolicy, env: gymnasium.Env | gymnasium.ve
   truncated). With a vector environment (`vector_env`) its copies run episodes side by side and each
   step's decisions are one jitted call over all copies.
 
-  Returns per episode {"return", "steps", "success" (info["is_success"] at the end where the environment
-  gives it, else terminated and not truncated), "terminated", "truncated", "stack" (per step the call stack
-  [[procedure, counter], ...], root first; None for a flat LSTM)}. on_episode() is called as each episode
-  ends (for a progress display).
+  Returns per episode {"return", "steps", "success" (under success_rule; without one, info["is_success"] at
+  the end where the environment reports it in any episode, else None: see `success`), "terminated",
+  "truncated", "stack" (per step the call stack [[procedure, counter], ...], root first; None for a flat
+  LSTM)}. on_episode(ending) is called as each episode ends, with how it ended (for a progress display).
   """
-  on_episode = on_episode or (lambda: None)
+  on_episode = on_episode or (lambda _: None)
   envs = env if isinstance(env, gymnasium.vector.VectorEnv) else vector_env(lambda: env, 1)
   observation_space, action_space = envs.single_observation_space, envs.single_action_space
   check_policy(policy, observation_space, action_space)
   limit, num = _max_steps(env, max_steps), envs.num_envs
   state = _Episodes(num, episodes, seed, isinstance(policy, PHPHierarchy))
-  observations, _ = envs.reset(seed=state.assign(np.arange(num)))
+  observations, infos = envs.reset(seed=state.assign(np.arange(num)))
+  state.infos = _copy_infos(infos, num)
   memory, fresh, key = _initial_memory(policy, num), np.ones(num, bool), jax.random.key(seed)
   graphdef, params = nnx.split(policy)
   leaves, treedef = jax.tree.flatten(params)
@@ -435,7 +491,10 @@ def act(policy: PHPHierarchy | FlatLSTMPolicy, env: gymnasium.Env | gymnasium.ve
     seeds = [None] * num
     for m, s in zip(copies, state.assign(copies)):
       seeds[m] = s
-    observations, _ = envs.reset(seed=seeds, options={"reset_mask": mask})  # every copy's observation
+    observations, infos = envs.reset(seed=seeds, options={"reset_mask": mask})  # every copy's observation
+    reset_infos = _copy_infos(infos, num)
+    for m in copies:
+      state.infos[m] = reset_infos[m]
     fresh[copies] = True
 
   while (state.episode >= 0).any():
@@ -447,8 +506,7 @@ def act(policy: PHPHierarchy | FlatLSTMPolicy, env: gymnasium.Env | gymnasium.ve
       if not ended.size:
         break
       for m in ended:  # the policy ended the episode before the environment did
-        state.finish(m, False, False, None)
-        on_episode()
+        on_episode(state.finish(m, False, False))
       restart(ended)
     memory, fresh = new_memory, np.zeros(num, bool)
     actions = np.asarray(actions)
@@ -459,12 +517,13 @@ def act(policy: PHPHierarchy | FlatLSTMPolicy, env: gymnasium.Env | gymnasium.ve
     observations, rewards, terminated, truncated, infos = envs.step(env_actions(action_space, actions))
     state.steps += 1
     state.returns += rewards
-    truncated = truncated | (state.steps >= limit)
+    state.last_rewards[:] = rewards
+    state.infos = _copy_infos(infos, num)
+    truncated = truncated | ((state.steps >= limit) & ~terminated)
     done = np.flatnonzero(terminated | truncated)
     for m in done:
       if state.episode[m] >= 0:
-        state.finish(m, bool(terminated[m]), bool(truncated[m]), _info_value(infos, "is_success", m))
-        on_episode()
+        on_episode(state.finish(m, bool(terminated[m]), bool(truncated[m])))
     if done.size:
       restart(done)
-  return state.results
+  return state.judged(success_rule)

@@ -3,6 +3,7 @@ and the record → fit → act commands on an environment defined here."""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from typing import NamedTuple
@@ -160,8 +161,10 @@ def test_record_keeps_the_first_episodes_stacks_and_writes_readable_lines(tmp_pa
   assert ["stack" in line for line in lines] == [True, True, False, False, False]
   ended = []
   again = gym.record(make_corridor(), CorridorExpert(None), episodes=5, seed=3, annotated=2,
-                     on_episode=lambda: ended.append(1))
+                     on_episode=ended.append)
   assert again == lines and len(ended) == 5  # episode i is reset with seed + i; each end told once
+  assert [e.episode_return for e in ended] == [-len(line["actions"]) for line in lines]
+  assert all(e.terminated and not e.truncated and e.info == {"is_success": True} for e in ended)
   first = lines[0]
   assert len(first["observations"]) == len(first["actions"]) + 1
   goal = int(np.argmax(first["observations"][0][:2]))
@@ -198,6 +201,65 @@ def test_record_refuses_a_broken_stack_a_bad_action_and_missing_stacks_naming_ep
     gym.record(make_corridor(), CorridorExpert(None), episodes=1, seed=0, annotated=1, spec=narrow)
 
 
+class TupleExpert(CorridorExpert):
+  """CorridorExpert's choices, its stack as a tuple of tuples of NumPy ints."""
+
+  def act(self, observation, info):
+    action, stack = super().act(observation, info)
+    return np.int64(action), tuple((np.int64(p), np.int32(c)) for p, c in stack)
+
+
+class DeepeningExpert(CorridorExpert):
+  """Its stack gains a level at the second step."""
+
+  def act(self, observation, info):
+    action, stack = super().act(observation, info)
+    return action, stack + [[0, 0]] if self.steps == 2 else stack
+
+
+class FixedWalker:
+  """Walks right, then down, then right...: an expert for FrozenLake that knows nothing of its holes."""
+
+  def __init__(self, env):
+    self.t = 0
+
+  def act(self, observation, info):
+    self.t += 1
+    return 2 if self.t % 2 else 1
+
+
+def test_record_takes_any_sequence_for_a_stack_and_names_a_malformed_one():
+  lists = gym.record(make_corridor(), CorridorExpert(None), episodes=3, seed=2, annotated=3, spec=SPEC)
+  assert gym.record(make_corridor(), TupleExpert(None), episodes=3, seed=2, annotated=3, spec=SPEC) == lists
+  with pytest.raises(gym.GymError, match=r"^episode 0, step 1: the expert's stack has 3 levels; at step 0 it had 2"):
+    gym.record(make_corridor(), DeepeningExpert(None), episodes=1, seed=0, annotated=1)
+
+  class Shallow(CorridorExpert):
+    def act(self, observation, info):
+      return super().act(observation, info)[0], [[0, 0]]
+
+  with pytest.raises(gym.GymError, match=r"^episode 0, step 0: the expert's stack \[\[0, 0\]\] has fewer than two"):
+    gym.record(make_corridor(), Shallow(None), episodes=1, seed=0, annotated=1)
+
+
+def test_record_makes_its_folder_takes_module_env_id_and_judges_the_expert(tmp_path):
+  corridor, lake = tmp_path / "new" / "folder" / "demos.jsonl", tmp_path / "lake" / "demos.jsonl"
+  made, walked, judged = processes.run_all([
+      [sys.executable, "-m", "experiments.record", "--env=tests.envs.test_gym:make_corridor",
+       "--expert=tests.envs.test_gym:CorridorExpert", "--episodes=4", "--annotated=1", f"--out={corridor}"],
+      [sys.executable, "-m", "experiments.record", "--env=gymnasium:FrozenLake-v1",
+       "--expert=tests.envs.test_gym:FixedWalker", "--episodes=5", f"--out={lake}"],
+      [sys.executable, "-m", "experiments.record", "--env=gymnasium:FrozenLake-v1",
+       "--expert=tests.envs.test_gym:FixedWalker", "--episodes=5", "--success=reward>0", f"--out={lake}"],
+  ], capture_output=True, text=True, timeout=600)
+  assert made.returncode == 0 and len(corridor.read_text().splitlines()) == 4, made.stderr
+  assert made.stdout.splitlines()[-2] == "the expert: success 1.000 (info:is_success)"
+  assert walked.returncode == 0 and len(lake.read_text().splitlines()) == 5, walked.stderr
+  assert walked.stdout.splitlines()[-2].startswith("the expert: success unknown: the environment reports no")
+  assert judged.returncode == 0 and re.fullmatch(r"the expert: success 0\.\d{3} \(reward>0\)",
+                                                 judged.stdout.splitlines()[-2]), judged.stdout
+
+
 def _random_hierarchy(seed: int) -> PHPHierarchy:
   return PHPHierarchy(SPEC, hidden=(8,), rngs=nnx.Rngs(seed))
 
@@ -214,6 +276,7 @@ def test_act_follows_the_executor_step_for_step(num_envs):
                          jnp.zeros(episodes, bool))
   rollout = executor.rollout_batch(policy, SPEC, PureCorridor(), states, jax.random.split(jax.random.key(0),
                                                                                           episodes), 20)
+  some_reached = any(o["terminated"] for o in outcomes)  # the corridor reports is_success only when reached
   for i, outcome in enumerate(outcomes):
     steps = int(rollout.length[i])
     assert outcome["steps"] == steps and outcome["return"] == -steps
@@ -221,7 +284,7 @@ def test_act_follows_the_executor_step_for_step(num_envs):
     assert outcome["stack"] == expected
     final = int(rollout.final_state.position[i])
     reached = final == (LENGTH - 1 if starts[i]["goal"] else 0)
-    assert outcome["terminated"] == reached and outcome["success"] == reached
+    assert outcome["terminated"] == reached and outcome["success"] == (reached if some_reached else None)
     assert outcome["truncated"] == (steps == 20 and not reached)
 
 
@@ -229,7 +292,7 @@ def test_a_sampling_hierarchy_acts_the_same_for_the_same_seed_whatever_the_numbe
   policy = PHPHierarchy(SPEC, hidden=(8,), sample=True, rngs=nnx.Rngs(3))
   one = gym.act(policy, make_corridor(), 6, seed=11)
   ended = []
-  assert gym.act(policy, gym.vector_env(make_corridor, 4), 6, seed=11, on_episode=lambda: ended.append(1)) == one
+  assert gym.act(policy, gym.vector_env(make_corridor, 4), 6, seed=11, on_episode=ended.append) == one
   assert len(ended) == 6  # each episode's end told once, whichever copy ran it
   policy.sample = False
   assert gym.act(policy, make_corridor(), 6, seed=11) != one  # the greedy choices on the same episodes
@@ -301,8 +364,9 @@ def test_record_fit_act_commands_on_an_environment_php_jax_has_never_seen(tmp_pa
   assert len(episodes) == 20 and set(episodes[0]) == {"return", "steps", "success", "terminated", "truncated",
                                                       "stack"}
   assert all(e["success"] for e in episodes), episodes
-  assert proc.stdout.strip().splitlines()[-1] == (
-      f"success 1.000, mean return {np.mean([e['return'] for e in episodes]):.2f}")
+  assert proc.stdout.strip().splitlines()[-2:] == [
+      "success 1.000 (info:is_success)",
+      f"mean return {np.mean([e['return'] for e in episodes]):.2f}; 20 terminated, 0 truncated"]
   flat = tmp_path / "flat"
   proc = _run("experiments.fit", f"--demos={demos}", f"--hierarchy={hierarchy}", f"--workdir={flat}",
               "--model=flat_lstm", "--lstm_hidden=8", "--iterations=20", "--eval_every=10")

@@ -79,3 +79,12 @@ def test_a_warning_is_printed_whole_with_its_brackets_for_every_seed():
                                                   {"seed": 2, "level": 2, "iteration": 60, "loss": 9.0, "seconds": 2.0},
                                                   {"seed": 1, "level": 2, "iteration": 30, "loss": 1.0, "seconds": 2.0}])
   assert "warning: seed 2: w2" in text and "30/60" in text and "loss 9" not in text  # seed 1 still followed
+
+
+def test_time_left_is_shown_only_where_the_total_is_known():
+  text = _display(TrainConfig(iterations=200), 3, [{"level": 2, "capacity": 4, "view_length": 30, "seconds": 1.0},
+                                                   {"level": 2, "iteration": 100, "loss": 1.0, "seconds": 2.0},
+                                                   {"phase": "testing"}])
+  level, testing = text.strip().splitlines()[-2:]  # the last frame drawn: the level's row, then testing's
+  assert "100/200" in level and level.rstrip().endswith("left"), text
+  assert "0:00:00" in testing and "left" not in testing, text
