@@ -1,13 +1,19 @@
-"""mkdocs hooks: RESULTS.md, BUILD.md and the figures in results/ become pages and files of the site; a
-`<!-- flags: experiments.X -->` line becomes the table of that command's flags with their defaults and help,
-read from the command itself (`--helpxml`); and every `python -m experiments.X --flag...` command in the
-pages and README.md, outside tables (BUILD.md's list commands that are refused), must name a command that
+"""mkdocs hooks, and the writer of the pages' flag tables.
+
+RESULTS.md, BUILD.md and the figures in results/ become pages and files of the site. Pages link as the
+repository lays them out (docs/training.md to `../RESULTS.md`, RESULTS.md to `docs/training.md`), so that links
+work when read on the repository; the site moves RESULTS.md and BUILD.md beside the guides, and the hook
+rewrites those links to match. A flag table sits in its page between `<!-- flags: experiments.X -->` and
+`<!-- end of flags -->`, written from the command itself (`--helpxml`) by `python docs/hooks.py`; the build
+fails where a table is not what the command says today. Every `python -m experiments.X --flag...` command in
+the pages and README.md, outside tables (BUILD.md's list commands that are refused), must name a command that
 exists and flags it defines, or the build fails."""
 from __future__ import annotations
 
 import functools
 import glob
 import os
+import posixpath
 import re
 import subprocess
 import sys
@@ -17,7 +23,8 @@ from mkdocs.structure.files import File
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PAGES_FROM_ROOT = ("RESULTS.md", "BUILD.md")
-_FLAGS_MARK = re.compile(r"^<!-- flags: (experiments\.\w+) -->$", re.MULTILINE)
+_FLAG_TABLE = re.compile(r"^<!-- flags: (experiments\.\w+) -->\n(.*?)^<!-- end of flags -->$", re.M | re.S)
+_LINK = re.compile(r"(\]\()([^)\s#]+)((?:#[^)\s]*)?\))")
 _COMMAND = re.compile(r"python -m (experiments\.[a-z_]+)\b((?:[^\n`&;|]|\\\n)*)")
 _OLDER_COMMIT = re.compile(r"^```bash\ngit checkout [0-9a-f]{7,40}\b.*?^```$", re.M | re.S)
 sys.path.insert(0, ROOT)  # the documentation build runs from mkdocs's script, not from the repository
@@ -34,7 +41,26 @@ def on_files(files, config):
 
 def on_page_markdown(markdown: str, page, config, files) -> str:
   check_commands(markdown, page.file.src_path)
-  return _FLAGS_MARK.sub(lambda match: flag_table(match.group(1)), markdown)
+  for module, table in _FLAG_TABLE.findall(markdown):
+    if table.strip() != flag_table(module):
+      raise SystemExit(f"docs: {page.file.src_path}: the flag table of {module} is out of date; "
+                       "`python docs/hooks.py` rewrites it")
+  in_repository = page.file.src_path if page.file.src_path in PAGES_FROM_ROOT else f"docs/{page.file.src_path}"
+  return _LINK.sub(lambda m: m[1] + site_link(in_repository, page.file.src_path, m[2]) + m[3], markdown)
+
+
+def site_link(in_repository: str, in_site: str, target: str) -> str:
+  """A relative link written in the repository file in_repository, as the same page at in_site must give it:
+  RESULTS.md, BUILD.md and results/ sit at the site's root beside the guides of docs/. Other links (to a
+  page beside it, or outside the repository's pages: a URL) are left as they are."""
+  if "://" in target or target.startswith("mailto:"):
+    return target
+  path = posixpath.normpath(posixpath.join(posixpath.dirname(in_repository), target))
+  if path.startswith("docs/"):
+    path = path[len("docs/"):]
+  elif not (path in PAGES_FROM_ROOT or path.startswith("results/")):
+    return target
+  return posixpath.relpath(path, posixpath.dirname(in_site) or ".")
 
 
 def on_pre_build(config):
@@ -101,3 +127,21 @@ def _check_flags(module: str, text: str, where: str) -> None:
 
 
 _NOT_ABSL = {"experiments.benchmark"}  # subcommands, each with flags of its own
+
+
+def write_flag_tables() -> list[str]:
+  """Rewrites every page's flag tables from the commands; returns the pages changed."""
+  changed = []
+  for path in sorted(glob.glob(os.path.join(ROOT, "docs", "**", "*.md"), recursive=True)):
+    with open(path, encoding="utf-8") as f:
+      text = f.read()
+    new = _FLAG_TABLE.sub(lambda m: f"<!-- flags: {m[1]} -->\n{flag_table(m[1])}\n<!-- end of flags -->", text)
+    if new != text:
+      with open(path, "w", encoding="utf-8") as f:
+        f.write(new)
+      changed.append(os.path.relpath(path, ROOT))
+  return changed
+
+
+if __name__ == "__main__":
+  print("\n".join(f"rewrote the flag tables of {page}" for page in write_flag_tables()) or "flag tables up to date")

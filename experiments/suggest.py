@@ -12,6 +12,7 @@ and pairs of consecutive actions they take) is shown by no annotated or earlier 
 longest that shows some of it; then the longest of the others (`php_jax.analysis.annotation_choice`). With --policy,
 a trained hierarchy's uncertainty about each demonstration's segmentation ranks instead of its length.
 Annotate the chosen ones (in your file), or give the output to `experiments.train --annotate=OUT.jsonl`.
+The file formats: docs/own-demonstrations.md.
 """
 from __future__ import annotations
 

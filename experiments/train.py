@@ -11,7 +11,8 @@ the same command to resume an interrupted run. Flags left unset take the task's 
 
 With --seeds, each seed's run (its own training set, initialisation, snapshot and test) goes to
 WORKDIR/seed=S, with the files `--seed=S --workdir=WORKDIR/seed=S` would write; the seeds' updates run as one
-vmapped program per level (`php_jax.training.train.train_seeds`).
+vmapped program per level (`php_jax.training.train.train_seeds`). Every flag, and what each training mode
+does: docs/training.md; what a run writes: docs/outputs.md.
 """
 from __future__ import annotations
 

@@ -46,14 +46,32 @@ def lines(f: BinaryIO) -> Iterator[tuple[int, bytes]]:
 
 def loads(raw: bytes):
   """The JSON value of raw (a line, or a whole file). Raises UnicodeDecodeError if raw is not UTF-8,
-  json.JSONDecodeError if it is not JSON, and JSONBoundsError if it is outside the bounds."""
+  JSONSyntaxError if it is not JSON, and JSONBoundsError if it is outside the bounds."""
   if len(raw) > MAX_LINE_BYTES:
     raise JSONBoundsError(f"longer than {MAX_LINE_BYTES} bytes")
   text = raw.decode("utf-8")
   if _deeper_than(raw, MAX_DEPTH):
     raise JSONBoundsError(f"arrays and objects nested deeper than {MAX_DEPTH}")
-  return json.loads(text, parse_constant=_constant, parse_float=_float, parse_int=_int,
-                    object_pairs_hook=_object)
+  try:
+    return json.loads(text, parse_constant=_constant, parse_float=_float, parse_int=_int,
+                      object_pairs_hook=_object)
+  except json.JSONDecodeError as e:
+    raise JSONSyntaxError(_where(e) + e.msg) from None
+
+
+class JSONSyntaxError(ValueError):
+  """Text that is not JSON; the message says where, within a line by its column only."""
+
+
+def _where(e: json.JSONDecodeError) -> str:
+  """"not JSON at column C: " for an error in a text of one line (its line number is the reader's to give),
+  "at the end: " past its last character, else "not JSON at line L, column C: "."""
+  body = e.doc.rstrip("\r\n")
+  if e.pos >= len(body.rstrip()):
+    return "not JSON, it ends too soon: "
+  if "\n" in body:
+    return f"not JSON at line {e.lineno}, column {e.colno}: "
+  return f"not JSON at column {e.colno}: "
 
 
 def _deeper_than(raw: bytes, depth: int) -> bool:

@@ -214,28 +214,44 @@ def workdir_lock(workdir: str, wait: bool = False):
   """Makes workdir (WorkdirError if a file has that name) and holds its lock while the block runs: an
   exclusive `fcntl.flock` on workdir/.lock, which the kernel releases when the process ends, however it
   ends, so a lock left by a killed run never blocks. If another run holds it: WorkdirError naming that run's
-  pid, or with wait, waiting for it to end. Of several processes (jax.distributed), process 0 takes it."""
+  pid, or with wait, waiting for it to end. The lock file is removed as the block ends (a killed run's
+  stays, holding its pid). Of several processes (jax.distributed), process 0 takes it."""
   if os.path.exists(workdir) and not os.path.isdir(workdir):
     raise WorkdirError(f"{workdir} is a file, not a directory")
   if jax.process_index() != 0:
     yield
     return
   os.makedirs(workdir, exist_ok=True)
-  with open(os.path.join(workdir, LOCK_FILE), "a+") as lock:
+  path = os.path.join(workdir, LOCK_FILE)
+  while True:
+    lock = open(path, "a+")
     try:
       fcntl.flock(lock, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
     except BlockingIOError:
       lock.seek(0)
       holder = lock.read().strip() or "unknown"
+      lock.close()
       raise WorkdirError(f"{workdir} is in use by another run (pid {holder}); wait for it to end, or give "
                          "--wait to wait for it") from None
+    if _is_file_at(lock, path):
+      break
+    lock.close()  # the run that held it removed it as it ended: lock the file now at path
+  try:
     lock.truncate(0)
     lock.write(str(os.getpid()))
     lock.flush()
-    try:
-      yield
-    finally:
-      fcntl.flock(lock, fcntl.LOCK_UN)
+    yield
+  finally:
+    os.unlink(path)  # while still held: a run waiting on this file finds it gone and locks a new one
+    fcntl.flock(lock, fcntl.LOCK_UN)
+    lock.close()
+
+
+def _is_file_at(opened, path: str) -> bool:
+  try:
+    return os.stat(path).st_ino == os.fstat(opened.fileno()).st_ino
+  except FileNotFoundError:
+    return False
 
 
 def clear_workdir(workdir: str, files: tuple[str, ...], overwrite: bool = False) -> None:

@@ -191,6 +191,23 @@ def test_bad_numbers_and_structures_in_demonstrations(tmp_path, line, message):
   assert str(error.value).startswith(f"{path}:2: malformed demonstration: ")
 
 
+def test_a_json_syntax_error_is_placed_by_the_files_line_and_the_lines_column(tmp_path):
+  good = json.dumps(GOOD)
+  column = good.index(', "actions"') + 2  # where the comma was, counted from 1
+  cases = [(good.replace(', "actions"', ' "actions"'), f"not JSON at column {column}: Expecting ',' delimiter"),
+           (good[:-1], "not JSON, it ends too soon: Expecting ',' delimiter")]
+  for line, message in cases:
+    path = _write(tmp_path / "d.jsonl", good + "\n" + line + "\n" + good + "\n")
+    with pytest.raises(demo_files.DemoFileError) as error:
+      demo_files.read_demonstrations(path, SPEC)
+    assert str(error.value) == f"{path}:2: malformed demonstration: {message}"
+  path = _write(tmp_path / "h.json", '{"levels": [["r"], ["a"]],\n "action_sizes": [2],}')
+  with pytest.raises(demo_files.DemoFileError) as error:
+    demo_files.read_hierarchy(path)
+  assert str(error.value) == (f"{path}: cannot read a hierarchy: not JSON at line 2, column 22: Expecting property "
+                              "name enclosed in double quotes")
+
+
 def test_an_integer_within_float32s_range_is_an_observation(tmp_path):
   line = _observations(str(3 * 10**38))
   batch, _ = demo_files.read_demonstrations(_write(tmp_path / "d.jsonl", line + "\n"), SPEC)

@@ -4,6 +4,8 @@ import os
 import signal
 import subprocess
 import sys
+import threading
+import time
 
 import pytest
 
@@ -35,6 +37,7 @@ def test_a_second_run_is_refused_naming_the_holder_and_a_killed_one_blocks_nothi
     holder.wait()
   with run.workdir_lock(str(tmp_path / "w")):  # the kernel released the killed run's lock
     assert (tmp_path / "w" / run.LOCK_FILE).read_text() == str(os.getpid())
+  assert not (tmp_path / "w" / run.LOCK_FILE).exists()  # a run that ends leaves no lock file behind
 
 
 def test_waiting_takes_the_lock_once_the_holder_ends(tmp_path):
@@ -42,6 +45,30 @@ def test_waiting_takes_the_lock_once_the_holder_ends(tmp_path):
   subprocess.Popen(["sh", "-c", f"sleep 1; kill {holder.pid}"])
   with run.workdir_lock(str(tmp_path / "w"), wait=True):
     assert holder.wait() == -signal.SIGTERM
+    assert (tmp_path / "w" / run.LOCK_FILE).read_text() == str(os.getpid())
+
+
+def test_a_run_waiting_on_a_removed_lock_file_takes_the_new_one(tmp_path):
+  """A run waiting on the lock file of one that ends (and removes it) takes the lock on a file at the path,
+  so that a run after it sees it held."""
+  workdir = str(tmp_path / "w")
+  order = []
+  with run.workdir_lock(workdir):
+    waiting = threading.Thread(target=lambda: _take(workdir, order, "second"))
+    waiting.start()
+    time.sleep(0.5)  # the second now waits on the first's file
+  waiting.join(10)
+  with run.workdir_lock(workdir):  # the third
+    order.append("third")
+  assert order == ["second", "third"] and not (tmp_path / "w" / run.LOCK_FILE).exists()
+
+
+def _take(workdir, order, name):
+  with run.workdir_lock(workdir, wait=True):
+    with pytest.raises(run.WorkdirError, match="in use by another run"):
+      with run.workdir_lock(workdir):
+        pass
+    order.append(name)
 
 
 def test_a_workdir_that_is_a_file_is_refused(tmp_path):
