@@ -218,17 +218,22 @@ def write_hierarchy(path: str, spec: HierarchySpec) -> None:
 def parse_demonstration(obj, spec: HierarchySpec) -> tuple[np.ndarray, np.ndarray, np.ndarray | None,
                                                             np.ndarray | None]:
   """One line's JSON value as (observations [T+1, D], actions [T, F], procedures, counters [T, d] or None):
-  actions in spec's sizes, the stack by the call-stack rules. Raises ValueError saying what is wrong."""
+  observations of spec.obs_dim numbers (any, where that is 0), actions in spec's sizes, the stack by the
+  call-stack rules. Raises ValueError saying what is wrong; a file of another model's hierarchy is told by
+  its sizes before any action is judged."""
   if not isinstance(obj, dict):
     raise ValueError("a demonstration must be a JSON object")
   json_lines.check_keys(obj, DEMONSTRATION_KEYS, "demonstration")
   observations, actions = obj.get("observations"), obj.get("actions")
   if not isinstance(actions, list) or not actions:
     raise ValueError('"actions" must be a non-empty list (one elementary action per step)')
-  rows = _actions(actions, spec.action_sizes)
   if not (isinstance(observations, list) and len(observations) == len(actions) + 1):
     raise ValueError(f'"observations" must list T+1 = {len(actions) + 1} vectors (one more than the actions)')
   obs = _observations(observations)
+  if spec.obs_dim and obs.shape[1] != spec.obs_dim:
+    raise ValueError(f"observations have {obs.shape[1]} numbers where the hierarchy's have {spec.obs_dim} (a "
+                     "file of another hierarchy or environment)")
+  rows = _actions(actions, spec.action_sizes)
   stack = obj.get("stack")
   procs = taus = None
   if stack is not None:
@@ -247,7 +252,8 @@ def _actions(actions: list, sizes: tuple[int, ...]) -> np.ndarray:
                        f"got {json_lines.shown(action)}")
     for f, (a, size) in enumerate(zip(action, sizes)):
       if not 0 <= a < size:
-        raise ValueError(f"action {t}: factor {f} = {a} is outside 0..{size - 1}")
+        raise ValueError(f"action {t}: factor {f} = {a} is outside 0..{size - 1} (the hierarchy's action factor "
+                         f"sizes are {list(sizes)})")
     rows.append(action)
   return np.array(rows, np.int32)
 
@@ -318,8 +324,8 @@ def read_demonstrations(path: str, spec: HierarchySpec) -> tuple[Demonstration, 
       try:
         one = parse_demonstration(json_lines.loads(raw), spec)
         if obs_dim and one[0].shape[1] != obs_dim:
-          raise ValueError(f"observations have {one[0].shape[1]} numbers; expected {obs_dim}"
-                           + ("" if parsed else " (the model's observation size)"))
+          raise ValueError(f"observations have {one[0].shape[1]} numbers; expected {obs_dim} (as the first "
+                           "demonstration's)")
         obs_dim = one[0].shape[1]
         parsed.append(one)
       except UnicodeDecodeError as e:

@@ -110,7 +110,7 @@ def test_malformed_demonstration_lines_name_file_and_line(tmp_path, line, messag
 
 
 def test_observation_size_must_match_the_spec(tmp_path):
-  with pytest.raises(demo_files.DemoFileError, match="observations have 1 numbers; expected 6"):
+  with pytest.raises(demo_files.DemoFileError, match=r"observations have 1 numbers where the hierarchy's have 6 \(a file of another hierarchy"):
     demo_files.read_demonstrations(_demo_file(tmp_path, [GOOD]), dataclasses.replace(SPEC, obs_dim=6))
   with pytest.raises(demo_files.DemoFileError, match="no demonstrations"):
     demo_files.read_demonstrations(_demo_file(tmp_path, [""]), SPEC)
@@ -201,13 +201,24 @@ def test_fit_decode_show_and_report_on_the_warehouse_example(tmp_path):
   held_out = tmp_path / "held.jsonl"
   held_out.write_text("".join((WAREHOUSE / "held_out.jsonl").read_text().splitlines(keepends=True)[:5]))
   shown = [tmp_path / "shown.png", tmp_path / "shown.html"]
-  decode, show_held_out, show_own, rerun = processes.run_all([[sys.executable, "-m", *args] for args in [
+  wider, other_actions = tmp_path / "wider.jsonl", tmp_path / "other_actions.jsonl"  # files of other hierarchies
+  wider.write_text(json.dumps({"observations": [[0.0] * 7] * 2, "actions": [[0]]}) + "\n")
+  other_actions.write_text(json.dumps({"observations": [[0.0] * 6] * 2, "actions": [[5]]}) + "\n")
+  decode, show_held_out, show_own, rerun, *refused = processes.run_all([[sys.executable, "-m", *args] for args in [
       ("experiments.decode", f"--policy={workdir}", f"--demos={held_out}", f"--out={out}"),
       ("experiments.show", f"--policy={workdir}", f"--demos={held_out}", "--index=1", f"--out={shown[0]}"),
       ("experiments.show", f"--policy={workdir}", "--index=0", f"--out={shown[1]}"),
-      fit]], capture_output=True, text=True, timeout=600)
+      fit,
+      ("experiments.decode", f"--policy={workdir}", f"--demos={wider}", f"--out={out}.wider"),
+      ("experiments.decode", f"--policy={workdir}", f"--demos={other_actions}", f"--out={out}.other")]],
+      capture_output=True, text=True, timeout=600)
   assert all(proc.returncode == 0 for proc in (decode, show_held_out, show_own, rerun)), [
       proc.stderr for proc in (decode, show_held_out, show_own, rerun)]
+  assert [proc.stderr for proc in refused] == [
+      f"error: {wider}:1: malformed demonstration: observations have 7 numbers where the hierarchy's have 6 (a file "
+      "of another hierarchy or environment)\n",
+      f"error: {other_actions}:1: malformed demonstration: action 0: factor 0 = 5 is outside 0..3 (the hierarchy's "
+      "action factor sizes are [4])\n"]
   rows = [json.loads(line) for line in out.read_text().splitlines()]
   given = [json.loads(line) for line in held_out.read_text().splitlines()]
   assert len(rows) == 5 and "level 1: decoded stacks agree" in decode.stdout
