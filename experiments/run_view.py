@@ -119,12 +119,24 @@ def decoded(run: RunView, batch: Demonstration, indices: list[int]) -> list[tupl
                                              stacks.counters[b, :length], level)
         if measured:
           agreed[level] = measured[0]  # exact: the procedure ids of the demonstration's own stack
-          lines.append(f"level {level}: the decoded frame is the demonstration's on {agreed[level]:.3f} of "
-                       "its annotated steps")
+          lines.append(f"level {level}: frames (procedure, counter) agree on {agreed[level]:.3f} of the annotated "
+                       "steps" + _boundaries(procs, taus, stacks, b, level))
     shown.append(({"decoded": tree, "supervisor": supervisor, "marginals": [m[b] for m in marginals],
                    "actions": actions, "log_likelihood": log_likelihood if finite else None,
                    "agreement": agreed}, lines))
   return shown
+
+
+def _boundaries(procs, taus, stacks, b: int, level: int) -> str:
+  """"; call boundaries: H of N found, P decoded (F1 ...)" for a stack known down to level: where the calls
+  at level start, which frames alone do not show (a level above resuming splits a call)."""
+  length = len(procs)
+  scores = agreement.stack_boundary_scores(procs[None], taus[None], stacks.procedures[b:b + 1, :length],
+                                           stacks.counters[b:b + 1, :length], [length], level)
+  if scores is None:
+    return ""
+  return (f"; call boundaries: {scores['hits']} of {scores['true']} found, {scores['predicted']} decoded "
+          f"(F1 {scores['f1']:.3f})")
 
 
 def figure(run: RunView, drawn: dict, title: str):

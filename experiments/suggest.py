@@ -93,8 +93,8 @@ def main(argv):
   lines = "".join(json.dumps(dataclasses.asdict(s)) + "\n" for s in chosen)
   with cli.output_errors("out", _OUT.value):
     files.write_atomically(_OUT.value, lines.encode())
-  for s in chosen:
-    print(f"{s.index}: {s.why}")
+  for rank, s in enumerate(chosen, 1):
+    print(f"{rank}. demonstration {s.index}: {s.why}")
   print(f"{len(chosen)} of {int((~demos.strong).sum())} actions-only demonstrations chosen -> {_OUT.value}")
 
 

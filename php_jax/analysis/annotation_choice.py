@@ -78,20 +78,25 @@ def suggest(demos: Demonstration, budget: int, action_name: Callable[[list[int]]
     best = max(adding, key=lambda b: (round(float(worth[b]), 9), -b))
     new = sorted(shown[best] - covered, key=lambda k: (counts[k], str(k)))
     doubt = None if certainty_of is None else float(certainty_of[best])
-    chosen.append(Suggestion(best, round(float(worth[best]), 6), _why(new, counts, length[best], action_name, doubt)))
+    why = _why(new, counts, len(length), length[best], action_name, doubt)
+    chosen.append(Suggestion(best, round(float(worth[best]), 6), why))
     covered |= shown[best]
     left.remove(best)
   return chosen
 
 
-def _why(new: list[tuple], counts: dict, length: int, action_name, doubt) -> str:
+def _why(new: list[tuple], counts: dict, total: int, length: int, action_name, doubt) -> str:
+  """In words: the demonstration's length and what it shows that no annotated or earlier chosen one shows
+  (new: those behaviours, rarest first; counts: in how many of the total demonstrations each is)."""
   if not new:
-    text = f"{length} steps; shows nothing that the annotated and earlier chosen demonstrations do not"
+    text = f"{length} steps, the longest left; what it shows, the annotated and earlier chosen show already"
   else:
-    rare = ", ".join(_named(k, action_name) for k in new[:3])
-    kinds = "1 kind" if len(new) == 1 else f"{len(new)} kinds"
-    text = (f"{length} steps; shows {kinds} of behaviour that no annotated or earlier chosen demonstration shows, "
-            f"the rarest {rare} (in {counts[new[0]]} of the demonstrations)")
+    values = sum(kind[0] == "action" for kind in new)
+    parts = [f"{n} {name}{'s' if n > 1 else ''}" for n, name in ((values, "action value"),
+                                                                 (len(new) - values, "action pair")) if n]
+    rare = ", ".join(f"{_named(k, action_name)} ({counts[k]} of {total})" for k in new[:3])
+    text = (f"{length} steps; shows {' and '.join(parts)} that no annotated or earlier chosen demonstration "
+            f"shows; the rarest, with the demonstrations that show each: {rare}")
   if doubt is not None:
     text += f"; the model's uncertainty about its segmentation: {doubt:.2f} nats per step"
   return text
@@ -100,4 +105,4 @@ def _why(new: list[tuple], counts: dict, length: int, action_name, doubt) -> str
 def _named(kind: tuple, action_name) -> str:
   if kind[0] == "action":
     return action_name(list(kind[1]))
-  return f"{action_name(list(kind[1]))} then {action_name(list(kind[2]))}"
+  return f"{action_name(list(kind[1]))} → {action_name(list(kind[2]))}"

@@ -13,7 +13,7 @@ from flax import nnx
 
 from experiments import pictures, run_report, run_view
 from php_jax.analysis import decoding
-from php_jax.data import demo_files
+from php_jax.data import agreement, demo_files
 from php_jax.demos import UNKNOWN
 from php_jax.model import PHPHierarchy
 from php_jax.training import checkpoint, run
@@ -59,6 +59,15 @@ def test_a_shown_demonstration_is_its_decoded_stack_with_names_and_a_posterior_p
     assert marginal.shape[1] == view.hierarchy.spec.num_procs(level)
   assert lines[0].startswith("decoded call stack (log-likelihood ") and lines[1] == "  fulfil"
   assert "the demonstration's own call stack:" in lines and set(drawn["agreement"]) == {1, 2}
+  for level in (1, 2):  # frames per step, and where calls start, which frames alone do not show
+    given = batch.procedures[3, :n], batch.counters[3, :n]
+    truth = agreement.boundary_steps(agreement.call_starts(*given, level))
+    found = agreement.boundary_steps(agreement.call_starts(decoded.procedures[3, :n], decoded.counters[3, :n],
+                                                           level))
+    scores = agreement.boundary_scores([truth], [found])
+    assert (f"level {level}: frames (procedure, counter) agree on {drawn['agreement'][level]:.3f} of the annotated "
+            f"steps; call boundaries: {len(truth & found)} of {len(truth)} found, {len(found)} decoded "
+            f"(F1 {scores['f1']:.3f})") in lines
   figure = run_view.figure(view, drawn, "demonstration 3")
   assert pictures.save(figure, "x.png", "t")[:4] == b"\x89PNG"
   assert pictures.save(figure, "x.html", "t", "\n".join(lines)).decode().count("<svg") == 1
