@@ -6,6 +6,7 @@ import contextlib
 import os
 import signal
 import sys
+import tempfile
 import textwrap
 import threading
 from typing import NoReturn
@@ -83,6 +84,18 @@ def check_outputs(outputs: dict[str, str | None], inputs: dict[str, str | None],
         raise ValueError(f"--{flag}={path} is the {'input file' if other in inputs else 'same file as'} "
                          f"--{other}={other_path}")
     seen[flag] = path
+
+
+def writable_folder(flag: str, path: str) -> None:
+  """Makes the folder path (and those above it) and proves that files can be written there, by writing and
+  removing one; otherwise ends the command in one line naming the flag (exit status 2): a read-only file
+  system, a file in the way, no permission."""
+  try:
+    os.makedirs(path, exist_ok=True)
+    with tempfile.NamedTemporaryFile(dir=path, prefix=".write-check-"):
+      pass
+  except OSError as e:
+    fail(f"--{flag}={path}: cannot write there: {e.strerror or e}")
 
 
 def _same_file(a: str, b: str) -> bool:

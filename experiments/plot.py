@@ -318,16 +318,17 @@ def main(argv):
       raise ValueError("--against=test_size needs test sets named by their size")
   except ValueError as e:
     cli.fail(str(e))
-  os.makedirs(_OUT.value, exist_ok=True)
+  cli.writable_folder("out", _OUT.value)
   draw = size_figure if _AGAINST.value == "test_size" else figure
   written = []
-  for task, table in tables.items():
-    name = task.replace(":", "_").replace("/", "_")
-    if not _TABLES.value:
-      files.write_atomically(os.path.join(_OUT.value, f"{name}.md"), markdown(table).encode())
-      written.append(f"{name}.md")
-    files.write_atomically(os.path.join(_OUT.value, f"{name}.png"), draw(table, task))
-    written.append(f"{name}.png")
+  with cli.output_errors("out", _OUT.value):
+    for task, table in tables.items():
+      name = task.replace(":", "_").replace("/", "_")
+      if not _TABLES.value:
+        files.write_atomically(os.path.join(_OUT.value, f"{name}.md"), markdown(table).encode())
+        written.append(f"{name}.md")
+      files.write_atomically(os.path.join(_OUT.value, f"{name}.png"), draw(table, task))
+      written.append(f"{name}.png")
   source = f"{len(tables)} tables" if _TABLES.value else f"{len(results)} runs"
   print(f"{source} -> {', '.join(os.path.join(_OUT.value, w) for w in written)}")
 

@@ -175,6 +175,7 @@ def main(argv):
     tasks.get(_TASK.value)
   except ValueError as e:
     cli.fail(f"--task: {e}")
+  cli.writable_folder("workdir", _WORKDIR.value)
   todo = pending(combos, _WORKDIR.value, seeds)
   print(f"{len(combos)} runs, {len(combos) - len(todo)} already done, {len(todo)} to run", flush=True)
   failed, refusals, start = [], [], time.time()

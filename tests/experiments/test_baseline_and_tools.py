@@ -284,6 +284,39 @@ def test_plot_refuses_a_table_it_did_not_write(tmp_path):
   assert not (tmp_path / "out").exists()
 
 
+@pytest.fixture
+def read_only(tmp_path):
+  """A folder on a read-only file system (a tmpfs mounted read-only; skipped where mounting is not allowed)."""
+  folder = tmp_path / "read_only"
+  folder.mkdir()
+  if subprocess.run(["mount", "-t", "tmpfs", "-o", "ro", "tmpfs", str(folder)], capture_output=True).returncode:
+    pytest.skip("mounting a read-only file system needs root")
+  yield folder
+  subprocess.run(["umount", str(folder)], check=True)
+
+
+def test_sweep_and_plot_refuse_a_folder_they_cannot_write_in_one_line(tmp_path):
+  (tmp_path / "run").mkdir()
+  (tmp_path / "run" / "results.json").write_text(json.dumps({"task": "x", "num_strong": 1, "test": {"accuracy": 1.0}}))
+  (tmp_path / "file").write_text("")
+  blocked = tmp_path / "file" / "below"
+  processes.assert_refused([
+      (["experiments.sweep", "--task=nanocraft", f"--workdir={blocked}", "--grid=seed=1"],
+       f"error: --workdir={blocked}: cannot write there: Not a directory"),
+      (["experiments.plot", f"--runs={tmp_path / 'run'}", f"--out={blocked}"],
+       f"error: --out={blocked}: cannot write there: Not a directory")], timeout=300)
+
+
+def test_sweep_and_plot_refuse_a_read_only_file_system_in_one_line(tmp_path, read_only):
+  (tmp_path / "run").mkdir()
+  (tmp_path / "run" / "results.json").write_text(json.dumps({"task": "x", "num_strong": 1, "test": {"accuracy": 1.0}}))
+  processes.assert_refused([
+      (["experiments.sweep", "--task=nanocraft", f"--workdir={read_only / 'sweep'}", "--grid=seed=1"],
+       f"error: --workdir={read_only / 'sweep'}: cannot write there: Read-only file system"),
+      (["experiments.plot", f"--runs={tmp_path / 'run'}", f"--out={read_only}"],
+       f"error: --out={read_only}: cannot write there: Read-only file system")], timeout=300)
+
+
 def test_segmentation_refuses_bad_runs_and_levels(tmp_path):
   run = tmp_path / "run"
   with pytest.raises(ValueError, match="results.json does not exist"):
