@@ -83,8 +83,9 @@ def measure(setup: argparse.Namespace, workdir: str, demos: int, annotated: int,
   _record(setup, held, 200, 200, 500000)
   _run("experiments.fit", f"--demos={train}", f"--hierarchy={setup.hierarchy}", f"--workdir={run}", f"--seed={seed}",
        f"--model={model}", *fit_flags)
+  # Taxi ends an episode only on delivering the passenger, DoorKey only at the goal: there, ending is success.
   acted = _run("experiments.act", f"--policy={run}", f"--env={setup.env}", "--episodes=1000", "--seed=100000",
-               "--num_envs=64",
+               "--num_envs=64", "--success=terminated",
                f"--out={os.path.join(run, 'episodes.jsonl')}")
   success = float(re.search(r"success ([0-9.]+)", acted).group(1))
   row = {"model": model, "demos": demos, "annotated": annotated, "chosen": setup.choose, "seed": seed,
