@@ -70,8 +70,9 @@ def main(argv):
         endings.append(ending)
         on_episode()
 
-      lines = gym.record(env, expert, _EPISODES.value, environment_flags.SEED.value, _ANNOTATED.value, spec,
-                         environment_flags.MAX_STEPS.value, ended, annotate)
+      lines = gym.record(env, expert, _EPISODES.value, environment_flags.SEED.value,
+                         _ANNOTATED.value if annotate is None else annotate, spec, environment_flags.MAX_STEPS.value,
+                         ended)
   except (OSError, ValueError) as e:  # GymError and DemoFileError are ValueErrors
     cli.fail(str(e))
   with cli.output_errors("out", _OUT.value):

@@ -14,7 +14,7 @@ from php_jax.training import call_graph  # noqa: E402
 
 def test_the_expert_reaches_the_goal_in_every_layout_within_its_declared_calls(tmp_path):
   env, spec = doorkey.make_env(), demo_files.read_hierarchy("examples/doorkey/doorkey.json").spec
-  lines = gym.record(env, doorkey.ThreePartExpert(env), episodes=40, seed=3, annotated=40, spec=spec)
+  lines = gym.record(env, doorkey.ThreePartExpert(env), episodes=40, seed=3, annotate=40, spec=spec)
   layouts = set()
   for i, line in enumerate(lines):
     observation, _ = env.reset(seed=3 + i)

@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def test_the_route_expert_reaches_the_goal_with_the_stacks_the_page_shows():
   spec = demo_files.read_hierarchy(str(ROOT / "examples" / "frozenlake" / "frozenlake.json")).spec
   endings = []
-  lines = gym.record(frozenlake.make_env(), frozenlake.RouteExpert(None), episodes=2, seed=0, annotated=2,
+  lines = gym.record(frozenlake.make_env(), frozenlake.RouteExpert(None), episodes=2, seed=0, annotate=2,
                      spec=spec, on_episode=endings.append)
   assert success.summary(success.parse("reward>0"), endings)[0] == "success 1.000 (reward>0)"
   stacks = lines[0]["stack"]

@@ -157,10 +157,10 @@ def test_action_factors_round_trip_and_other_action_spaces_are_refused():
 
 
 def test_record_keeps_the_first_episodes_stacks_and_writes_readable_lines(tmp_path):
-  lines = gym.record(make_corridor(), CorridorExpert(None), episodes=5, seed=3, annotated=2, spec=SPEC)
+  lines = gym.record(make_corridor(), CorridorExpert(None), episodes=5, seed=3, annotate=2, spec=SPEC)
   assert ["stack" in line for line in lines] == [True, True, False, False, False]
   ended = []
-  again = gym.record(make_corridor(), CorridorExpert(None), episodes=5, seed=3, annotated=2,
+  again = gym.record(make_corridor(), CorridorExpert(None), episodes=5, seed=3, annotate=2,
                      on_episode=ended.append)
   assert again == lines and len(ended) == 5  # episode i is reset with seed + i; each end told once
   assert [e.episode_return for e in ended] == [-len(line["actions"]) for line in lines]
@@ -180,7 +180,7 @@ def test_record_keeps_the_first_episodes_stacks_and_writes_readable_lines(tmp_pa
 
 def test_record_refuses_a_broken_stack_a_bad_action_and_missing_stacks_naming_episode_and_step():
   with pytest.raises(gym.GymError, match=r"^episode 0: stack step 1: "):
-    gym.record(make_corridor(), BrokenExpert(None), episodes=2, seed=1, annotated=1)
+    gym.record(make_corridor(), BrokenExpert(None), episodes=2, seed=1, annotate=1)
 
   class OutOfSpace(CorridorExpert):
     def act(self, observation, info):
@@ -194,11 +194,11 @@ def test_record_refuses_a_broken_stack_a_bad_action_and_missing_stacks_naming_ep
       return super().act(observation, info)[0]
 
   with pytest.raises(gym.GymError, match=r"^episode 0 is to be annotated, but the expert gave no call stack"):
-    gym.record(make_corridor(), Silent(None), episodes=1, seed=0, annotated=1)
+    gym.record(make_corridor(), Silent(None), episodes=1, seed=0, annotate=1)
   assert all("stack" not in line for line in gym.record(make_corridor(), Silent(None), episodes=2, seed=0))
   with pytest.raises(gym.GymError, match=r"^episode 0: stack step 0: procedure id 1 at level 1 is unknown"):
     narrow = HierarchySpec("c", (("root",), ("walk",)), (2,), 8)  # episode 0 (seed 0) walks right
-    gym.record(make_corridor(), CorridorExpert(None), episodes=1, seed=0, annotated=1, spec=narrow)
+    gym.record(make_corridor(), CorridorExpert(None), episodes=1, seed=0, annotate=1, spec=narrow)
 
 
 class TupleExpert(CorridorExpert):
@@ -229,17 +229,17 @@ class FixedWalker:
 
 
 def test_record_takes_any_sequence_for_a_stack_and_names_a_malformed_one():
-  lists = gym.record(make_corridor(), CorridorExpert(None), episodes=3, seed=2, annotated=3, spec=SPEC)
-  assert gym.record(make_corridor(), TupleExpert(None), episodes=3, seed=2, annotated=3, spec=SPEC) == lists
+  lists = gym.record(make_corridor(), CorridorExpert(None), episodes=3, seed=2, annotate=3, spec=SPEC)
+  assert gym.record(make_corridor(), TupleExpert(None), episodes=3, seed=2, annotate=3, spec=SPEC) == lists
   with pytest.raises(gym.GymError, match=r"^episode 0, step 1: the expert's stack has 3 levels; at step 0 it had 2"):
-    gym.record(make_corridor(), DeepeningExpert(None), episodes=1, seed=0, annotated=1)
+    gym.record(make_corridor(), DeepeningExpert(None), episodes=1, seed=0, annotate=1)
 
   class Shallow(CorridorExpert):
     def act(self, observation, info):
       return super().act(observation, info)[0], [[0, 0]]
 
   with pytest.raises(gym.GymError, match=r"^episode 0, step 0: the expert's stack \[\[0, 0\]\] has fewer than two"):
-    gym.record(make_corridor(), Shallow(None), episodes=1, seed=0, annotated=1)
+    gym.record(make_corridor(), Shallow(None), episodes=1, seed=0, annotate=1)
 
 
 def test_record_makes_its_folder_takes_module_env_id_and_judges_the_expert(tmp_path):
@@ -324,7 +324,7 @@ CORRIDOR_HIERARCHY = {"levels": [["root"], ["walk_left", "walk_right"]], "action
 def test_recorded_demonstrations_fit_a_hierarchy_that_solves_the_environment(tmp_path):
   demos, run = tmp_path / "demos.jsonl", tmp_path / "run"
   (tmp_path / "corridor.json").write_text(json.dumps(CORRIDOR_HIERARCHY))
-  lines = gym.record(make_corridor(), CorridorExpert(None), episodes=24, seed=0, annotated=4)
+  lines = gym.record(make_corridor(), CorridorExpert(None), episodes=24, seed=0, annotate=4)
   demos.write_text("".join(json.dumps(line) + "\n" for line in lines))
   proc = _run("experiments.fit", f"--demos={demos}", f"--hierarchy={tmp_path / 'corridor.json'}",
               f"--workdir={run}", "--iterations=150", "--eval_every=50", "--hidden=16", "--learning_rate=0.03",

@@ -27,7 +27,7 @@ def _fewest_steps(env, start: int) -> int:
 
 def test_the_maxq_expert_delivers_every_passenger_along_shortest_paths_within_its_declared_calls(tmp_path):
   env, spec = taxi.make_env(), demo_files.read_hierarchy("examples/taxi/taxi.json").spec
-  lines = gym.record(env, taxi.MaxqExpert(env), episodes=60, seed=7, annotated=60, spec=spec)
+  lines = gym.record(env, taxi.MaxqExpert(env), episodes=60, seed=7, annotate=60, spec=spec)
   for i, line in enumerate(lines):
     env.reset(seed=7 + i)
     assert len(line["actions"]) == _fewest_steps(env, env.unwrapped.s)

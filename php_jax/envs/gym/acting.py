@@ -1,0 +1,246 @@
+"""A learned policy (a PHP hierarchy or the flat LSTM) acting in a Gymnasium environment, several copies of
+it stepped together, each step's decisions one jitted call. Episode i is reset with seed + i."""
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import NamedTuple
+
+import gymnasium
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+from gymnasium import spaces
+
+from php_jax import executor
+from php_jax.envs import success
+from php_jax.envs.gym.loading import max_steps_of
+from php_jax.envs.gym.spaces import GymError, action_sizes, env_actions, flatten_batch, observation_size
+from php_jax.flat_lstm import FlatLSTMPolicy
+from php_jax.model import PHPHierarchy
+
+
+class _Stack(NamedTuple):
+  """A hierarchy's memory per environment copy: the stack's procedures and counters [M, d]."""
+  procedures: jax.Array
+  counters: jax.Array
+
+
+class _Carry(NamedTuple):
+  """The flat LSTM's memory per copy: its carry ([M, H] twice) and previous action [M, F]."""
+  carry: tuple
+  previous: jax.Array
+
+
+def _hierarchy_decisions(policy: PHPHierarchy, memory: _Stack, obs, fresh, keys):
+  """Per copy: a fresh episode's first stack, or the stack after the last action; and the next action."""
+  spec = policy.spec
+
+  def one(procs, taus, o, is_fresh, key):
+    stack_key, act_key = jax.random.split(key)
+    started = executor.start_stack(policy, spec, o, stack_key)
+    after = executor.next_stack(policy, spec, procs, taus, o, stack_key)
+    procs, taus = (jnp.where(is_fresh, s, a) for s, a in zip(started, after[:2]))
+    returned = ~is_fresh & after[2]
+    return procs, taus, executor.elementary_action(policy, spec, procs, taus, o, act_key), returned
+
+  procs, taus, actions, returned = jax.vmap(one)(memory.procedures, memory.counters, obs, fresh, keys)
+  return _Stack(procs, taus), actions, returned
+
+
+def _lstm_decisions(policy: FlatLSTMPolicy, memory: _Carry, obs, fresh):
+  """Per copy: the LSTM's step on obs (from its initial carry where fresh): stop, or the next action."""
+
+  def one(carry, previous, o, is_fresh):
+    carry = jax.tree.map(lambda c, c0: jnp.where(is_fresh, c0, c), carry, policy.initial_carry(o.dtype))
+    previous = jnp.where(is_fresh, -1, previous)
+    carry, factors, stop = policy.step(carry, o, previous)
+    action = jnp.stack([jnp.argmax(lp) for lp in factors]).astype(jnp.int32)
+    return carry, action, stop > 0
+
+  carry, actions, stopped = jax.vmap(one)(memory.carry, memory.previous, obs, fresh)
+  return _Carry(carry, actions), actions, stopped
+
+
+@functools.partial(jax.jit, static_argnames="structure")
+def _decisions(structure: tuple, leaves: list, memory, obs, fresh, clock: tuple, key):
+  """One step's decisions for every copy [M]: (memory, actions [M, F], episode ended by the policy [M]).
+  The policy arrives split (structure: `nnx.split`'s graphdef and its state's treedef; leaves: the state's
+  arrays) so that calls pass arrays, not a module; clock: (episode [M], step [M]), which the PRNG key of copy m
+  folds in."""
+  graphdef, treedef = structure
+  episodes, steps = clock
+  policy = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
+  if isinstance(policy, FlatLSTMPolicy):
+    return _lstm_decisions(policy, memory, obs, fresh)
+  keys = jax.vmap(lambda e, s: jax.random.fold_in(jax.random.fold_in(key, e), s))(episodes, steps)
+  return _hierarchy_decisions(policy, memory, obs, fresh, keys)
+
+
+def policy_sizes(policy: PHPHierarchy | FlatLSTMPolicy) -> tuple[int, tuple[int, ...]]:
+  """(observation size, action factor sizes) a learned policy was trained with."""
+  if isinstance(policy, PHPHierarchy):
+    return policy.spec.obs_dim, policy.spec.action_sizes
+  return policy.cell.in_features - sum(policy.action_sizes), policy.action_sizes
+
+
+def _initial_memory(policy, num: int):
+  if isinstance(policy, PHPHierarchy):
+    zeros = jnp.zeros((num, policy.spec.num_levels), jnp.int32)
+    return _Stack(zeros, zeros)
+  carry = jax.tree.map(lambda x: jnp.zeros((num,) + x.shape, x.dtype), policy.initial_carry())
+  return _Carry(carry, jnp.full((num, len(policy.action_sizes)), -1, jnp.int32))
+
+
+def check_policy(policy, observation_space: spaces.Space, action_space: spaces.Space) -> None:
+  """Raises GymError unless the policy's observation and action sizes are the environment's."""
+  obs_dim, sizes = policy_sizes(policy)
+  if observation_size(observation_space) != obs_dim:
+    raise GymError(f"the policy observes vectors of {obs_dim} numbers; this environment's observations "
+                   f"flatten to {observation_size(observation_space)} ({observation_space})")
+  if action_sizes(action_space) != tuple(sizes):
+    raise GymError(f"the policy's actions have factor sizes {list(sizes)}; this environment's "
+                   f"{action_space} has {list(action_sizes(action_space))}")
+
+
+def vector_env(make_env: Callable[[], gymnasium.Env], num_envs: int) -> gymnasium.vector.VectorEnv:
+  """num_envs copies of make_env() stepped together, reset only when `act` says (no autoreset)."""
+  return gymnasium.vector.SyncVectorEnv([make_env] * num_envs,
+                                        autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED)
+
+
+class _Episodes:
+  """The host side of `act`: which episode each copy runs, and what each episode has done so far."""
+
+  def __init__(self, num_copies: int, episodes: int, seed: int, with_stacks: bool):
+    self.seed, self.total, self.next = seed, episodes, 0
+    self.episode = np.full(num_copies, -1)    # the episode each copy runs; −1: idle
+    self.steps = np.zeros(num_copies, np.int64)
+    self.returns = np.zeros(num_copies)
+    self.last_rewards = np.zeros(num_copies)
+    self.infos: list[dict] = [{} for _ in range(num_copies)]  # each copy's info of its last step or reset
+    self.stacks = [[] for _ in range(num_copies)] if with_stacks else None
+    self.results: list[dict | None] = [None] * episodes
+    self.endings: list[success.Ending | None] = [None] * episodes
+
+  def assign(self, copies: np.ndarray) -> list[int | None]:
+    """Starts the next episodes on copies; returns each copy's reset seed (None for copies left idle)."""
+    seeds = []
+    for m in copies:
+      if self.next < self.total:
+        self.episode[m], self.next = self.next, self.next + 1
+        seeds.append(self.seed + int(self.episode[m]))
+      else:
+        self.episode[m] = -1
+        seeds.append(None)
+      self.steps[m], self.returns[m], self.last_rewards[m] = 0, 0.0, 0.0
+      if self.stacks is not None:
+        self.stacks[m] = []
+    return seeds
+
+  def finish(self, m: int, terminated: bool, truncated: bool) -> success.Ending:
+    """Ends copy m's episode; returns how it ended."""
+    steps = int(self.steps[m])
+    ending = success.Ending(float(self.returns[m]), float(self.last_rewards[m]) if steps else None,
+                            bool(terminated), bool(truncated), self.infos[m])
+    self.endings[self.episode[m]] = ending
+    self.results[self.episode[m]] = {
+        "return": ending.episode_return, "steps": steps, "success": None, "terminated": ending.terminated,
+        "truncated": ending.truncated, "stack": self.stacks[m] if self.stacks is not None else None}
+    self.episode[m] = -1
+    return ending
+
+  def judged(self, rule: success.SuccessRule | None) -> list[dict]:
+    """The episodes' results, each with its success under rule (`success.judge_all`)."""
+    _, successes = success.judge_all(rule, self.endings)
+    for result, succeeded in zip(self.results, successes):
+      result["success"] = succeeded
+    return self.results
+
+
+def _copy_infos(infos: dict, num: int) -> list[dict]:
+  """A vector environment's infos as one dict per copy, each with the entries that copy gave (arrays only:
+  the entries Gymnasium batches per copy)."""
+  per_copy = [{} for _ in range(num)]
+  for key, values in infos.items():
+    if key.startswith("_") or not isinstance(values, np.ndarray):
+      continue
+    given = infos.get(f"_{key}", np.ones(num, bool))
+    for m in np.flatnonzero(given):
+      per_copy[m][key] = values[m].item() if values[m].ndim == 0 else values[m]
+  return per_copy
+
+
+def act(policy: PHPHierarchy | FlatLSTMPolicy, env: gymnasium.Env | gymnasium.vector.VectorEnv, episodes: int,
+        seed: int, max_steps: int | None = None, on_episode: Callable[[success.Ending], None] | None = None,
+        success_rule: success.SuccessRule | None = None) -> list[dict]:
+  """Runs a learned policy for `episodes` episodes in the real environment; episode i is reset with seed + i.
+
+  A hierarchy runs by the executor's semantics (greedy, or sampling when built with sample=True): push the
+  root and descend on the first observation; after each action pop the frames that stop, resume and descend;
+  the episode ends when the environment terminates or truncates it, when the root returns, or after
+  max_steps actions (default: the environment's time limit, else DEFAULT_MAX_STEPS; then it counts as
+  truncated). With a vector environment (`vector_env`) its copies run episodes side by side and each
+  step's decisions are one jitted call over all copies.
+
+  Returns per episode {"return", "steps", "success" (under success_rule; without one, info["is_success"] at
+  the end where the environment reports it in any episode, else None: see `success`), "terminated",
+  "truncated", "stack" (per step the call stack [[procedure, counter], ...], root first; None for a flat
+  LSTM)}. on_episode(ending) is called as each episode ends, with how it ended (for a progress display).
+  """
+  on_episode = on_episode or (lambda _: None)
+  envs = env if isinstance(env, gymnasium.vector.VectorEnv) else vector_env(lambda: env, 1)
+  observation_space, action_space = envs.single_observation_space, envs.single_action_space
+  check_policy(policy, observation_space, action_space)
+  limit, num = max_steps_of(env, max_steps), envs.num_envs
+  state = _Episodes(num, episodes, seed, isinstance(policy, PHPHierarchy))
+  observations, infos = envs.reset(seed=state.assign(np.arange(num)))
+  state.infos = _copy_infos(infos, num)
+  memory, fresh, key = _initial_memory(policy, num), np.ones(num, bool), jax.random.key(seed)
+  graphdef, params = nnx.split(policy)
+  leaves, treedef = jax.tree.flatten(params)
+
+  def restart(copies: np.ndarray) -> None:
+    nonlocal observations
+    mask = np.zeros(num, bool)
+    mask[copies] = True
+    seeds = [None] * num
+    for m, s in zip(copies, state.assign(copies)):
+      seeds[m] = s
+    observations, infos = envs.reset(seed=seeds, options={"reset_mask": mask})  # every copy's observation
+    reset_infos = _copy_infos(infos, num)
+    for m in copies:
+      state.infos[m] = reset_infos[m]
+    fresh[copies] = True
+
+  while (state.episode >= 0).any():
+    while True:
+      new_memory, actions, returned = _decisions(
+          (graphdef, treedef), leaves, memory, flatten_batch(envs, observations), fresh,
+          (np.maximum(state.episode, 0), state.steps), key)
+      ended = np.flatnonzero(np.asarray(returned) & (state.episode >= 0))
+      if not ended.size:
+        break
+      for m in ended:  # the policy ended the episode before the environment did
+        on_episode(state.finish(m, False, False))
+      restart(ended)
+    memory, fresh = new_memory, np.zeros(num, bool)
+    actions = np.asarray(actions)
+    if state.stacks is not None:
+      frames = np.stack([np.asarray(memory.procedures), np.asarray(memory.counters)], -1).tolist()  # [M][d][2]
+      for m in np.flatnonzero(state.episode >= 0):
+        state.stacks[m].append(frames[m])
+    observations, rewards, terminated, truncated, infos = envs.step(env_actions(action_space, actions))
+    state.steps += 1
+    state.returns += rewards
+    state.last_rewards[:] = rewards
+    state.infos = _copy_infos(infos, num)
+    truncated = truncated | ((state.steps >= limit) & ~terminated)
+    done = np.flatnonzero(terminated | truncated)
+    for m in done:
+      if state.episode[m] >= 0:
+        on_episode(state.finish(m, bool(terminated[m]), bool(truncated[m])))
+    if done.size:
+      restart(done)
+  return state.judged(success_rule)

@@ -1,0 +1,131 @@
+"""An expert's episodes in a Gymnasium environment, recorded as demonstration lines.
+
+An expert is any object with `act(observation, info)` returning an action, or a pair `(action, stack)`
+whose stack is the call stack that chose it (`[[procedure, counter], ...]`, root first, the demonstration
+file's format, any sequences of ints, or None), and optionally `reset(observation, info)`, called at each
+episode's start. The expert sees the environment's own observations (a dict stays a dict); the lines hold
+them flattened. Episode i is reset with seed + i.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Collection
+from typing import Any
+
+import gymnasium
+import numpy as np
+
+from php_jax.data import demo_files
+from php_jax.envs import success
+from php_jax.envs.gym.loading import max_steps_of
+from php_jax.envs.gym.spaces import (GymError, action_factors, action_sizes, check_observation_space,
+                                     flatten_observation)
+from php_jax.hierarchy import HierarchySpec
+
+
+def _is_sequence(value) -> bool:
+  return isinstance(value, (list, tuple, np.ndarray))
+
+
+def _expert_output(output) -> tuple[Any, Any]:
+  """(action, stack or None) from an expert's act(): a pair whose second item is None or a sequence of
+  sequences (the frames) is (action, stack); anything else is a bare action."""
+  if (isinstance(output, tuple) and len(output) == 2
+      and (output[1] is None or (_is_sequence(output[1]) and all(_is_sequence(f) for f in output[1])))):
+    return output
+  return output, None
+
+
+def _as_lists(value):
+  """Sequences (lists, tuples, arrays) as lists, NumPy scalars as Python numbers, all the way down."""
+  if _is_sequence(value):
+    return [_as_lists(v) for v in value]
+  return value.item() if isinstance(value, np.generic) else value
+
+
+def _stack_spec(stacks: list, sizes: tuple[int, ...], episode: int) -> HierarchySpec:
+  """A spec that admits every procedure id in an episode's stacks (for checking them without a hierarchy).
+  Raises GymError naming the first step whose stack is not [[procedure, counter], ...] with as many levels as
+  the first stack's."""
+  given = [(t, frames) for t, frames in enumerate(stacks) if frames is not None]
+  if not given:  # nothing to check
+    return HierarchySpec("expert", (("p",), ("p",)), sizes, 0)
+  first, depth = given[0][0], len(given[0][1])
+  for t, frames in given:
+    if depth < 2:
+      raise GymError(f"episode {episode}, step {t}: the expert's stack {frames!r} has fewer than two levels (a "
+                     "stack lists one [procedure, counter] pair per level, root first)")
+    if len(frames) != depth:
+      raise GymError(f"episode {episode}, step {t}: the expert's stack has {len(frames)} levels; at step {first} "
+                     f"it had {depth} (one [procedure, counter] pair per level, root first, at every step)")
+  widths = [1] * depth
+  for _, frames in given:
+    for level, frame in enumerate(frames[1:], 1):  # the root level has one procedure
+      if isinstance(frame, list) and frame and isinstance(frame[0], int):
+        widths[level] = max(widths[level], frame[0] + 1)
+  return HierarchySpec("expert", tuple(("p",) * w for w in widths), sizes, 0)
+
+
+def record(env: gymnasium.Env, expert, episodes: int, seed: int, annotate: int | Collection[int] = 0,
+           spec: HierarchySpec | None = None, max_steps: int | None = None,
+           on_episode: Callable[[success.Ending], None] | None = None) -> list[dict]:
+  """The expert's episodes as demonstration lines (dicts in the demonstration file's format).
+
+  annotate: how many of the first episodes keep the stacks the expert gives, or which ones (their 0-based
+  numbers, e.g. those `experiments.suggest` chose); the others are actions only. Every line is checked as the
+  demonstration file reader checks it (against spec where given: procedure ids in range), so the stacks
+  follow the call-stack rules. Raises GymError naming the episode and step of the first problem. An episode
+  ends when the environment terminates or truncates it, or after max_steps actions (default: the
+  environment's time limit, else DEFAULT_MAX_STEPS; then it counts as truncated). on_episode(ending) is
+  called as each episode ends, with how it ended (`success.Ending`: for a progress display and for judging
+  the expert's success).
+  """
+  on_episode = on_episode or (lambda _: None)
+  check_observation_space(env.observation_space)
+  sizes = action_sizes(env.action_space)
+  limit = max_steps_of(env, max_steps)
+  keep = set(range(annotate) if isinstance(annotate, int) else annotate)
+  lines = []
+  for episode in range(episodes):
+    line, stacks, ending = _episode(env, expert, seed + episode, limit, episode)
+    if episode in keep:
+      if all(s is None for s in stacks):
+        raise GymError(f"episode {episode} is to be annotated, but the expert gave no call stack (its act() "
+                       "returns a bare action, not (action, stack))")
+      line["stack"] = stacks
+    check = spec or _stack_spec(line.get("stack", []), sizes, episode)
+    try:
+      demo_files.parse_demonstration(line, check)
+    except ValueError as e:
+      raise GymError(f"episode {episode}: {e}") from None
+    lines.append(line)
+    on_episode(ending)
+  return lines
+
+
+def _episode(env: gymnasium.Env, expert, seed: int, limit: int, episode: int
+             ) -> tuple[dict, list, success.Ending]:
+  """One episode of the expert, reset with seed: (its line without a stack, the stack it gave at each step
+  (None where it gave none), how it ended). GymError naming the episode and step where the expert fails."""
+  observation_space, action_space = env.observation_space, env.action_space
+  observation, info = env.reset(seed=seed)
+  if hasattr(expert, "reset"):
+    expert.reset(observation, info)
+  observations, actions, stacks = [flatten_observation(observation_space, observation).tolist()], [], []
+  rewards, terminated, truncated = [], False, False
+  while not (terminated or truncated):
+    try:
+      action, stack = _expert_output(expert.act(observation, info))
+    except Exception as e:  # the user's code, failing in any way: one line naming where
+      raise GymError(f"episode {episode}, step {len(actions)}: the expert's act() failed: "
+                     f"{type(e).__name__}: {e}") from None
+    if not action_space.contains(action if not isinstance(action, list) else np.asarray(action)):
+      raise GymError(f"episode {episode}, step {len(actions)}: the expert's action {action!r} is not in the "
+                     f"action space {action_space}")
+    actions.append(action_factors(action_space, action))
+    stacks.append(None if stack is None else _as_lists(stack))
+    observation, reward, terminated, truncated, info = env.step(action)
+    observations.append(flatten_observation(observation_space, observation).tolist())
+    rewards.append(float(reward))
+    truncated = bool(truncated) or (len(actions) >= limit and not terminated)
+  ending = success.Ending(sum(rewards), rewards[-1] if rewards else None, bool(terminated), truncated, dict(info))
+  return {"observations": observations, "actions": actions}, stacks, ending

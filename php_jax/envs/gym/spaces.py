@@ -1,0 +1,115 @@
+"""Gymnasium spaces as php_jax's arrays: observations as float32 vectors (`gymnasium.spaces.flatten`: Discrete
+one-hot, Box, MultiDiscrete and MultiBinary, and Dict and Tuple of these), actions as factors (a `Discrete`
+action space is one factor, a `MultiDiscrete` one a factor per entry). Any other space is refused with a
+`GymError` naming it."""
+from __future__ import annotations
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+
+
+class GymError(ValueError):
+  """An environment, expert or policy that php_jax cannot use as given; the message says why."""
+
+
+def check_observation_space(space: spaces.Space, where: str = "observation space") -> None:
+  if isinstance(space, spaces.Dict):
+    for key, sub in space.spaces.items():
+      check_observation_space(sub, f"{where}[{key!r}]")
+  elif isinstance(space, spaces.Tuple):
+    for i, sub in enumerate(space.spaces):
+      check_observation_space(sub, f"{where}[{i}]")
+  elif not isinstance(space, (spaces.Discrete, spaces.Box, spaces.MultiDiscrete, spaces.MultiBinary)):
+    raise GymError(f"the {where} {space} cannot be flattened to a vector (php_jax takes Discrete, Box, "
+                   "MultiDiscrete, MultiBinary, and Dict and Tuple of these)")
+
+
+def observation_size(space: spaces.Space) -> int:
+  """The length of the space's observations as vectors."""
+  check_observation_space(space)
+  return int(spaces.flatdim(space))
+
+
+def _check_observation(space: spaces.Space, observation, where: str = "observation") -> None:
+  """Refuses an observation that space cannot flatten: a Discrete, MultiDiscrete or MultiBinary value the
+  space does not contain, a Box value of another shape (values outside its bounds are taken), a Dict without
+  one of its keys or a Tuple of another length, naming where."""
+  if isinstance(space, spaces.Dict):
+    if not (isinstance(observation, dict) and set(space.spaces) <= set(observation)):
+      raise GymError(f"{where} must be a dict with the keys {sorted(space.spaces)}; got {observation!r}")
+    for key, sub in space.spaces.items():
+      _check_observation(sub, observation[key], f"{where}[{key!r}]")
+  elif isinstance(space, spaces.Tuple):
+    if not (isinstance(observation, (tuple, list)) and len(observation) == len(space.spaces)):
+      raise GymError(f"{where} must be a tuple of {len(space.spaces)} values; got {observation!r}")
+    for i, (sub, value) in enumerate(zip(space.spaces, observation)):
+      _check_observation(sub, value, f"{where}[{i}]")
+  elif isinstance(space, spaces.Box):
+    if np.shape(observation) != space.shape:
+      raise GymError(f"{where} must have the shape {space.shape} of {space}; got shape {np.shape(observation)}")
+  elif not space.contains(np.asarray(observation) if isinstance(observation, list) else observation):
+    raise GymError(f"{where} {observation!r} is not in {space}")
+
+
+def flatten_observation(space: spaces.Space, observation) -> np.ndarray:
+  """An observation of space as a float32 vector [observation_size(space)]. Raises GymError for an observation
+  the space does not hold (Box values outside its bounds are taken)."""
+  _check_observation(space, observation)
+  return np.asarray(spaces.flatten(space, observation), np.float32)
+
+
+def flatten_batch(envs: gymnasium.vector.VectorEnv, observations) -> np.ndarray:
+  """A vector environment's observations as float32 vectors [M, observation_size], copy by copy as
+  flatten_observation would, at once where the space allows."""
+  space, num = envs.single_observation_space, envs.num_envs
+  if isinstance(space, (spaces.Discrete, spaces.Box, spaces.MultiBinary)):
+    # batch_space keeps these flattening alike, each copy's entries together
+    return flatten_observation(envs.observation_space, observations).reshape(num, -1)
+  if isinstance(space, spaces.MultiDiscrete):  # batched, a Box of the values: one-hot them here
+    values = np.asarray(observations, np.int64).reshape(num, -1) - np.ravel(space.start)
+    offsets = np.concatenate([[0], np.cumsum(np.ravel(space.nvec))[:-1]])
+    flat = np.zeros((num, int(np.sum(space.nvec))), np.float32)
+    flat[np.arange(num)[:, None], offsets + values] = 1
+    return flat
+  return np.stack([flatten_observation(space, o) for o in gymnasium.vector.utils.iterate(envs.observation_space,
+                                                                                         observations)])
+
+
+def action_sizes(space: spaces.Space) -> tuple[int, ...]:
+  """The action factors' sizes: (n,) for Discrete(n), one per entry (row-major) for MultiDiscrete."""
+  if isinstance(space, spaces.Discrete):
+    return (int(space.n),)
+  if isinstance(space, spaces.MultiDiscrete):
+    return tuple(int(n) for n in np.ravel(space.nvec))
+  raise GymError(f"the action space {space} is not Discrete or MultiDiscrete (php_jax's actions are factors "
+                 "of finite sizes)")
+
+
+def env_actions(space: spaces.Space, factors: np.ndarray) -> np.ndarray:
+  """A vector environment's actions [M, ...] for M actions' factors [M, F] (int, each in its factor's range;
+  GymError otherwise)."""
+  sizes, given = action_sizes(space), np.asarray(factors)
+  if given.ndim != 2 or given.shape[1] != len(sizes) or not np.issubdtype(given.dtype, np.integer):
+    raise GymError(f"factors must be [M, {len(sizes)}] integers (one row per action); got {given.dtype} of shape "
+                   f"{given.shape}")
+  bad = np.argwhere((given < 0) | (given >= np.array(sizes)))
+  if bad.size:
+    m, f = bad[0]
+    raise GymError(f"factors[{m}, {f}] = {given[m, f]} is outside 0..{sizes[f] - 1}")
+  factors = given.astype(np.int64)
+  if isinstance(space, spaces.Discrete):
+    return int(space.start) + factors[:, 0]
+  shape = (len(factors),) + space.nvec.shape
+  return (np.ravel(space.start) + factors).reshape(shape).astype(space.dtype)
+
+
+def action_factors(space: spaces.Space, action) -> list[int]:
+  """An environment action's factors (int), each counted from 0. Raises GymError for an action the space does
+  not contain."""
+  action_sizes(space)  # refuses other spaces
+  if not space.contains(np.asarray(action) if isinstance(action, list) else action):
+    raise GymError(f"action {action!r} is not in the action space {space}")
+  if isinstance(space, spaces.Discrete):
+    return [int(action) - int(space.start)]
+  return (np.ravel(np.asarray(action, np.int64)) - np.ravel(space.start)).tolist()
