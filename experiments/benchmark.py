@@ -28,7 +28,8 @@ import php_jax
 from php_jax import executor, sharding
 from php_jax.data import views
 from php_jax.envs import datasets, tasks
-from php_jax.training import joint, objective, train
+from php_jax.training import joint, levelwise, networks, objective
+from php_jax.training.config import TrainConfig, balanced_strong_weight
 
 _SIZES = flags.DEFINE_string(
     "sizes", "160x80x3x8,160x200x6x16,32x400x6x32,16x10000x3x8,4096x200x6x16",
@@ -209,13 +210,13 @@ def bench_train_step():
   task = _task()
   demos = datasets.training_demos(task, 1, task.defaults.num_demos, _NUM_STRONG.value)
   view = views.lowest_view(demos, task.spec.num_levels)
-  config = train.TrainConfig(hidden=tuple(int(h) for h in _HIDDEN.value), root=_ROOT.value,
-                             strong_weight=train.balanced_strong_weight(demos.strong))
+  config = TrainConfig(hidden=tuple(int(h) for h in _HIDDEN.value), root=_ROOT.value,
+                             strong_weight=balanced_strong_weight(demos.strong))
   level = task.spec.num_levels - 1
-  model = objective.LevelModel(train.make_hierarchy(task.spec, config).levels[level],
-                           train.make_root(task.spec, level, config))
+  model = objective.LevelModel(networks.make_hierarchy(task.spec, config).levels[level],
+                           networks.make_root(task.spec, level, config))
   buckets = [views.device_view(b) for b in views.length_buckets(view, config.length_buckets)]
-  capacity = train.level_capacity(view, level, config)
+  capacity = levelwise.level_capacity(view, level, config)
   graphdef, params, rest = nnx.split(model, nnx.Param, ...)
 
   def networks_only(m):  # the lattice's inputs, summed where finite: the same networks, no E-step
@@ -249,8 +250,8 @@ def bench_scaling():
   task = _task()
   spec, num_demos = task.spec, _NUM_DEMOS.value or task.defaults.num_demos
   demos = datasets.training_demos(task, 1, num_demos, min(_NUM_STRONG.value, num_demos))
-  config = train.TrainConfig(hidden=tuple(int(h) for h in _HIDDEN.value), root=_ROOT.value,
-                             strong_weight=train.balanced_strong_weight(demos.strong))
+  config = TrainConfig(hidden=tuple(int(h) for h in _HIDDEN.value), root=_ROOT.value,
+                             strong_weight=balanced_strong_weight(demos.strong))
   mesh, num_devices = sharding.data_mesh(), len(jax.devices())
   annotated = demos._replace(strong=np.ones_like(demos.strong))  # every demonstration's true views, above too
   level_views = views.annotated_views(annotated, spec.num_levels)
@@ -273,11 +274,11 @@ def bench_scaling():
 
   for level in range(spec.num_levels - 1, -1, -1):
     view = level_views[level]._replace(strong=np.asarray(demos.strong))
-    capacity = train.level_capacity(view, level, config)
+    capacity = levelwise.level_capacity(view, level, config)
 
     def level_model(seed, level=level):
       seeded = dataclasses.replace(config, seed=seed)
-      return objective.LevelModel(train.make_hierarchy(spec, seeded).levels[level], train.make_root(spec, level, seeded))
+      return objective.LevelModel(networks.make_hierarchy(spec, seeded).levels[level], networks.make_root(spec, level, seeded))
 
     graphdef, params, rest = nnx.split(level_model(0), nnx.Param, ...)
     loss = lambda p, b, graphdef=graphdef, rest=rest, capacity=capacity: objective.level_loss(
@@ -291,12 +292,12 @@ def bench_scaling():
                                                 for s in range(_SEEDS.value)], one)
 
   capacity = joint.joint_capacity(demos, spec, config)
-  graphdef, params, rest = nnx.split(train.make_hierarchy(spec, config), nnx.Param, ...)
+  graphdef, params, rest = nnx.split(networks.make_hierarchy(spec, config), nnx.Param, ...)
   loss = lambda p, b: objective.stack_loss(nnx.merge(graphdef, p, rest), b, capacity, config.strong_weight)
   one = joint._buckets(demos, config.length_buckets)
   devices_row(f"joint loss (C = {','.join(map(str, capacity))})", jax.jit(jax.value_and_grad(loss)), params, one,
               joint._buckets(demos, config.length_buckets, mesh))
-  seed_losses["joint loss"] = (loss, [nnx.split(train.make_hierarchy(spec, dataclasses.replace(config, seed=s)),
+  seed_losses["joint loss"] = (loss, [nnx.split(networks.make_hierarchy(spec, dataclasses.replace(config, seed=s)),
                                                 nnx.Param, ...)[1] for s in range(_SEEDS.value)], one)
 
   seeds = _SEEDS.value

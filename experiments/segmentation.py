@@ -23,7 +23,7 @@ from experiments import cli
 from php_jax.analysis import decoding
 from php_jax.data import agreement, views
 from php_jax.envs import datasets, tasks
-from php_jax.training import checkpoint
+from php_jax.training import checkpoint, resume
 
 _RUN = flags.DEFINE_string("run", None, "A training run's workdir (results.json, checkpoint/).")
 _LEVEL = flags.DEFINE_integer("level", None, "Level to report (default: every level below the root).")
@@ -130,7 +130,7 @@ def _segmentation(run: str, results: dict, checkpoint_path: str, demos, num_leve
       steps = np.arange(len(view.times))[:, None], np.maximum(view.times, 0), level
       return stack.procedures[steps], stack.counters[steps]
     return at_view
-  decoded = checkpoint.read_decoded(checkpoint_path)
+  decoded = resume.read_decoded(checkpoint_path)
   missing = [k for k in range(1, num_levels) if k not in decoded]
   if missing:
     raise ValueError(f"{checkpoint_path}: no decoded views of level {missing[0]} (training did not finish?)")

@@ -11,7 +11,7 @@ the same command to resume an interrupted run. Flags left unset take the task's 
 
 With --seeds, each seed's run (its own training set, initialisation, snapshot and test) goes to
 WORKDIR/seed=S, with the files `--seed=S --workdir=WORKDIR/seed=S` would write; the seeds' updates run as one
-vmapped program per level (`php_jax.training.train.train_seeds`). Every flag, and what each training mode
+vmapped program per level (`php_jax.training.levelwise.train_seeds`). Every flag, and what each training mode
 does: docs/training.md; what a run writes: docs/outputs.md.
 """
 from __future__ import annotations
@@ -25,8 +25,9 @@ from absl import app, flags
 from experiments import cli, config_flags, progress, training
 from php_jax.data import demo_files
 from php_jax.envs import datasets, evaluation, tasks
-from php_jax.training import train
+from php_jax.training import levelwise
 from php_jax.training.run import Experiment, train_and_evaluate, train_and_evaluate_seeds
+from php_jax.training.config import TrainConfig
 
 NUM_STRONG = flags.DEFINE_integer("num_strong", 1, "Strongly supervised (call-stack annotated) demonstrations.")
 NUM_VALIDATION = flags.DEFINE_integer("num_validation", 50, "Validation problems (training distribution).")
@@ -104,7 +105,7 @@ def run(task_name: str) -> dict:
   seeds = _seeds(config)
   experiments = [_experiment(task_name, task, s, num_demos, num_test, lengths, annotated) for s in seeds]
   try:
-    train.common_call_graph(task.spec, [e.demos for e in experiments], [config] * len(seeds))
+    levelwise.common_call_graph(task.spec, [e.demos for e in experiments], [config] * len(seeds))
   except ValueError as e:
     raise config_flags.UsageError(f"--seeds: {e}") from None
   with progress.shown(config, task.spec.num_levels, workdir) as echo:
@@ -115,7 +116,7 @@ def run(task_name: str) -> dict:
   return results
 
 
-def _seeds(config: train.TrainConfig) -> list[int]:
+def _seeds(config: TrainConfig) -> list[int]:
   """--seeds' values, checked against the other flags."""
   if flags.FLAGS["seed"].present:
     raise config_flags.UsageError("--seeds and --seed: give one of them")

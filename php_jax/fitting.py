@@ -1,7 +1,7 @@
 """Full-batch Adam with the project's snapshot rule and resumable progress: the loop that the PHP levels
-(php_jax.training.train), joint training (php_jax.training.joint) and the flat LSTM baseline (php_jax.flat_lstm) train with
+(php_jax.training.levelwise), joint training (php_jax.training.joint) and the flat LSTM baseline (php_jax.flat_lstm) train with
 (`fit`), and the same loop and update step for several seeds' models at once, vmapped (`fit_seeds`, for
-php_jax.training.train.train_seeds)."""
+php_jax.training.levelwise.train_seeds)."""
 from __future__ import annotations
 
 import functools
@@ -65,14 +65,17 @@ class Hooks(NamedTuple):
                  lambda row: log(0, row), (lambda progress: save([progress])) if save else None)
 
 
-def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array], schedule: Schedule, hooks: Hooks = Hooks(),
-        resume: Progress | None = None, args: tuple = (), mesh: Mesh | None = None,
-        pass_iteration: bool = False) -> Progress:
-  """Full-batch Adam on loss_fn(model, *args) []. Updates `model` in place to the kept snapshot.
+class IterationLoss(NamedTuple):
+  """A loss that changes over a fit (one compiled update all the same): `fit` calls fn(model, iteration,
+  *args), iteration [] int32 the number of updates made before this one (0 at the first)."""
+  fn: Callable[..., jax.Array]
 
-  pass_iteration: loss_fn is called as loss_fn(model, iteration, *args) instead, iteration [] int32 the number
-  of updates made before this one (0 at the first), for a loss that changes over the fit (one compiled
-  update all the same).
+
+def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array] | IterationLoss, schedule: Schedule,
+        hooks: Hooks = Hooks(), resume: Progress | None = None, args: tuple = (),
+        mesh: Mesh | None = None) -> Progress:
+  """Full-batch Adam on loss_fn(model, *args) [] (an IterationLoss: also given the iteration). Updates `model`
+  in place to the kept snapshot.
 
   args (the data) follow the model into loss_fn: as constants of the compiled update without a mesh, as its
   arguments with one (arrays split over `mesh`); then the parameters and optimizer state are replicated on
@@ -87,7 +90,7 @@ def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array], schedule: Schedule
   optimizer = _optimizer(schedule)
   progress = resume if resume is not None else Progress(0, params, optimizer.init(params), params, None, None,
                                                         [])
-  step = _adam_step(graphdef, loss_fn, optimizer, pass_iteration)
+  step = _adam_step(graphdef, loss_fn, optimizer)
   if mesh is None:  # the data as constants, folded into the program by XLA
     update = jax.jit(lambda params, opt_state: step(params, opt_state, rest, args))
   else:  # as arguments: a constant would sit whole on one device
@@ -128,15 +131,16 @@ def _optimizer(schedule: Schedule) -> optax.GradientTransformation:
   return optax.adam(schedule.learning_rate)
 
 
-def _adam_step(graphdef: nnx.GraphDef, loss_fn: Callable[..., jax.Array], optimizer: optax.GradientTransformation,
-               pass_iteration: bool = False):
+def _adam_step(graphdef: nnx.GraphDef, loss_fn: Callable[..., jax.Array] | IterationLoss,
+               optimizer: optax.GradientTransformation):
   """step(params, opt_state, rest, args) → (params, opt_state, loss): one update of the model
-  nnx.merge(graphdef, params, rest) on loss_fn(model, *args) (with pass_iteration, loss_fn(model, iteration,
-  *args), iteration Adam's count of updates made); `fit` runs it, `fit_seeds` vmaps it."""
+  nnx.merge(graphdef, params, rest) on loss_fn(model, *args) (an IterationLoss: fn(model, iteration, *args),
+  iteration Adam's count of updates made); `fit` runs it, `fit_seeds` vmaps it."""
   def step(params, opt_state, rest, args):
-    if pass_iteration:
-      args = (optax.tree_utils.tree_get(opt_state, "count"),) + tuple(args)
-    loss, grads = jax.value_and_grad(lambda p: loss_fn(nnx.merge(graphdef, p, rest), *args))(params)
+    fn = loss_fn
+    if isinstance(loss_fn, IterationLoss):
+      fn, args = loss_fn.fn, (optax.tree_utils.tree_get(opt_state, "count"),) + tuple(args)
+    loss, grads = jax.value_and_grad(lambda p: fn(nnx.merge(graphdef, p, rest), *args))(params)
     updates, opt_state = optimizer.update(grads, opt_state, params)
     return optax.apply_updates(params, updates), opt_state, loss
   return step

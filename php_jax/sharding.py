@@ -1,7 +1,7 @@
 """Data parallelism: a batch's leading axis split over a 1-D mesh of every device (axis "data"), parameters
 replicated, one jitted program (no pmap).
 
-Training (`train.train_level`, `joint.train_joint`, `train.train_seeds`) shards its length buckets over
+Training (`levelwise.train_level`, `joint.train_joint`, `levelwise.train_seeds`) shards its length buckets over
 `data_mesh()` whenever more than one device is present. A batch whose size is not a multiple of the device
 count is padded with copies of its first entry (valid data, so their log-likelihoods and gradients are
 finite), marked False in a `real` mask: the losses weigh them 0 and divide by the number of real entries.

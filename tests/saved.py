@@ -8,14 +8,14 @@ import pathlib
 
 from flax import nnx
 
-from php_jax.training import checkpoint
+from php_jax.training import checkpoint, resume, storage
 
 
 def saved_model(workdir: pathlib.Path) -> dict:
   """{"parameters": {name: (dtype, shape, bytes)}, "description": model.json less its file list and checksum}."""
   _, model = checkpoint.load_policy(str(workdir))
   parameters = {name: (value.dtype.str, value.shape, value.tobytes())
-                for name, value in checkpoint.named_arrays(nnx.state(model, nnx.Param)).items()}
+                for name, value in storage.named_arrays(nnx.state(model, nnx.Param)).items()}
   description = json.loads((workdir / checkpoint.ARCHITECTURE_FILE).read_text())
   return {"parameters": parameters,
           "description": {k: v for k, v in description.items() if k not in ("files", "sha256")}}
@@ -24,11 +24,11 @@ def saved_model(workdir: pathlib.Path) -> dict:
 def leftovers(workdir: pathlib.Path) -> list[pathlib.Path]:
   """What a write cut off may leave under workdir and a later run must remove: temporary files and Orbax's
   temporary directories, and training checkpoint steps other than the one its state.json names."""
-  found = [p for pattern in (".*.tmp", checkpoint.TEMPORARY) for p in workdir.rglob(pattern)]
+  found = [p for pattern in (".*.tmp", storage.TEMPORARY) for p in workdir.rglob(pattern)]
   training = workdir / checkpoint.TRAINING_DIR
-  if (training / checkpoint.STATE_FILE).exists():
-    step = str(json.loads((training / checkpoint.STATE_FILE).read_text())["step"])
-    found += [p for p in training.iterdir() if p.name not in (step, checkpoint.STATE_FILE)]
+  if (training / resume.STATE_FILE).exists():
+    step = str(json.loads((training / resume.STATE_FILE).read_text())["step"])
+    found += [p for p in training.iterdir() if p.name not in (step, resume.STATE_FILE)]
   return found
 
 

@@ -19,10 +19,11 @@ from php_jax.data import views
 from php_jax.envs import datasets, evaluation, tasks
 from php_jax.envs.task import Task, TrainingDefaults
 from php_jax.hierarchy import HierarchySpec
-from php_jax.training import checkpoint, objective, run, train
+from php_jax.training import checkpoint, levelwise, networks, objective, resume, run
 from php_jax.training import config as config_lib
 from tests import processes
 from tests.saved import file_bytes, leftovers, saved_model
+from php_jax.training.config import TrainConfig
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DEC, REST = 0, 1  # elementary actions: decrement the counter, or do nothing
@@ -100,10 +101,10 @@ def test_a_task_defined_outside_the_library_demonstrates_and_trains_one_level():
   assert np.asarray(batch.strong).sum() == 2
   assert [int(n) for n in batch.length] == [2 * k for k in COUNTDOWN.training_problems(0, 6)]
   view = views.lowest_view(batch, SPEC.num_levels)
-  config = train.TrainConfig(iterations=60, eval_every=30, hidden=(8,), root="mlp", root_hidden=8,
+  config = TrainConfig(iterations=60, eval_every=30, hidden=(8,), root="mlp", root_hidden=8,
                              learning_rate=3e-2, strong_weight=1.0)
-  model = objective.LevelModel(train.make_hierarchy(SPEC, config).levels[2], train.make_root(SPEC, 2, config))
-  progress = train.train_level(model, view, 2, config, fitting.Hooks(log=lambda row: None))
+  model = objective.LevelModel(networks.make_hierarchy(SPEC, config).levels[2], networks.make_root(SPEC, 2, config))
+  progress = levelwise.train_level(model, view, 2, config, fitting.Hooks(log=lambda row: None))
   assert progress.losses[-1][1] < progress.losses[0][1]
   assert evaluation.accuracy(COUNTDOWN, COUNTDOWN.oracle, [1, 3, 5]) == 1.0
   assert tasks.get("tests.test_task_interface:COUNTDOWN") is COUNTDOWN
@@ -156,8 +157,8 @@ def test_the_training_command_and_evaluate_run_a_task_given_by_import_path(tmp_p
 def test_a_checkpoint_made_with_other_settings_or_data_is_refused(tmp_path):
   path = str(tmp_path / "checkpoint")
   batch = datasets.training_demos(COUNTDOWN, seed=0, num_demos=4, num_strong=2)
-  config = train.TrainConfig(iterations=2, eval_every=1, hidden=(4,), root="mlp", root_hidden=4)
-  train.train_hierarchy(SPEC, batch, config, log=lambda row: None, checkpoint_path=path)
+  config = TrainConfig(iterations=2, eval_every=1, hidden=(4,), root="mlp", root_hidden=4)
+  levelwise.train_hierarchy(SPEC, batch, config, log=lambda row: None, checkpoint_path=path)
   saved = file_bytes(pathlib.Path(path))
   other_data = datasets.training_demos(COUNTDOWN, seed=1, num_demos=4, num_strong=2)
   for demos_, config_, message in [
@@ -166,7 +167,7 @@ def test_a_checkpoint_made_with_other_settings_or_data_is_refused(tmp_path):
       (other_data, config, "demonstrations differ"),
       (batch._replace(strong=np.array([True, False, False, False])), config, "demonstrations differ")]:
     with pytest.raises(checkpoint.CheckpointError, match=message):
-      train.train_hierarchy(SPEC, demos_, config_, log=lambda row: None, checkpoint_path=path)
+      levelwise.train_hierarchy(SPEC, demos_, config_, log=lambda row: None, checkpoint_path=path)
   assert file_bytes(pathlib.Path(path)) == saved
 
 
@@ -208,7 +209,7 @@ def test_sigterm_keeps_the_checkpoint_says_how_to_resume_and_the_rerun_continues
   stderr = proc.communicate(timeout=120)[1]
   assert proc.returncode == 130 and "Traceback" not in stderr, stderr[-2000:]
   assert stderr.strip().splitlines()[-1].startswith("interrupted:") and "rerun the same command" in stderr
-  saved = checkpoint.read_training(str(workdir / "checkpoint"))
+  saved = resume.read_training(str(workdir / "checkpoint"))
   assert saved[0]["level"] == 2 and saved[0]["progress"]["iteration"] >= 20
   assert not leftovers(workdir)
   before = [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
@@ -227,7 +228,7 @@ def test_sigterm_keeps_the_checkpoint_says_how_to_resume_and_the_rerun_continues
 def _checkpoint_meta(workdir):
   """The training checkpoint's metadata (level, progress), or None before the first one: its state.json
   (read while the run saves, it is the old one or the new one)."""
-  path = workdir / checkpoint.TRAINING_DIR / checkpoint.STATE_FILE
+  path = workdir / checkpoint.TRAINING_DIR / resume.STATE_FILE
   return json.loads(path.read_text())["states"][0] if path.exists() else None
 
 
@@ -296,9 +297,9 @@ def test_bad_training_settings_are_refused_naming_the_setting(tmp_path):
                            ({"tau_limit": (0, -1, None)}, "tau_limit"), ({"min_capacity": (0, -2, 3)}, "min_capacity"),
                            ({"root": "gru"}, "root"), ({"hidden": (0,)}, "hidden")]:
     with pytest.raises(ValueError, match=message):
-      train.TrainConfig(**changes)
+      TrainConfig(**changes)
   with pytest.raises(config_lib.ConfigError, match="min_capacity: needs one value per level"):
-    config_lib.check_levels(SPEC, train.TrainConfig(min_capacity=(0, 9)))
+    config_lib.check_levels(SPEC, TrainConfig(min_capacity=(0, 9)))
   proc = subprocess.run([sys.executable, "-m", "experiments.train", "--task=tests.test_task_interface:COUNTDOWN",
                          f"--workdir={tmp_path / 'run'}", "--tau_limit=0,x,none"], capture_output=True, text=True,
                         timeout=300, cwd=ROOT)

@@ -3,7 +3,9 @@
 A task contributes only overrides (`task.TrainingDefaults`); the training commands generate one flag per field
 (`experiments.training`), with the field's help and default. `TrainConfig(...)` validates itself and raises
 ConfigError naming the field of the first value it refuses; `check_levels` checks the per-level settings
-against a hierarchy.
+against a hierarchy. The settings that follow the demonstrations where they are left unset (the strong
+weight, the training mode, what a run without annotation starts from) are resolved here too (`prepare`,
+`resolved`), for the level-wise and the joint trainer alike.
 """
 from __future__ import annotations
 
@@ -11,7 +13,11 @@ import dataclasses
 import math
 from typing import Any
 
+import numpy as np
+
 from php_jax import fitting
+from php_jax.demos import Demonstration
+from php_jax.demos import validate as validate_demos
 from php_jax.hierarchy import HierarchySpec
 from php_jax.training import call_graph, objective, segmentation
 
@@ -219,3 +225,68 @@ def check_levels(spec: HierarchySpec, config: TrainConfig) -> None:
   if config.call_penalty is not None and (len(config.call_penalty) != spec.num_levels or config.call_penalty[0]):
     raise ConfigError("call_penalty", f"needs one value per level, root first, the root's 0 (it has no stand-in "
                       f"root); got {list(config.call_penalty)} for {spec.num_levels} levels")
+
+
+def balanced_strong_weight(strong) -> float:
+  """num_weak / num_strong (at least 1): strong and weak demonstrations then weigh the same in the loss, so
+  a few annotated ones are not outvoted by many weak ones pulling towards another hierarchy (paper §5.2)."""
+  num_strong = int(np.sum(strong))
+  return max(1.0, (len(strong) - num_strong) / num_strong) if num_strong else 1.0
+
+
+def prepare(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> TrainConfig:
+  """config with the settings that follow the demonstrations resolved (`resolved`), once the settings and the
+  demonstrations' annotations are checked against the hierarchy (ValueError naming the first setting, or the
+  demonstration and step, that is wrong)."""
+  check_levels(spec, config)
+  validate_demos(demos, spec)
+  return resolved(config, demos, spec)
+
+
+def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, flat_lstm: bool = False) -> TrainConfig:
+  """config with the settings that follow the demonstrations resolved where unset (as results.json and a
+  checkpoint record them): the balanced strong weight (`balanced_strong_weight`); the training mode
+  (`training_mode`; levelwise for the flat LSTM, which has no levels); and for a PHP trained jointly on
+  demonstrations none of which is annotated, WEAK_ONLY_ANNEALING (else 1: none) and, where spec declares no
+  call graph (which says itself which procedure takes which operation) and config.segment_rule applies to
+  their actions (`segmentation.read_rule`), the segmentation for half the iterations (else 0), and
+  DISCOVERY_SPLIT_ROUNDS of the split search where that rule is "loops" (else 0)."""
+  strong = np.asarray(demos.strong)
+  strong_weight = balanced_strong_weight(strong) if config.strong_weight is None else config.strong_weight
+  training = training_mode(config, bool(strong.any())) if not flat_lstm else config.training or "levelwise"
+  weak_only = not flat_lstm and training == "joint" and not strong.any()
+  rule = (segmentation.read_rule(demos, config.segment_rule)
+          if weak_only and not call_graph.restricts(spec.allowed_ops)
+          and None in (config.segment_iterations, config.split_rounds) else None)
+
+  def unset_or(value, default):
+    return default if value is None else value
+
+  return dataclasses.replace(
+      config, strong_weight=strong_weight, training=training,
+      anneal_temperature=unset_or(config.anneal_temperature, WEAK_ONLY_ANNEALING if weak_only else 1.0),
+      segment_iterations=unset_or(config.segment_iterations, config.iterations // 2 if rule else 0),
+      split_rounds=unset_or(config.split_rounds, DISCOVERY_SPLIT_ROUNDS if rule and rule.name == "loops" else 0))
+
+
+def training_mode(config: TrainConfig, annotated: bool) -> str:
+  """config.training, or where unset: "joint" if a setting of joint training only is on (`asks_joint`), or
+  if no demonstration is annotated and every level-wise-only setting is at its default; else "levelwise"."""
+  if config.training is not None:
+    return config.training
+  levelwise_asked = any(getattr(config, f.name) != f.default for f in fields() if f.metadata["levelwise_only"])
+  if any(asks_joint(config, f) for f in fields()) or not (annotated or levelwise_asked):
+    return "joint"
+  return "levelwise"
+
+
+_TRAINED_BY = {"levelwise": "level-wise (php_jax.training.joint.train_joint trains jointly)",
+               "joint": "jointly (php_jax.training.levelwise.train_hierarchy trains level-wise)"}
+
+
+def in_mode(config: TrainConfig, mode: str) -> TrainConfig:
+  """config for a trainer of one mode ("levelwise" or "joint"): its training set to mode; ValueError if it
+  names the other."""
+  if config.training not in (None, mode):
+    raise ValueError(f"training: {config.training}; this trains {_TRAINED_BY[mode]}")
+  return dataclasses.replace(config, training=mode)

@@ -17,12 +17,14 @@ from php_jax.data import views
 from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy
-from php_jax.training import call_graph, checkpoint, segmentation, split_search, train
-from php_jax.training.config import ConfigError
+from php_jax.training import call_graph, segmentation, split_search
+from php_jax.training.config import ConfigError, TrainConfig, in_mode, prepare
+from php_jax.training.networks import make_hierarchy
 from php_jax.training.objective import annealed_temperature, counter_capacity, stack_loss
+from php_jax.training.resume import CountedLog, read_training, restore_progress, resume_from, run_settings, write_training
 
 
-def joint_capacity(demos: Demonstration, spec: HierarchySpec, config: train.TrainConfig,
+def joint_capacity(demos: Demonstration, spec: HierarchySpec, config: TrainConfig,
                    hinted: tuple[Demonstration, ...] = ()) -> tuple[int, ...]:
   """Counter capacity per level, root first (`objective.counter_capacity` of the strong demonstrations'
   counters at that level; config.capacity when nothing is annotated, at least config.min_capacity). The
@@ -43,7 +45,7 @@ def joint_capacity(demos: Demonstration, spec: HierarchySpec, config: train.Trai
                for level in range(spec.num_levels))
 
 
-def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainConfig,
+def train_joint(spec: HierarchySpec, demos: Demonstration, config: TrainConfig,
                 validate: Callable[[PHPHierarchy], float] | None = None, log: Callable[[dict], None] = print,
                 checkpoint_path: str | None = None,
                 validation_demos: Demonstration | None = None) -> tuple[PHPHierarchy, dict]:
@@ -52,19 +54,19 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
   first config.segment_iterations of them on the segmentation's partial annotation (`segmentation`;
   ConfigError if config.segment_rule does not apply to the actions). Then config.split_rounds rounds of the
   split search (`split_search`), judged on validation_demos (default: demos), each logged as
-  {"split_search": entry}. Checkpoints and resumes as train.train_hierarchy does (the same log protocol); a
+  {"split_search": entry}. Checkpoints and resumes as levelwise.train_hierarchy does (the same log protocol); a
   checkpoint made with other settings raises CheckpointError. Returns the hierarchy and a report {capacity, losses,
   best_iteration, validation, seconds, and split_search: the rounds' entries where there were any}; after a
   split search, validation is the final hierarchy's score and best_iteration the snapshot the search started
   from."""
-  config = train.prepare(spec, demos, train.in_mode(config, "joint"))
+  config = prepare(spec, demos, in_mode(config, "joint"))
   graph = call_graph.resolve(config.call_graph, demos, spec)
   for name in ("segment_iterations", "split_rounds"):
     if getattr(config, name) and call_graph.restricts(graph):
       raise ConfigError(name, "needs every procedure free to take any operation; this run's call graph "
                         f"restricts some (the hierarchy's, or --call_graph={config.call_graph}'s)")
-  hierarchy = train.make_hierarchy(spec, config, graph)
-  settings = train.run_settings(spec, demos, config)
+  hierarchy = make_hierarchy(spec, config, graph)
+  settings = run_settings(spec, demos, config)
   capacity = joint_capacity(demos, spec, config)
   hinted = None
   if config.segment_iterations:
@@ -77,18 +79,18 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
     judged = () if validation_demos is None else (
         segmentation.hinted_demonstrations(validation_demos, capacity, rule),)
     capacity = joint_capacity(demos, spec, config, (hinted, *judged))
-  saved = checkpoint.read_training(checkpoint_path)
-  counted_log, resume, report = train.CountedLog(log), None, None
+  saved = read_training(checkpoint_path)
+  counted_log, resume, report = CountedLog(log), None, None
   if saved is not None:
-    counted_log.resumed(train.resume_from(checkpoint_path, saved, settings, hierarchy))
-    resume = checkpoint.restore_progress(checkpoint_path, saved, hierarchy) if saved[0]["progress"] else None
+    counted_log.resumed(resume_from(checkpoint_path, saved, settings, hierarchy))
+    resume = restore_progress(checkpoint_path, saved, hierarchy) if saved[0]["progress"] else None
     report = saved[0]["report"] or None
   if resume is None and report is None:
     counted_log({"training": "joint", "capacity": list(capacity)})
 
   def save(progress: fitting.Progress | None, report: dict | None = None) -> None:
     if checkpoint_path:
-      checkpoint.write_training(checkpoint_path, hierarchy, {"level": "joint", "report": report or {},
+      write_training(checkpoint_path, hierarchy, {"level": "joint", "report": report or {},
                                                              "settings": settings, "logged": counted_log.logged},
                                 progress, {})
 
@@ -121,23 +123,23 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: train.TrainCo
 
 
 def _fit(hierarchy: PHPHierarchy, demos: Demonstration, hinted: Demonstration | None, capacity: tuple[int, ...],
-         config: train.TrainConfig, resume: fitting.Progress | None, hooks: fitting.Hooks) -> fitting.Progress:
+         config: TrainConfig, resume: fitting.Progress | None, hooks: fitting.Hooks) -> fitting.Progress:
   """config.iterations of full-batch Adam on the stack loss (annealed where config.anneal_temperature ≠ 1),
   the first config.segment_iterations on hinted, the rest on demos; from resume where given."""
   mesh = sharding.data_mesh()  # with more than one device, each bucket is split over all of them
-  annealed = config.anneal_temperature != 1
-  if annealed:  # the loss logged while T > 1 is the tempered one
-    def loss(h, iteration, buckets):
+  if config.anneal_temperature != 1:  # the loss logged while T > 1 is the tempered one
+    def tempered(h, iteration, buckets):
       temperature = annealed_temperature(config.anneal_temperature, iteration, config.iterations)
       return stack_loss(h, buckets, capacity, config.strong_weight, temperature, config.call_penalty)
+
+    loss = fitting.IterationLoss(tempered)
   else:
     def loss(h, buckets):
       return stack_loss(h, buckets, capacity, config.strong_weight, call_penalty=config.call_penalty)
 
   def fit(data: Demonstration, iterations: int, resume: fitting.Progress | None) -> fitting.Progress:
     return fitting.fit(hierarchy, loss, config.schedule(iterations), hooks, resume,
-                       args=(views.demonstration_buckets(data, config.length_buckets, mesh),), mesh=mesh,
-                       pass_iteration=annealed)
+                       args=(views.demonstration_buckets(data, config.length_buckets, mesh),), mesh=mesh)
 
   if hinted is not None and (resume is None or resume.iteration < config.segment_iterations):
     resume = fit(hinted, config.segment_iterations, resume)

@@ -48,7 +48,7 @@ def lattice_inputs(model: LevelModel, view: views.LevelView, capacity: int, used
   counters [T] (UNKNOWN = −1), length []) → the lattice's inputs, annotated where procedures/counters are
   known: (log_root [T, K], log_op, log_stop, log_cont [T, K, C]). With used_capacity [] int (≤ capacity),
   counters ≥ used_capacity are masked out: the same lattice as with capacity = used_capacity, padded (seeds
-  of different capacities trained as one program, `train.train_seeds`).
+  of different capacities trained as one program, `levelwise.train_seeds`).
   """
   observations, actions, length = view.observations, view.actions, view.length
   tau = jnp.arange(capacity, dtype=jnp.float32)

@@ -28,8 +28,8 @@ from php_jax import fitting, flat_lstm
 from php_jax.data import files
 from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
-from php_jax.training import call_graph, checkpoint, joint, provenance, train
-from php_jax.training.config import TrainConfig
+from php_jax.training import call_graph, checkpoint, joint, levelwise, provenance, resume, storage
+from php_jax.training.config import TrainConfig, in_mode, resolved
 
 METRICS_FILE, RESULTS_FILE, SEEDS_CHECKPOINT = "metrics.jsonl", "results.json", "seeds_checkpoint"
 REPORT_FILE = "report.html"  # the training commands write it (`experiments.run_report`); --overwrite clears it
@@ -85,7 +85,7 @@ def train_and_evaluate(experiment: Experiment, config: TrainConfig, workdir: str
   throughout (`workdir_lock`; wait: for another run holding it to end). echo(row) shows each logged row and
   last the test results."""
   # resolved here, so that results.json records it
-  config = train.resolved(config, experiment.demos, experiment.spec, bool(flat_lstm_hidden))
+  config = resolved(config, experiment.demos, experiment.spec, bool(flat_lstm_hidden))
   commit = provenance.code_version()  # the code as it was when the run started
   spec = experiment.spec
   with workdir_lock(workdir, wait):
@@ -113,13 +113,13 @@ def train_and_evaluate_seeds(experiments: list[Experiment], configs: list[TrainC
                              overwrite: bool = False, wait: bool = False,
                              echo: Callable[[dict], None] = print_row) -> list[dict]:
   """train_and_evaluate for several seeds' PHP hierarchies (experiments[s] with configs[s]), trained
-  level-wise as one program (`train.train_seeds`): seed s's run goes to workdir/seed=S with the files its
+  level-wise as one program (`levelwise.train_seeds`): seed s's run goes to workdir/seed=S with the files its
   separate run would write, its results.json also naming the seeds trained with it ("trained_with_seeds":
   its wall time and per-level seconds are those of the shared program); the progress of all is checkpointed
   in workdir/seeds_checkpoint/ and resumed from there. The run holds the locks of workdir and of every
   seed's workdir throughout."""
   workdirs = [os.path.join(workdir, f"seed={c.seed}") for c in configs]
-  configs = [train.resolved(train.in_mode(c, "levelwise"), e.demos, e.spec) for c, e in zip(configs, experiments)]
+  configs = [resolved(in_mode(c, "levelwise"), e.demos, e.spec) for c, e in zip(configs, experiments)]
   commit, spec = provenance.code_version(), experiments[0].spec
   with contextlib.ExitStack() as stack:
     for locked in (workdir, *workdirs):  # each seed's workdir too, as its separate run would
@@ -136,7 +136,7 @@ def train_and_evaluate_seeds(experiments: list[Experiment], configs: list[TrainC
     gaps = [annotation_gaps(e, c, lambda row, seed=c.seed: echo({"seed": seed, **row}))
             for e, c in zip(experiments, configs)]
     logs = [stack.enter_context(MetricsLog(run_dir, {"seed": c.seed}, echo)) for run_dir, c in zip(workdirs, configs)]
-    trained = train.train_seeds(spec, [e.demos for e in experiments], configs, [e.validate for e in experiments],
+    trained = levelwise.train_seeds(spec, [e.demos for e in experiments], configs, [e.validate for e in experiments],
                                 log=lambda s, row: logs[s](row),
                                 checkpoint_path=os.path.join(workdir, SEEDS_CHECKPOINT),
                                 seed_checkpoint_paths=[os.path.join(w, checkpoint.TRAINING_DIR) for w in workdirs])
@@ -190,7 +190,7 @@ def _finished(workdir: str, experiment: Experiment, config: TrainConfig, flat_ls
   model = "flat_lstm" if flat_lstm_hidden else "php"
   expected = json.loads(json.dumps({"task": experiment.name, "model": model, **experiment.extra}))
   differ = [f"{k}: {results.get(k)!r} there, {v!r} here" for k, v in expected.items() if results.get(k) != v]
-  saved_config = train.saved_config(results["config"])
+  saved_config = resume.saved_config(results["config"])
   config_json = json.loads(json.dumps(dataclasses.asdict(config)))
   differ += [f"--{k}: {saved_config.get(k)!r} there, {v!r} here" for k, v in config_json.items()
              if saved_config.get(k) != v and not (k == "strong_weight" and differ)]  # it follows num_strong
@@ -199,10 +199,10 @@ def _finished(workdir: str, experiment: Experiment, config: TrainConfig, flat_ls
   if differ:
     raise WorkdirError(f"{workdir} holds a finished run made with other settings ({'; '.join(differ)}); use a "
                        "fresh workdir, or --overwrite to train again")
-  saved = checkpoint.read_training(os.path.join(workdir, checkpoint.TRAINING_DIR))
+  saved = resume.read_training(os.path.join(workdir, checkpoint.TRAINING_DIR))
   if saved is not None and model == "php":  # the demonstrations' digest: another data file, say
-    train.check_resumable(os.path.join(workdir, checkpoint.TRAINING_DIR), saved[0].get("settings", {}),
-                          train.run_settings(experiment.spec, experiment.demos, config))
+    resume.check_resumable(os.path.join(workdir, checkpoint.TRAINING_DIR), saved[0].get("settings", {}),
+                          resume.run_settings(experiment.spec, experiment.demos, config))
   return results
 
 
@@ -263,10 +263,10 @@ def clear_workdir(workdir: str, files: tuple[str, ...], overwrite: bool = False)
       raise WorkdirError(f"{os.path.join(workdir, older[0])} was saved by an older php_jax; use a fresh workdir, "
                          "or --overwrite to train again")
     for name in (*files, *older) if overwrite else ():
-      checkpoint.remove_saved(os.path.join(workdir, name))
-    for pattern in (".*.tmp", checkpoint.TEMPORARY, os.path.join("*", checkpoint.TEMPORARY)):  # checkpoint/'s too
+      storage.remove_saved(os.path.join(workdir, name))
+    for pattern in (".*.tmp", storage.TEMPORARY, os.path.join("*", storage.TEMPORARY)):  # checkpoint/'s too
       for leftover in glob.glob(os.path.join(glob.escape(workdir), pattern)):
-        checkpoint.remove_saved(leftover)
+        storage.remove_saved(leftover)
   if jax.process_count() > 1:  # the others read the workdir (to resume) once process 0 has cleared it
     multihost_utils.sync_global_devices("workdir ready")
 
@@ -337,7 +337,7 @@ def _train_php(experiment: Experiment, config: TrainConfig, log, path: str):
     hierarchy, report = joint.train_joint(spec, demos, config, validate, log=log, checkpoint_path=path,
                                           validation_demos=experiment.validation_demos)
     return hierarchy, {"joint": _summary(report)}, report["capacity"]
-  hierarchy, report = train.train_hierarchy(spec, demos, config, validate, log=log, checkpoint_path=path)
+  hierarchy, report = levelwise.train_hierarchy(spec, demos, config, validate, log=log, checkpoint_path=path)
   return hierarchy, _levels(report), [report[level]["capacity"] for level in range(spec.num_levels)]
 
 

@@ -3,7 +3,6 @@ successes (FrozenLake's holes, CartPole's falls, BabyAI's failed missions)."""
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 
 import gymnasium

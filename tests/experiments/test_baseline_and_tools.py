@@ -18,8 +18,9 @@ from php_jax import fitting, flat_lstm
 from php_jax.analysis import decoding
 from php_jax.data import views
 from php_jax.envs import datasets, evaluation, nanocraft, nanocraft_task, tasks
-from php_jax.training import checkpoint, train
+from php_jax.training import checkpoint, networks
 from tests import processes
+from php_jax.training.config import TrainConfig
 
 NANOCRAFT = tasks.get("nanocraft")
 
@@ -194,7 +195,7 @@ def test_segmentation_of_a_joint_run_reads_the_whole_stack_decoding_at_every_lev
   """A joint run's segmentation is the trained hierarchy's whole-stack decoding, read at each level's own
   operations: a decoding equal to the supervisor's stacks is reported correct on every weak demonstration."""
   demos = datasets.training_demos(NANOCRAFT, seed=2, num_demos=6, num_strong=2)
-  hierarchy = train.make_hierarchy(NANOCRAFT.spec, train.TrainConfig(hidden=(4,)))
+  hierarchy = networks.make_hierarchy(NANOCRAFT.spec, TrainConfig(hidden=(4,)))
   checkpoint.save_hierarchy(str(tmp_path), "nanocraft", hierarchy, (4,), capacity=[8, 6, 4])
   (tmp_path / "checkpoint").mkdir()  # joint runs read no decoded views from it
   (tmp_path / "results.json").write_text(json.dumps({"task": "nanocraft", "seed": 2, "num_demos": 6, "num_strong": 2,

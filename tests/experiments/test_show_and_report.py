@@ -16,7 +16,7 @@ from php_jax.analysis import decoding
 from php_jax.data import agreement, demo_files
 from php_jax.demos import UNKNOWN
 from php_jax.model import PHPHierarchy
-from php_jax.training import checkpoint, run
+from php_jax.training import checkpoint, run, storage
 from php_jax.training.config import DISCOVERY_SPLIT_ROUNDS, WEAK_ONLY_ANNEALING, TrainConfig
 from tests.saved import file_bytes
 
@@ -174,7 +174,7 @@ def test_a_model_or_run_that_cannot_be_read_is_refused_not_reported(fitted, tmp_
     with pytest.raises(checkpoint.CheckpointError, match='"capacity" must give one integer in 1..4096 per level'):
       checkpoint.saved_capacity(str(bad))
   spec = {**architecture["spec"], "obs_dim": -1}
-  edited = checkpoint._signed({**{k: v for k, v in architecture.items() if k != "sha256"}, "spec": spec})
+  edited = storage.signed({**{k: v for k, v in architecture.items() if k != "sha256"}, "spec": spec})
   (bad / checkpoint.ARCHITECTURE_FILE).write_text(json.dumps(edited))  # signed anew, as an editor could
   with pytest.raises(checkpoint.CheckpointError, match="malformed hierarchy spec"):
     checkpoint.load_policy(str(bad))

@@ -15,9 +15,8 @@ from php_jax.envs import datasets, tasks
 from php_jax.hierarchy import HierarchySpec
 from php_jax.inference import stack_lattice
 from php_jax.model import PHPHierarchy, PHPLevel
-from php_jax.training import call_graph, checkpoint, objective, run, train
+from php_jax.training import call_graph, checkpoint, networks, objective, run, storage
 from php_jax.training.config import TrainConfig
-
 SPEC = HierarchySpec("tiny", (("root",), ("a", "b"), ("x", "y", "z")), (2, 3), 3)
 NANOCRAFT = tasks.get("nanocraft")
 
@@ -97,8 +96,8 @@ def test_nanocrafts_annotation_shows_the_supervisors_call_graph():
 
 def test_the_stack_lattice_of_a_graph_is_the_free_one_renormalised_over_allowed_calls():
   graph = (None, ((True, False, True), (False, True, False)), None)
-  config, capacity = train.TrainConfig(hidden=(8,), seed=1), (4, 3, 2)
-  free, masked = train.make_hierarchy(SPEC, config), train.make_hierarchy(SPEC, config, graph)
+  config, capacity = TrainConfig(hidden=(8,), seed=1), (4, 3, 2)
+  free, masked = networks.make_hierarchy(SPEC, config), networks.make_hierarchy(SPEC, config, graph)
   key_obs, key_act = jax.random.split(jax.random.key(2))
   # Three weak demonstrations, and one annotated with a call outside the graph (b calls x): impossible.
   procs, taus = np.full((4, 4, 3), UNKNOWN), np.full((4, 4, 3), UNKNOWN)
@@ -132,7 +131,7 @@ def test_the_call_graph_is_saved_with_the_model(tmp_path):
   with pytest.raises(checkpoint.CheckpointError, match="model.json: edited or corrupt"):  # an edited model.json
     checkpoint.load_policy(str(tmp_path))
   del architecture["sha256"]  # signed anew: the graph's own check refuses it
-  path.write_text(json.dumps(checkpoint._signed(architecture)))
+  path.write_text(json.dumps(storage.signed(architecture)))
   with pytest.raises(checkpoint.CheckpointError, match="malformed allowed_ops"):
     checkpoint.load_policy(str(tmp_path))
 

@@ -12,8 +12,7 @@ from flax import nnx
 
 from experiments import config_flags
 from php_jax.envs import tasks
-from php_jax.training import config as config_lib
-from php_jax.training import train
+from php_jax.training import config as config_lib, networks
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 
@@ -126,7 +125,7 @@ def test_a_seed_beyond_32_bits_is_refused():
 
 def test_init_seed_alone_sets_the_networks_initialisation():
   spec = tasks.get("nanocraft").spec
-  params = lambda **kw: jax.tree.leaves(nnx.state(train.make_hierarchy(spec, config_lib.TrainConfig(hidden=(4,),
+  params = lambda **kw: jax.tree.leaves(nnx.state(networks.make_hierarchy(spec, config_lib.TrainConfig(hidden=(4,),
                                                                                                     **kw))))
   restart, same_seed, other_seed = params(seed=1, init_seed=2), params(seed=2), params(seed=1)
   assert all(np.array_equal(a, b) for a, b in zip(restart, same_seed))

@@ -9,15 +9,16 @@ from flax import nnx
 
 from php_jax.data import agreement, views
 from php_jax.envs import datasets, tasks
-from php_jax.training import checkpoint, joint, objective, segmentation, train
-from php_jax.training.config import DISCOVERY_SPLIT_ROUNDS, WEAK_ONLY_ANNEALING, ConfigError
+from php_jax.training import checkpoint, joint, networks, objective, segmentation
+from php_jax.training.config import (DISCOVERY_SPLIT_ROUNDS, WEAK_ONLY_ANNEALING, ConfigError, TrainConfig, prepare,
+                                     resolved)
 
 NANOCRAFT = tasks.get("nanocraft")
 
 
 def test_joint_training_lowers_the_loss_and_fits_annotated_demonstrations():
   batch = datasets.training_demos(NANOCRAFT, 1, 4, 4)
-  config = train.TrainConfig(iterations=40, learning_rate=3e-2, hidden=(16,), eval_every=20, training="joint",
+  config = TrainConfig(iterations=40, learning_rate=3e-2, hidden=(16,), eval_every=20, training="joint",
                              seed=1, length_buckets=1)
   rows = []
   hierarchy, report = joint.train_joint(NANOCRAFT.spec, batch, config, log=rows.append)
@@ -30,9 +31,9 @@ def test_annealing_tempers_the_loss_from_its_start_temperature_down_to_1_at_half
   temperatures = [float(objective.annealed_temperature(4.0, i, 40)) for i in (0, 10, 20, 39)]
   np.testing.assert_allclose(temperatures, [4.0, 2.5, 1.0, 1.0])
   batch = datasets.training_demos(NANOCRAFT, 1, 4, 1)
-  config = train.TrainConfig(iterations=40, learning_rate=3e-2, hidden=(16,), eval_every=1, training="joint",
+  config = TrainConfig(iterations=40, learning_rate=3e-2, hidden=(16,), eval_every=1, training="joint",
                              seed=1, length_buckets=1, anneal_temperature=4.0)
-  hierarchy = train.make_hierarchy(NANOCRAFT.spec, train.prepare(NANOCRAFT.spec, batch, config), None)
+  hierarchy = networks.make_hierarchy(NANOCRAFT.spec, prepare(NANOCRAFT.spec, batch, config), None)
   capacity = joint.joint_capacity(batch, NANOCRAFT.spec, config)
   [(bucket, real)] = views.demonstration_buckets(batch, 1)
   want = [float(objective.stack_loss(hierarchy, [(bucket, real)], capacity, 1.0, t)) for t in (4.0, 1.0)]
@@ -47,9 +48,9 @@ def test_annealing_tempers_the_loss_from_its_start_temperature_down_to_1_at_half
 
 def test_runs_without_annotation_train_jointly_and_anneal_by_default():
   weak, mixed = datasets.training_demos(NANOCRAFT, 1, 4, 0), datasets.training_demos(NANOCRAFT, 1, 4, 1)
-  unset, joint_config = train.TrainConfig(), train.TrainConfig(training="joint")
-  levelwise = train.TrainConfig(training="levelwise")
-  mode = lambda demos, config: (lambda c: (c.training, c.anneal_temperature))(train.prepare(NANOCRAFT.spec, demos,
+  unset, joint_config = TrainConfig(), TrainConfig(training="joint")
+  levelwise = TrainConfig(training="levelwise")
+  mode = lambda demos, config: (lambda c: (c.training, c.anneal_temperature))(prepare(NANOCRAFT.spec, demos,
                                                                                              config))
   assert mode(weak, unset) == mode(weak, joint_config) == ("joint", WEAK_ONLY_ANNEALING) and WEAK_ONLY_ANNEALING > 1
   assert mode(mixed, unset) == ("levelwise", 1) and mode(mixed, joint_config) == ("joint", 1)
@@ -58,11 +59,11 @@ def test_runs_without_annotation_train_jointly_and_anneal_by_default():
   assert mode(weak, dataclasses.replace(unset, call_penalty=(0, 1, 0))) == ("joint", WEAK_ONLY_ANNEALING)  # both modes'
   assert mode(mixed, dataclasses.replace(unset, anneal_temperature=2.0)) == ("joint", 2.0)
   assert mode(weak, dataclasses.replace(joint_config, anneal_temperature=1.0)) == ("joint", 1)
-  flat = train.resolved(unset, weak, NANOCRAFT.spec, flat_lstm=True)
+  flat = resolved(unset, weak, NANOCRAFT.spec, flat_lstm=True)
   assert flat.training == "levelwise"  # as flat LSTM runs recorded it
   def discovery(demos, config, spec=NANOCRAFT.spec):
-    resolved = train.resolved(config, demos, spec)
-    return resolved.segment_iterations, resolved.split_rounds
+    settled = resolved(config, demos, spec)
+    return settled.segment_iterations, settled.split_rounds
   assert discovery(weak, unset) == (unset.iterations // 2, DISCOVERY_SPLIT_ROUNDS)  # NanoCraft's actions loop
   assert discovery(mixed, unset) == discovery(weak, levelwise) == (0, 0)
   addition = tasks.get("addition")
@@ -81,9 +82,9 @@ def test_runs_without_annotation_train_jointly_and_anneal_by_default():
 
 def test_the_first_segment_iterations_fit_the_segmentation_as_a_partial_annotation():
   weak = datasets.training_demos(NANOCRAFT, 1, 4, 0)
-  config = train.TrainConfig(iterations=4, learning_rate=1e-2, hidden=(16,), eval_every=1, seed=1, length_buckets=1,
+  config = TrainConfig(iterations=4, learning_rate=1e-2, hidden=(16,), eval_every=1, seed=1, length_buckets=1,
                              anneal_temperature=1.0, segment_iterations=2, split_rounds=0)
-  hierarchy = train.make_hierarchy(NANOCRAFT.spec, train.prepare(NANOCRAFT.spec, weak, config), None)
+  hierarchy = networks.make_hierarchy(NANOCRAFT.spec, prepare(NANOCRAFT.spec, weak, config), None)
   hinted = segmentation.hinted_demonstrations(weak, joint.joint_capacity(weak, NANOCRAFT.spec, config))
   # The levels the segmentation annotates take its longest calls as their capacity; the root keeps the default.
   capacity = joint.joint_capacity(weak, NANOCRAFT.spec, config, (hinted,))
@@ -122,8 +123,8 @@ def test_the_first_segment_iterations_fit_the_segmentation_as_a_partial_annotati
 
 def test_the_call_penalty_costs_each_call_of_a_level_its_lambda():
   batch = datasets.training_demos(NANOCRAFT, 1, 3, 3)
-  config = train.TrainConfig(hidden=(8,), training="joint", seed=1)
-  hierarchy = train.make_hierarchy(NANOCRAFT.spec, train.prepare(NANOCRAFT.spec, batch, config), None)
+  config = TrainConfig(hidden=(8,), training="joint", seed=1)
+  hierarchy = networks.make_hierarchy(NANOCRAFT.spec, prepare(NANOCRAFT.spec, batch, config), None)
   capacity, penalty = joint.joint_capacity(batch, NANOCRAFT.spec, config), (0.0, 0.7, 0.2)
   plain = objective.stack_log_likelihoods(hierarchy, batch, capacity)
   penalized = objective.stack_log_likelihoods(hierarchy, batch, capacity, call_penalty=penalty)
@@ -144,7 +145,7 @@ def test_the_call_penalty_costs_each_call_of_a_level_its_lambda():
 @pytest.mark.slow
 def test_interrupted_joint_training_resumes_to_the_same_result(tmp_path):
   batch = datasets.training_demos(NANOCRAFT, 2, 6, 2)
-  config = train.TrainConfig(iterations=30, learning_rate=1e-2, hidden=(16,), eval_every=10, training="joint", seed=2)
+  config = TrainConfig(iterations=30, learning_rate=1e-2, hidden=(16,), eval_every=10, training="joint", seed=2)
   reference, _ = joint.train_joint(NANOCRAFT.spec, batch, config, log=lambda row: None)
 
   def stop_at_20(row):
@@ -160,7 +161,7 @@ def test_interrupted_joint_training_resumes_to_the_same_result(tmp_path):
   for a, b in zip(jax.tree.leaves(nnx.state(reference, nnx.Param)), jax.tree.leaves(nnx.state(resumed, nnx.Param))):
     np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
   with pytest.raises(checkpoint.CheckpointError, match="other settings"):
-    joint.train_joint(NANOCRAFT.spec, batch, train.TrainConfig(iterations=30, hidden=(16,), eval_every=10, seed=2),
+    joint.train_joint(NANOCRAFT.spec, batch, TrainConfig(iterations=30, hidden=(16,), eval_every=10, seed=2),
                       log=lambda row: None, checkpoint_path=path)
 
 
@@ -168,7 +169,7 @@ def test_interrupted_joint_training_resumes_to_the_same_result(tmp_path):
 def test_an_interrupted_split_search_resumes_to_the_same_result(tmp_path):
   demos = datasets.training_demos(NANOCRAFT, 1, 6, 0)
   validation = datasets.problem_demonstrations(NANOCRAFT, NANOCRAFT.validation_problems(10_001, 3), 0)
-  config = train.TrainConfig(iterations=6, hidden=(8,), eval_every=3, seed=1, split_rounds=2, split_iterations=3,
+  config = TrainConfig(iterations=6, hidden=(8,), eval_every=3, seed=1, split_rounds=2, split_iterations=3,
                              split_hint_iterations=1)
   def parameter_sum(hierarchy) -> float:  # a validation score that tells every hierarchy apart
     return float(sum(np.sum(np.asarray(x, np.float64)) for x in jax.tree.leaves(nnx.state(hierarchy, nnx.Param))))

@@ -1,4 +1,4 @@
-"""Seeds trained as one program (php_jax.training.train.train_seeds) give each seed's separate run, and resume."""
+"""Seeds trained as one program (php_jax.training.levelwise.train_seeds) give each seed's separate run, and resume."""
 import dataclasses
 import json
 import os
@@ -13,11 +13,12 @@ from flax import nnx
 from php_jax import fitting
 from php_jax.data import views
 from php_jax.envs import datasets, evaluation, nanocraft, nanocraft_task, tasks
-from php_jax.training import checkpoint, objective, train
+from php_jax.training import checkpoint, levelwise, networks, objective
 from tests import processes
+from php_jax.training.config import TrainConfig, prepare
 
 NANOCRAFT = tasks.get("nanocraft")
-CONFIG = train.TrainConfig(iterations=20, eval_every=10, hidden=(8,), root="mlp", root_hidden=8,
+CONFIG = TrainConfig(iterations=20, eval_every=10, hidden=(8,), root="mlp", root_hidden=8,
                            learning_rate=1e-2, decode="sample", length_buckets=1)
 SEEDS = (3, 4)
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -49,13 +50,13 @@ def test_each_seeds_loss_and_fit_inside_the_stacked_program_are_its_own():
   each seed's own (level 1, where the two seeds' capacities differ)."""
   level = 1
   demos = [_demos(s)._replace(strong=np.ones(NUM_DEMOS[s], bool)) for s in SEEDS]
-  configs = [train.prepare(NANOCRAFT.spec, d, dataclasses.replace(CONFIG, seed=s)) for d, s in zip(demos, SEEDS)]
+  configs = [prepare(NANOCRAFT.spec, d, dataclasses.replace(CONFIG, seed=s)) for d, s in zip(demos, SEEDS)]
   level_views = [views.annotated_views(d, NANOCRAFT.spec.num_levels)[level] for d in demos]
-  capacities = [train.level_capacity(v, level, c) for v, c in zip(level_views, configs)]
+  capacities = [levelwise.level_capacity(v, level, c) for v, c in zip(level_views, configs)]
   assert capacities[0] != capacities[1]
 
   def models():
-    return [train.level_model(NANOCRAFT.spec, train.make_hierarchy(NANOCRAFT.spec, c), level, c) for c in configs]
+    return [levelwise.level_model(NANOCRAFT.spec, networks.make_hierarchy(NANOCRAFT.spec, c), level, c) for c in configs]
 
   alone = []
   for model, view, capacity, config in zip(models(), level_views, capacities, configs):
@@ -80,13 +81,13 @@ def test_seeds_trained_together_match_their_separate_runs():
   demos = [_demos(s) for s in SEEDS]
   configs = [dataclasses.replace(CONFIG, seed=s) for s in SEEDS]
   rows = {s: [] for s in range(len(SEEDS))}
-  together = train.train_seeds(NANOCRAFT.spec, demos, configs, [_validator(s) for s in SEEDS],
+  together = levelwise.train_seeds(NANOCRAFT.spec, demos, configs, [_validator(s) for s in SEEDS],
                                log=lambda s, row: rows[s].append(row))
   capacities = [[report[level]["capacity"] for level in range(3)] for _, report in together]
   assert capacities[0] != capacities[1]  # each seed's own capacity, inside the padded one
   for s, (seed, (hierarchy, report)) in enumerate(zip(SEEDS, together)):
     separate_rows = []
-    alone, alone_report = train.train_hierarchy(NANOCRAFT.spec, demos[s], configs[s], _validator(seed),
+    alone, alone_report = levelwise.train_hierarchy(NANOCRAFT.spec, demos[s], configs[s], _validator(seed),
                                                 log=separate_rows.append)
     for a, b in zip(_params(alone), _params(hierarchy)):
       np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-4)
@@ -111,7 +112,7 @@ def test_interrupted_seeds_resume_to_the_same_result(tmp_path):
     def log(s, row):
       if stop_at and s == 1 and (row.get("level"), row.get("iteration")) == stop_at:
         raise _Interrupt
-    return train.train_seeds(NANOCRAFT.spec, demos, configs, validate, log=log, checkpoint_path=path)
+    return levelwise.train_seeds(NANOCRAFT.spec, demos, configs, validate, log=log, checkpoint_path=path)
 
   reference = run(str(tmp_path / "uninterrupted"))
   path = str(tmp_path / "interrupted")
@@ -125,12 +126,12 @@ def test_interrupted_seeds_resume_to_the_same_result(tmp_path):
     assert a_report[0]["losses"] == b_report[0]["losses"] and a_report[0]["best_iteration"] == b_report[0][
         "best_iteration"]
   with pytest.raises(checkpoint.CheckpointError, match="holds 2 seeds; this run has 1"):
-    train.train_seeds(NANOCRAFT.spec, demos[:1], configs[:1], validate[:1], checkpoint_path=path)
+    levelwise.train_seeds(NANOCRAFT.spec, demos[:1], configs[:1], validate[:1], checkpoint_path=path)
   with pytest.raises(checkpoint.CheckpointError, match="other settings.*iterations: 20 there, 40 here"):
-    train.train_seeds(NANOCRAFT.spec, demos, [dataclasses.replace(c, iterations=40) for c in configs], validate,
+    levelwise.train_seeds(NANOCRAFT.spec, demos, [dataclasses.replace(c, iterations=40) for c in configs], validate,
                       checkpoint_path=path)
   with pytest.raises(ValueError, match="same settings but for their seed"):
-    train.train_seeds(NANOCRAFT.spec, demos, [configs[0], dataclasses.replace(configs[1], hidden=(4,))])
+    levelwise.train_seeds(NANOCRAFT.spec, demos, [configs[0], dataclasses.replace(configs[1], hidden=(4,))])
 
 
 BASE = [sys.executable, "-m", "experiments.train", "--task=tests.test_task_interface:COUNTDOWN", "--num_strong=2",

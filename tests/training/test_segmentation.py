@@ -3,7 +3,8 @@ import numpy as np
 
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.envs import datasets, tasks
-from php_jax.training import joint, segmentation, train
+from php_jax.training import joint, segmentation
+from php_jax.training.config import TrainConfig
 
 
 def _demos(*action_rows, strong=None):
@@ -82,9 +83,9 @@ def test_on_bubble_sort_every_call_the_successors_start_is_the_supervisors():
   after_dece[:, 1:] = annotated.procedures[:, :-1, 2] == task.spec.levels[2].index("dece")
   assert missed.any() and (missed == (true_starts & after_dece & valid)).all()
   # a run without annotation takes the segmented calls' length as the lowest level's capacity
-  config = train.TrainConfig(**task.defaults.overrides())
+  config = TrainConfig(**task.defaults.overrides())
   assert joint.joint_capacity(weak, task.spec, config, (hinted,)) == (16, 9, 3)  # the task's least capacities
-  assert joint.joint_capacity(weak, task.spec, train.TrainConfig(), (hinted,)) == (8, 8, 3)
+  assert joint.joint_capacity(weak, task.spec, TrainConfig(), (hinted,)) == (8, 8, 3)
 
 
 def test_on_addition_the_successors_cut_calls_where_the_supervisor_does_not():

@@ -37,11 +37,12 @@ from flax import nnx
 from php_jax import fitting, sharding
 from php_jax.data import views
 from php_jax.envs import datasets, tasks
-from php_jax.training import joint, objective, train
+from php_jax.training import joint, levelwise, networks, objective
+from php_jax.training.config import TrainConfig
 
 task = tasks.get("nanocraft")
 demos = datasets.training_demos(task, seed=3, num_demos=7, num_strong=3)
-config = train.TrainConfig(hidden=(8,), root="mlp", root_hidden=8, seed=2, strong_weight=2.0)
+config = TrainConfig(hidden=(8,), root="mlp", root_hidden=8, seed=2, strong_weight=2.0)
 mesh = sharding.data_mesh()
 out = {"devices": len(jax.devices())}
 
@@ -59,10 +60,10 @@ def shards(buckets):  # per bucket, per array: the leading size each device hold
 
 level = task.spec.num_levels - 1
 view = views.lowest_view(demos, task.spec.num_levels)
-capacity = train.level_capacity(view, level, config)
+capacity = levelwise.level_capacity(view, level, config)
 def level_model():
-  return objective.LevelModel(train.make_hierarchy(task.spec, config).levels[level],
-                              train.make_root(task.spec, level, config))
+  return objective.LevelModel(networks.make_hierarchy(task.spec, config).levels[level],
+                              networks.make_root(task.spec, level, config))
 graphdef, params, rest = nnx.split(level_model(), nnx.Param, ...)
 level_grad = jax.jit(jax.value_and_grad(
     lambda p, b: objective.level_loss(nnx.merge(graphdef, p, rest), b, capacity, config.strong_weight)))
@@ -87,7 +88,7 @@ out["fit_params_on_default"] = all(p.devices() == {jax.devices()[0]} for p in pa
 
 two = [demos, datasets.training_demos(task, seed=4, num_demos=6, num_strong=2)]  # seeds as one program
 two_views = [views.lowest_view(d, task.spec.num_levels) for d in two]
-two_capacity = max(train.level_capacity(v, level, config) for v in two_views)
+two_capacity = max(levelwise.level_capacity(v, level, config) for v in two_views)
 def fit_seeds(mesh):
   buckets = views.stack_seeds([views.length_buckets(v, 1) for v in two_views], mesh)
   progress = fitting.fit_seeds([level_model(), level_model()],
@@ -98,7 +99,7 @@ def fit_seeds(mesh):
 (out["seeds_losses_1"], _), (out["seeds_losses_4"], buckets) = fit_seeds(None), fit_seeds(mesh)
 out["seeds_shards"] = [[int(s.data.shape[1]) for s in x.addressable_shards] for x in jax.tree.leaves(buckets[0])]
 
-hierarchy = train.make_hierarchy(task.spec, config)
+hierarchy = networks.make_hierarchy(task.spec, config)
 graphdef, params, rest = nnx.split(hierarchy, nnx.Param, ...)
 capacities = joint.joint_capacity(demos, task.spec, config)
 joint_grad = jax.jit(jax.value_and_grad(

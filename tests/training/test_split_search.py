@@ -11,14 +11,15 @@ from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.envs import datasets, tasks
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy
-from php_jax.training import objective, split_search, train
+from php_jax.training import networks, objective, split_search
+from php_jax.training.config import TrainConfig, resolved
 
 NANOCRAFT = tasks.get("nanocraft")
 CAPACITY = (8, 8, 8)
 
 
 def _hierarchy(seed=1):
-  return train.make_hierarchy(NANOCRAFT.spec, train.TrainConfig(hidden=(8,), seed=seed))
+  return networks.make_hierarchy(NANOCRAFT.spec, TrainConfig(hidden=(8,), seed=seed))
 
 
 def test_a_split_by_caller_moves_the_callers_stacks_to_the_copy_with_their_probabilities():
@@ -93,7 +94,7 @@ def test_candidate_moves_are_read_off_the_most_likely_stacks():
 @pytest.mark.slow
 def test_a_round_keeps_the_best_judged_candidate_and_is_deterministic():
   demos = datasets.training_demos(NANOCRAFT, 1, 8, 0)
-  config = train.resolved(train.TrainConfig(hidden=(8,), seed=1, split_iterations=3, split_hint_iterations=1), demos,
+  config = resolved(TrainConfig(hidden=(8,), seed=1, split_iterations=3, split_hint_iterations=1), demos,
                           NANOCRAFT.spec)
   results = []
   for _ in range(2):

@@ -14,7 +14,8 @@ from php_jax.data import agreement, views
 from php_jax.envs import addition, addition_task, datasets, evaluation, nanocraft, nanocraft_task, tasks
 from php_jax.inference import lattice
 from php_jax.model import PHPLevel, RootMLP
-from php_jax.training import checkpoint, objective, train
+from php_jax.training import checkpoint, levelwise, networks, objective, resume, storage
+from php_jax.training.config import TrainConfig
 
 ADDITION = tasks.get("addition")
 NANOCRAFT = tasks.get("nanocraft")
@@ -91,10 +92,10 @@ def test_relabelled_agreement_ignores_procedure_ids_but_not_segmentation():
 def test_level_capacity_is_the_longest_annotated_call_at_least_the_minimum():
   demos = _addition_demos([("19", "25"), ("7", "8")], num_strong=1)
   view = views.lowest_view(demos, 3)
-  assert train.level_capacity(view, 2, train.TrainConfig()) == 4  # lshift's four moves
-  assert train.level_capacity(view, 2, train.TrainConfig(min_capacity=(0, 0, 6))) == 6
-  assert train.level_capacity(view, 2, train.TrainConfig(min_capacity=(0, 0, 2))) == 4
-  assert train.level_capacity(view, 0, train.TrainConfig(min_capacity=(50, 0, 0))) == int(view.length.max())
+  assert levelwise.level_capacity(view, 2, TrainConfig()) == 4  # lshift's four moves
+  assert levelwise.level_capacity(view, 2, TrainConfig(min_capacity=(0, 0, 6))) == 6
+  assert levelwise.level_capacity(view, 2, TrainConfig(min_capacity=(0, 0, 2))) == 4
+  assert levelwise.level_capacity(view, 0, TrainConfig(min_capacity=(50, 0, 0))) == int(view.length.max())
 
 
 def test_training_refuses_malformed_demonstrations():
@@ -102,12 +103,12 @@ def test_training_refuses_malformed_demonstrations():
   counters = np.array(demos.counters)
   counters[0, 3, 2] += 2
   with pytest.raises(ValueError, match="demonstration 0, step 3"):
-    train.train_hierarchy(ADDITION.spec, demos._replace(counters=counters), train.TrainConfig(iterations=1))
+    levelwise.train_hierarchy(ADDITION.spec, demos._replace(counters=counters), TrainConfig(iterations=1))
 
 
 def test_checkpoint_round_trip(tmp_path):
-  config = train.TrainConfig(hidden=(16,), tau_in_termination=(True, False, True), seed=3)
-  hierarchy = train.make_hierarchy(NANOCRAFT.spec, config)
+  config = TrainConfig(hidden=(16,), tau_in_termination=(True, False, True), seed=3)
+  hierarchy = networks.make_hierarchy(NANOCRAFT.spec, config)
   checkpoint.save_hierarchy(str(tmp_path), "nanocraft", hierarchy, config.hidden)
   name, loaded = checkpoint.load_policy(str(tmp_path))
   assert name == "nanocraft" and loaded.levels[1].tau_in_termination is False
@@ -136,8 +137,8 @@ def _each_damaged_file(directory):
 
 
 def test_corrupt_or_mismatched_saved_files_are_refused_naming_the_file(tmp_path):
-  config = train.TrainConfig(hidden=(8,), seed=1)
-  hierarchy = train.make_hierarchy(NANOCRAFT.spec, config)
+  config = TrainConfig(hidden=(8,), seed=1)
+  hierarchy = networks.make_hierarchy(NANOCRAFT.spec, config)
   workdir = tmp_path / "model"
   checkpoint.save_hierarchy(str(workdir), "nanocraft", hierarchy, config.hidden)
   for damaged in _each_damaged_file(workdir / checkpoint.MODEL_DIR):  # every file of the parameters
@@ -154,7 +155,7 @@ def test_corrupt_or_mismatched_saved_files_are_refused_naming_the_file(tmp_path)
     with pytest.raises(checkpoint.CheckpointError, match=message):
       checkpoint.load_policy(str(workdir))
   (workdir / "model.json").write_text(description)
-  wider = train.make_hierarchy(NANOCRAFT.spec, dataclasses.replace(config, hidden=(16,)))
+  wider = networks.make_hierarchy(NANOCRAFT.spec, dataclasses.replace(config, hidden=(16,)))
   checkpoint.save_hierarchy(str(tmp_path / "wide"), "nanocraft", wider, (16,))
   shutil.rmtree(workdir / checkpoint.MODEL_DIR)
   shutil.copytree(tmp_path / "wide" / checkpoint.MODEL_DIR, workdir / checkpoint.MODEL_DIR)
@@ -162,37 +163,37 @@ def test_corrupt_or_mismatched_saved_files_are_refused_naming_the_file(tmp_path)
     checkpoint.load_policy(str(workdir))
   wide_files = json.loads((tmp_path / "wide" / "model.json").read_text())["files"]
   unsigned = {k: v for k, v in architecture.items() if k != "sha256"}
-  (workdir / "model.json").write_text(json.dumps(checkpoint._signed({**unsigned, "files": wide_files})))
+  (workdir / "model.json").write_text(json.dumps(storage.signed({**unsigned, "files": wide_files})))
   with pytest.raises(checkpoint.CheckpointError, match=r"is float32\[.*16.*the model needs"):  # signed anew
     checkpoint.load_policy(str(workdir))
   path = tmp_path / "checkpoint"
-  checkpoint.write_training(str(path), hierarchy, {"level": 2, "report": {}}, None, {})
-  assert checkpoint.read_training(str(path))[0]["level"] == 2
+  resume.write_training(str(path), hierarchy, {"level": 2, "report": {}}, None, {})
+  assert resume.read_training(str(path))[0]["level"] == 2
   for damaged in _each_damaged_file(path):  # state.json and every file of the arrays
     with pytest.raises(checkpoint.CheckpointError, match="state.json: corrupt|state.json: edited|does not match"):
-      checkpoint.read_training(str(path))
+      resume.read_training(str(path))
   (path / "state.json").write_text("[]")
   with pytest.raises(checkpoint.CheckpointError, match="state.json: not a training checkpoint"):
-    checkpoint.read_training(str(path))
+    resume.read_training(str(path))
 
 
 def test_resume_check_names_what_differs_and_takes_defaults_for_settings_a_checkpoint_predates():
-  config = train.TrainConfig(hidden=(8,), seed=1, training="levelwise")  # resolved, as checkpoints record it
+  config = TrainConfig(hidden=(8,), seed=1, training="levelwise")  # resolved, as checkpoints record it
   settings = {"config": json.loads(json.dumps(dataclasses.asdict(config))), "levels": [1, 2], "demonstrations": "x"}
   older = {**settings, "config": {k: v for k, v in settings["config"].items() if k != "training"}}
-  train.check_resumable("ckpt", older, settings)  # made before --training existed: level-wise, its default
+  resume.check_resumable("ckpt", older, settings)  # made before --training existed: level-wise, its default
   no_snapshot = {**settings, "config": {k: v for k, v in settings["config"].items() if k != "snapshot"}}
   with pytest.raises(checkpoint.CheckpointError, match="snapshot: 'earliest' there, 'latest' here"):
-    train.check_resumable("ckpt", no_snapshot, settings)  # runs before --snapshot kept the earliest
+    resume.check_resumable("ckpt", no_snapshot, settings)  # runs before --snapshot kept the earliest
   joint = json.loads(json.dumps(dataclasses.asdict(dataclasses.replace(config, training="joint"))))
   with pytest.raises(checkpoint.CheckpointError, match="training: 'levelwise' there, 'joint' here"):
-    train.check_resumable("ckpt", older, {**settings, "config": joint})
+    resume.check_resumable("ckpt", older, {**settings, "config": joint})
   with pytest.raises(checkpoint.CheckpointError, match="seed: 1 there, 2 here"):
-    train.check_resumable("ckpt", settings, {**settings, "config": {**settings["config"], "seed": 2}})
+    resume.check_resumable("ckpt", settings, {**settings, "config": {**settings["config"], "seed": 2}})
   with pytest.raises(checkpoint.CheckpointError, match="demonstrations differ"):
-    train.check_resumable("ckpt", settings, {**settings, "demonstrations": "y"})
+    resume.check_resumable("ckpt", settings, {**settings, "demonstrations": "y"})
   with pytest.raises(checkpoint.CheckpointError, match="observes differ \\(another hierarchy: what its procedures"):
-    train.check_resumable("ckpt", settings, {**settings, "observes": [None, [[0], [1]]]})
+    resume.check_resumable("ckpt", settings, {**settings, "observes": [None, [[0], [1]]]})
 
 
 @pytest.mark.slow
@@ -240,10 +241,10 @@ def test_small_addition_run_solves_longer_problems_and_decodes_the_supervisors_s
   strong = addition_task.covering_problems(0, 5)
   problems = strong + addition_task.random_problems(1, range(1, 6), 2)
   demos = _addition_demos(problems, num_strong=len(strong))
-  config = train.TrainConfig(iterations=600, eval_every=100, hidden=(32,), root="mlp", root_hidden=32,
+  config = TrainConfig(iterations=600, eval_every=100, hidden=(32,), root="mlp", root_hidden=32,
                              learning_rate=1e-2, tau_in_termination=(False, True, True), decode="viterbi")
   validation = addition_task.random_problems(2, range(1, 6), 4)
-  hierarchy, report = train.train_hierarchy(ADDITION.spec, demos, config,
+  hierarchy, report = levelwise.train_hierarchy(ADDITION.spec, demos, config,
                                             lambda h: evaluation.accuracy(ADDITION, h, validation),
                                             log=lambda row: None)
   assert report[2]["decoding_agreement"] >= 0.95 and report[1]["decoding_agreement"] >= 0.95, report
@@ -260,7 +261,7 @@ def test_interrupted_training_resumes_to_the_same_result(tmp_path, warmup, stops
   problems = nanocraft_task.random_problems(3, 8)
   demos = datasets.oracle_demonstrations(NANOCRAFT, nanocraft_task.make_states(problems), 4,
                                          nanocraft.ORACLE_STEP_BUDGET)
-  config = train.TrainConfig(iterations=60, eval_every=20, hidden=(8,), root="mlp", root_hidden=8,
+  config = TrainConfig(iterations=60, eval_every=20, hidden=(8,), root="mlp", root_hidden=8,
                              learning_rate=1e-2, decode="sample", strong_warmup=warmup, seed=5)
   validation = nanocraft_task.random_problems(4, 8)
 
@@ -271,7 +272,7 @@ def test_interrupted_training_resumes_to_the_same_result(tmp_path, warmup, stops
     def log(row):
       if stop_at and (row.get("level"), row.get("iteration")) == stop_at:
         raise _Interrupt
-    return train.train_hierarchy(NANOCRAFT.spec, demos, config, validate, log=log, checkpoint_path=path)
+    return levelwise.train_hierarchy(NANOCRAFT.spec, demos, config, validate, log=log, checkpoint_path=path)
 
   reference, ref_report = run(str(tmp_path / "uninterrupted"))
   path = str(tmp_path / "interrupted")
@@ -293,12 +294,12 @@ def test_strong_warmup_fits_the_strong_views_alone_first():
   demos = datasets.oracle_demonstrations(NANOCRAFT, nanocraft_task.make_states(problems), 2,
                                          nanocraft.ORACLE_STEP_BUDGET)
   view = views.lowest_view(demos, NANOCRAFT.spec.num_levels)
-  config = train.TrainConfig(iterations=0, hidden=(8,), root="mlp", root_hidden=8, strong_weight=2.0, seed=1)
+  config = TrainConfig(iterations=0, hidden=(8,), root="mlp", root_hidden=8, strong_weight=2.0, seed=1)
 
   def trained(part, **changes):
-    model = objective.LevelModel(train.make_hierarchy(NANOCRAFT.spec, config).levels[2],
-                             train.make_root(NANOCRAFT.spec, 2, config))
-    train.train_level(model, part, 2, dataclasses.replace(config, **changes), fitting.Hooks(log=lambda row: None))
+    model = objective.LevelModel(networks.make_hierarchy(NANOCRAFT.spec, config).levels[2],
+                             networks.make_root(NANOCRAFT.spec, 2, config))
+    levelwise.train_level(model, part, 2, dataclasses.replace(config, **changes), fitting.Hooks(log=lambda row: None))
     return jax.tree.leaves(nnx.state(model, nnx.Param))
 
   strong_only = trained(views.select(view, view.strong), iterations=30)
@@ -310,10 +311,10 @@ def test_strong_warmup_fits_the_strong_views_alone_first():
 @pytest.mark.slow
 def test_root_strong_weight_changes_only_the_root_levels_loss():
   demos = datasets.training_demos(tasks.get("nanocraft"), seed=3, num_demos=6, num_strong=2)
-  config = train.TrainConfig(iterations=1, hidden=(8,), root="mlp", root_hidden=8, strong_weight=5.0, seed=2)
+  config = TrainConfig(iterations=1, hidden=(8,), root="mlp", root_hidden=8, strong_weight=5.0, seed=2)
 
   def first_losses(**changes):
-    _, report = train.train_hierarchy(NANOCRAFT.spec, demos, dataclasses.replace(config, **changes),
+    _, report = levelwise.train_hierarchy(NANOCRAFT.spec, demos, dataclasses.replace(config, **changes),
                                       log=lambda row: None)
     return [report[level]["losses"][0][1] for level in (2, 1, 0)]
 
@@ -323,10 +324,10 @@ def test_root_strong_weight_changes_only_the_root_levels_loss():
 
 def test_call_penalty_is_a_prior_on_the_number_of_calls():
   demos = datasets.training_demos(tasks.get("nanocraft"), seed=3, num_demos=6, num_strong=3)
-  config = train.TrainConfig(hidden=(8,), root="mlp", root_hidden=8, seed=2)
+  config = TrainConfig(hidden=(8,), root="mlp", root_hidden=8, seed=2)
   view = views.device_view(views.lowest_view(demos, NANOCRAFT.spec.num_levels))
-  php, root = train.make_hierarchy(NANOCRAFT.spec, config).levels[2], train.make_root(NANOCRAFT.spec, 2, config)
-  capacity, penalty = train.level_capacity(view, 2, config), 1.5
+  php, root = networks.make_hierarchy(NANOCRAFT.spec, config).levels[2], networks.make_root(NANOCRAFT.spec, 2, config)
+  capacity, penalty = levelwise.level_capacity(view, 2, config), 1.5
   for b in range(view.length.shape[0]):
     one = jax.tree.map(lambda x: x[b], view)
     n = one.length
@@ -346,9 +347,9 @@ def test_call_penalty_is_a_prior_on_the_number_of_calls():
       unpenalised_calls = jnp.sum(lattice.forward_backward(*free, length=n).v[:, :, 0])
       assert expected_calls <= unpenalised_calls + 1e-4
   with pytest.raises(ValueError, match="call_penalty"):
-    train.train_hierarchy(NANOCRAFT.spec, demos, dataclasses.replace(config, call_penalty=(0.0, 1.0)))
+    levelwise.train_hierarchy(NANOCRAFT.spec, demos, dataclasses.replace(config, call_penalty=(0.0, 1.0)))
   with pytest.raises(ValueError, match="call_penalty"):
-    train.train_hierarchy(NANOCRAFT.spec, demos, dataclasses.replace(config, call_penalty=(1.0, 1.0, 0.0)))
+    levelwise.train_hierarchy(NANOCRAFT.spec, demos, dataclasses.replace(config, call_penalty=(1.0, 1.0, 0.0)))
 
 
 @pytest.mark.parametrize("rule, kept", [("earliest", 20), ("latest", 30)])
@@ -387,7 +388,7 @@ def test_fit_saves_by_time_between_evaluations_and_resumes_from_there():
 
 
 def test_fit_can_pass_the_update_count_to_the_loss():
-  """pass_iteration: the loss is given the number of updates made before it (0 at the first), resumed too."""
+  """An IterationLoss is given the number of updates made before it (0 at the first), resumed too."""
   model = nnx.Linear(1, 1, rngs=nnx.Rngs(0))
 
   def loss(m, iteration, x):
@@ -395,11 +396,11 @@ def test_fit_can_pass_the_update_count_to_the_loss():
 
   schedule, hooks = fitting.Schedule(6, 0.1, 1), fitting.Hooks(log=lambda row: None)
   saved = []
-  progress = fitting.fit(model, loss, schedule._replace(iterations=3),
-                         fitting.Hooks(log=lambda row: None, save=saved.append), args=(jnp.ones((2, 1)),),
-                         pass_iteration=True)
+  progress = fitting.fit(model, fitting.IterationLoss(loss), schedule._replace(iterations=3),
+                         fitting.Hooks(log=lambda row: None, save=saved.append), args=(jnp.ones((2, 1)),))
   assert [value for _, value in progress.losses] == [0, 1, 2]
-  resumed = fitting.fit(model, loss, schedule, hooks, resume=saved[-1], args=(jnp.ones((2, 1)),), pass_iteration=True)
+  resumed = fitting.fit(model, fitting.IterationLoss(loss), schedule, hooks, resume=saved[-1],
+                        args=(jnp.ones((2, 1)),))
   assert [value for _, value in resumed.losses] == [0, 1, 2, 3, 4, 5]
 
 
@@ -408,8 +409,8 @@ def test_fit_with_weight_decay_shrinks_what_the_loss_does_not_hold():
   multiplies them by 1 − learning_rate · weight_decay (the update count still reaches the loss)."""
   model = nnx.Linear(2, 1, rngs=nnx.Rngs(0))
   start = np.asarray(model.kernel[...]).copy()
-  progress = fitting.fit(model, lambda m, iteration: jnp.sum(m(jnp.ones((1, 2))) * 0.0) + iteration,
-                         fitting.Schedule(5, 0.1, 1, weight_decay=0.5), fitting.Hooks(log=lambda row: None),
-                         pass_iteration=True)
+  progress = fitting.fit(model, fitting.IterationLoss(lambda m, iteration: jnp.sum(m(jnp.ones((1, 2))) * 0.0)
+                                                     + iteration),
+                         fitting.Schedule(5, 0.1, 1, weight_decay=0.5), fitting.Hooks(log=lambda row: None))
   assert [value for _, value in progress.losses] == [0, 1, 2, 3, 4]
   np.testing.assert_allclose(model.kernel[...], start * 0.95 ** 5, rtol=1e-5)
