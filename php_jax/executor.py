@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 
 from php_jax.hierarchy import HierarchySpec, Policy, check_size
-from php_jax.inference.lattice import check_key
+from php_jax.inference.lattice_inputs import check_key
 
 
 class Rollout(NamedTuple):

@@ -216,7 +216,7 @@ def test_lists_and_numpy_values_are_taken_where_arrays_would_do():
   np.testing.assert_array_equal(listed.v, php_jax.forward_backward(ROOT, OP, STOP, CONT, 2).v)
   stacked = sl.log_likelihood(STACK._replace(log_cont=[x.tolist() for x in STACK.log_cont]))
   np.testing.assert_array_equal(stacked, sl.log_likelihood(STACK))
-  assert php_jax.inference.lattice.check_k(jnp.array(2)) == 2
+  assert php_jax.inference.lattice_inputs.check_k(jnp.array(2)) == 2
   assert datasets.strong_mask(4, np.int64(2), 0).sum() == 2
   assert gym.action_factors(spaces.Discrete(3, start=1), 3) == [2]
   assert nanocraft.make_problem(*np.array([1, 1, 2, 2])).spec.tolist() == [1, 1, 2, 2]

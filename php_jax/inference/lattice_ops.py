@@ -13,31 +13,12 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from php_jax.inference.lattice import (
-  NO_FRAME,
-  LatticeInputs,
-  LatticePath,
-  LatticePosterior,
-  LatticeStructure,
-  _annotated,
-  _check_inputs,
-  _expected_log_joint,
-  _finite_or_zero,
-  _in_common_dtype,
-  _is_push,
-  _path_from_states,
-  _shift,
-  accepts_inputs,
-  as_inputs,
-  check_annotation,
-  check_k,
-  check_key,
-  check_temperature,
-  forward_backward,
-  posterior_entropy,
-  sample_posterior,
-  viterbi,
-)
+from php_jax.inference.lattice import (_expected_log_joint, _finite_or_zero, _is_push, _path_from_states, _shift,
+                                       forward_backward, posterior_entropy, sample_posterior, viterbi)
+from php_jax.inference.lattice_inputs import (NO_FRAME, LatticeInputs, LatticePath, LatticePosterior,
+                                              LatticeStructure, accepts_inputs, annotated_log_op, as_inputs,
+                                              check_annotation, check_inputs, check_k, check_key, check_temperature,
+                                              in_common_dtype)
 
 
 @accepts_inputs
@@ -59,9 +40,9 @@ def top_k(k: int, log_root, log_op, log_stop, log_cont, length=None, procedures=
     >>> best.log_prob  # [3] log P(ζ, ξ) of the three most likely paths
   """
   k = check_k(k)
-  _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
-  log_op = _annotated(log_op, procedures, counters, length)
-  return _top_k(k, *_in_common_dtype(log_root, log_op, log_stop, log_cont), length)
+  _, _, _, length = check_inputs(log_root, log_op, log_stop, log_cont, length)
+  log_op = annotated_log_op(log_op, procedures, counters, length)
+  return _top_k(k, *in_common_dtype(log_root, log_op, log_stop, log_cont), length)
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -148,7 +129,7 @@ def _same_lattice(p: LatticeInputs, q: LatticeInputs):
   p, q = as_inputs("p", p, LatticeInputs), as_inputs("q", q, LatticeInputs)
   for name, x in (("p", p), ("q", q)):
     try:
-      _check_inputs(*x)
+      check_inputs(*x)
     except ValueError as error:
       raise ValueError(f"{name}: {error}") from None
   for name, a, b in zip(LatticeInputs._fields[:4], p[:4], q[:4]):
@@ -162,7 +143,7 @@ def _same_lattice(p: LatticeInputs, q: LatticeInputs):
     differ = False
   if differ:
     raise ValueError(f"p and q must have the same length; got {lengths[0]} and {lengths[1]}")
-  return tuple(LatticeInputs(*_in_common_dtype(*x[:4]), lengths[0]) for x in (p, q))
+  return tuple(LatticeInputs(*in_common_dtype(*x[:4]), lengths[0]) for x in (p, q))
 
 
 @accepts_inputs
@@ -191,9 +172,9 @@ def differentiable_sample(key, log_root, log_op, log_stop, log_cont, length=None
     >>> jax.grad(lambda op: jnp.sum(weights * differentiable_sample(key, log_root, op, log_stop, log_cont, 5)))(log_op)
   """
   check_key(key)
-  _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
+  _, _, _, length = check_inputs(log_root, log_op, log_stop, log_cont, length)
   check_temperature(temperature)
-  inputs = _in_common_dtype(log_root, log_op, log_stop, log_cont)
+  inputs = in_common_dtype(log_root, log_op, log_stop, log_cont)
   if method == "straight-through":
     path = sample_posterior(key, *inputs, length, temperature)
     v = forward_backward(*(x / temperature for x in inputs), length).v
@@ -259,8 +240,8 @@ def forward_filter(log_root, log_op, log_stop, log_cont, length=None) -> Lattice
     >>> filt = forward_filter(log_root, log_op, log_stop, log_cont, length=5)
     >>> filt.filtered[2]  # [K, C] P(h_2, τ_2 | a_0, a_1, a_2)
   """
-  _, _, _, length = _check_inputs(log_root, log_op, log_stop, log_cont, length)
-  return _forward_filter_public(*_in_common_dtype(log_root, log_op, log_stop, log_cont), length)
+  _, _, _, length = check_inputs(log_root, log_op, log_stop, log_cont, length)
+  return _forward_filter_public(*in_common_dtype(log_root, log_op, log_stop, log_cont), length)
 
 
 @jax.jit
@@ -311,7 +292,7 @@ class TwoLevelLattice(LatticeStructure):
 
   def _checked(self):
     inputs = as_inputs("inputs", self.inputs, LatticeInputs)
-    num_steps, num_procs, capacity, length = _check_inputs(*inputs)
+    num_steps, num_procs, capacity, length = check_inputs(*inputs)
     inputs = LatticeInputs(*(x if hasattr(x, "dtype") else jnp.asarray(x) for x in inputs[:4]), inputs.length)
     procedures, counters = (None if x is None else check_annotation(name, x, (num_steps,), [(letter, size)], length)
                             for name, x, letter, size in (("procedures", self.procedures, "K", num_procs),
@@ -320,8 +301,8 @@ class TwoLevelLattice(LatticeStructure):
 
   def _annotated_inputs(self) -> LatticeInputs:
     """inputs with log_op restricted to the annotation."""
-    return self.inputs._replace(log_op=_annotated(self.inputs.log_op, self.procedures, self.counters,
-                                                  _check_inputs(*self.inputs)[3]))
+    return self.inputs._replace(log_op=annotated_log_op(self.inputs.log_op, self.procedures, self.counters,
+                                                  check_inputs(*self.inputs)[3]))
 
   def log_partition(self) -> jax.Array:
     """[] log P(ξ) (of the agreeing paths)."""
