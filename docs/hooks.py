@@ -28,7 +28,7 @@ _LINK = re.compile(r"(\]\()([^)\s#]+)((?:#[^)\s]*)?\))")
 _COMMAND = re.compile(r"python -m (experiments\.[a-z_]+)\b((?:[^\n`&;|]|\\\n)*)")
 _OLDER_COMMIT = re.compile(r"^```bash\ngit checkout [0-9a-f]{7,40}\b.*?^```$", re.M | re.S)
 sys.path.insert(0, ROOT)  # the documentation build runs from mkdocs's script, not from the repository
-from experiments.flag_groups import GROUPS  # noqa: E402  (after the path it is found on)
+from experiments.common.flag_groups import GROUPS  # noqa: E402  (after the path it is found on)
 
 
 def on_files(files, config):

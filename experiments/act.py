@@ -32,7 +32,7 @@ import time
 
 from absl import app, flags
 
-from experiments import cli, environment_flags, progress
+from experiments.common import cli, environment_flags, progress
 from php_jax.data import files
 from php_jax.envs import gym, success
 from php_jax.model import PHPHierarchy

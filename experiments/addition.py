@@ -4,7 +4,8 @@ r"""Long-hand addition (paper §5.2): `experiments.train --task=addition`, 160 t
 """
 from absl import app, flags
 
-from experiments import cli, train
+from experiments import train
+from experiments.common import cli
 
 flags.adopt_module_key_flags(train)
 

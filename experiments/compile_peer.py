@@ -327,7 +327,7 @@ def _define_flags():
 
 
 def main(argv, defined):
-  from experiments import cli  # pylint: disable=import-outside-toplevel
+  from experiments.common import cli  # pylint: disable=import-outside-toplevel
   from php_jax.data import demo_files, files  # pylint: disable=import-outside-toplevel
   if argv[1:]:
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
@@ -373,7 +373,7 @@ def main(argv, defined):
 if __name__ == "__main__":
   from absl import app, flags  # pylint: disable=ungrouped-imports
 
-  from experiments import cli
+  from experiments.common import cli
   DEFINED = _define_flags()
   flags.mark_flags_as_required(["compile_dir", "hierarchy", "demos", "held_out", "out"])
   app.run(lambda argv: main(argv, DEFINED), flags_parser=cli.parse_flags)

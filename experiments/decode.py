@@ -28,7 +28,7 @@ import json
 import numpy as np
 from absl import app, flags
 
-from experiments import cli
+from experiments.common import cli
 from php_jax.analysis import decoding
 from php_jax.data import agreement, call_tree, demo_files, files
 from php_jax.envs import replay

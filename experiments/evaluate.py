@@ -14,8 +14,8 @@ import json
 
 from absl import app, flags
 
-from experiments import cli
-from experiments import problems as problem_files
+from experiments.common import cli
+from experiments.common import problems as problem_files
 from php_jax.data import files
 from php_jax.envs import evaluation, tasks
 from php_jax.envs.task import Task

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from absl import app, flags
 
-from experiments import cli
+from experiments.common import cli
 from php_jax.data import demo_files, files
 from php_jax.envs import datasets, tasks
 from php_jax.training.config import MAX_SEED

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 from absl import app, flags
 
-from experiments import cli, config_flags, progress, training
+from experiments.common import cli, config_flags, progress, training
 from php_jax.data import demo_files
 from php_jax.demos import Demonstration
 from php_jax.envs import replay

@@ -4,7 +4,8 @@ r"""NanoCraft (paper §5.1): `experiments.train --task=nanocraft`, --num_demos r
 """
 from absl import app, flags
 
-from experiments import cli, train
+from experiments import train
+from experiments.common import cli
 
 flags.adopt_module_key_flags(train)
 

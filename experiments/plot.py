@@ -34,7 +34,7 @@ from absl import app, flags
 matplotlib.use("Agg")
 from matplotlib import pyplot as plt  # noqa: E402  (after choosing the file-only backend)
 
-from experiments import cli  # noqa: E402
+from experiments.common import cli  # noqa: E402
 from php_jax.data import files
 
 _RUNS = flags.DEFINE_multi_string("runs", None, "Directories searched (recursively) for results.json.")

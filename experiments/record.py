@@ -25,7 +25,7 @@ import os
 
 from absl import app, flags
 
-from experiments import cli, environment_flags, progress
+from experiments.common import cli, environment_flags, progress
 from php_jax.data import demo_files, files
 from php_jax.envs import gym, success
 

@@ -3,7 +3,7 @@ r"""Writes a finished run's report again (the training commands write it at the 
   python -m experiments.report --run=DIR
 
 DIR/report.html: one self-contained page with the run's settings and results, its learning curves, its call
-graph and three of its training demonstrations decoded and drawn (`experiments.run_report`).
+graph and three of its training demonstrations decoded and drawn (`experiments.common.run_report`).
 """
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import os
 
 from absl import app, flags
 
-from experiments import cli, run_report
+from experiments.common import cli, run_report
 
 _RUN = flags.DEFINE_string("run", None, "A finished run's workdir.")
 

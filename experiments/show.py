@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from absl import app, flags
 
-from experiments import cli, pictures, run_view
+from experiments.common import cli, pictures, run_view
 from php_jax.data import files
 
 _POLICY = flags.DEFINE_string("policy", None, "Workdir of a trained hierarchy's run.")

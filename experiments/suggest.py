@@ -21,7 +21,7 @@ import json
 
 from absl import app, flags
 
-from experiments import cli, run_view
+from experiments.common import cli, run_view
 from php_jax.analysis import annotation_choice
 from php_jax.data import demo_files, files
 from php_jax.envs import datasets, tasks

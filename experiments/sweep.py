@@ -37,7 +37,7 @@ from typing import Callable, Iterator, TypeVar
 
 from absl import app, flags
 
-from experiments import cli
+from experiments.common import cli
 from php_jax.envs import tasks
 
 _TASK = flags.DEFINE_string("task", None, "The task trained (what experiments.train --task takes).")

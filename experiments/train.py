@@ -22,7 +22,7 @@ import os
 import numpy as np
 from absl import app, flags
 
-from experiments import cli, config_flags, progress, training
+from experiments.common import cli, config_flags, progress, training
 from php_jax.data import demo_files
 from php_jax.envs import datasets, evaluation, tasks
 from php_jax.training import levelwise

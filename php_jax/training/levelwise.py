@@ -140,7 +140,7 @@ def train_seeds(spec: HierarchySpec, demos: Sequence[Demonstration], configs: Se
   log(s, row) gets seed s's rows, as train_hierarchy's log would (a resumed run first gets {"resumed": True,
   ..., "logged": n} for each seed). With checkpoint_path, progress is saved there (every seed in one file) and
   a rerun resumes it. When training ends, seed_checkpoint_paths[s] gets seed s's finished training
-  checkpoint, the file its separate run would leave (its decoded views, for `experiments.segmentation`).
+  checkpoint, the file its separate run would leave (its decoded views, for `experiments.segment_errors`).
   Returns each seed's (hierarchy, report)."""
   return _train_levels(spec, list(demos), list(configs), validate and list(validate), log,
                        _Store(checkpoint_path, seed_checkpoint_paths, batched=True))

@@ -32,7 +32,7 @@ from php_jax.training import call_graph, checkpoint, joint, levelwise, provenanc
 from php_jax.training.config import TrainConfig, in_mode, resolved
 
 METRICS_FILE, RESULTS_FILE, SEEDS_CHECKPOINT = "metrics.jsonl", "results.json", "seeds_checkpoint"
-REPORT_FILE = "report.html"  # the training commands write it (`experiments.run_report`); --overwrite clears it
+REPORT_FILE = "report.html"  # the training commands write it (`experiments.common.run_report`); --overwrite clears it
 RUN_FILES = (checkpoint.TRAINING_DIR, METRICS_FILE, RESULTS_FILE, checkpoint.ARCHITECTURE_FILE,
              checkpoint.MODEL_DIR, REPORT_FILE)
 

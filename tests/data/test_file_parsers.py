@@ -12,7 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from experiments import problems as problem_files
+from experiments.common import problems as problem_files
 from php_jax.data import demo_files, json_lines
 from php_jax.envs import tasks
 from php_jax.hierarchy import HierarchySpec

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from experiments import problems as problem_files
+from experiments.common import problems as problem_files
 from php_jax import demos
 from php_jax.envs import bubblesort as bs
 from php_jax.envs import bubblesort_task, datasets, evaluation, tasks

@@ -7,8 +7,8 @@ import jax.numpy as jnp
 import pytest
 from flax import struct
 
-from experiments import cli
-from experiments import problems as problem_files
+from experiments.common import cli
+from experiments.common import problems as problem_files
 from php_jax.envs import addition, bubblesort_task, evaluation, nanocraft_task, tasks
 from tests import processes
 

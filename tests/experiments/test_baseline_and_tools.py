@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from experiments import plot, segmentation, sweep
+from experiments import plot, segment_errors, sweep
 from php_jax import fitting, flat_lstm
 from php_jax.analysis import decoding
 from php_jax.data import views
@@ -161,11 +161,11 @@ def test_plot_draws_the_figure_and_tables(tmp_path):
 
 def test_segmentation_classifies_splits_merges_and_mistaken_procedures():
   procs, taus = np.array([0, 0, 0, 1]), np.array([0, 1, 2, 0])
-  assert segmentation.classify(procs, taus, procs, taus) == ("correct", [])
-  assert segmentation.classify(procs, taus, procs, np.array([0, 1, 0, 0])) == ("split", [2])
-  assert segmentation.classify(np.array([0, 0, 1]), np.array([0, 0, 0]), np.array([0, 0, 1]),
+  assert segment_errors.classify(procs, taus, procs, taus) == ("correct", [])
+  assert segment_errors.classify(procs, taus, procs, np.array([0, 1, 0, 0])) == ("split", [2])
+  assert segment_errors.classify(np.array([0, 0, 1]), np.array([0, 0, 0]), np.array([0, 0, 1]),
                                np.array([0, 1, 0])) == ("merge", [1])
-  assert segmentation.classify(procs, taus, np.array([0, 0, 0, 2]), taus)[0] == "other"
+  assert segment_errors.classify(procs, taus, np.array([0, 0, 0, 2]), taus)[0] == "other"
 
 
 def test_segmentation_report_finds_a_split_in_the_supervisors_level_1_view():
@@ -179,13 +179,13 @@ def test_segmentation_report_finds_a_split_in_the_supervisors_level_1_view():
   view = views.lowest_view(demos, spec.num_levels)
   view = views.view_above(demos, view, 2, *truth(view, 2))
   procs, taus = truth(view, 1)
-  report = segmentation.level_report(demos, view, 1, procs, taus, spec.levels[1])
+  report = segment_errors.level_report(demos, view, 1, procs, taus, spec.levels[1])
   assert report == {"kinds": {"correct": 4}, "where": {}, "wrong": []}
   weak = int(np.flatnonzero(~demos.strong)[0])
   second = int(np.flatnonzero(taus[weak] == 1)[0])  # a call's second operation, pushed anew
   taus = taus.copy()
   taus[weak, second] = 0
-  report = segmentation.level_report(demos, view, 1, procs, taus, spec.levels[1])
+  report = segment_errors.level_report(demos, view, 1, procs, taus, spec.levels[1])
   assert report["kinds"] == {"correct": 3, "split": 1}
   assert report["where"] == {f"split in {spec.levels[1][procs[weak, second]]}": 1}
   assert report["wrong"][0]["demo"] == weak
@@ -202,18 +202,18 @@ def test_segmentation_of_a_joint_run_reads_the_whole_stack_decoding_at_every_lev
                                                      "config": {"training": "joint"}}))
   supervisor = decoding.Decoded(np.zeros(6), np.asarray(demos.procedures), np.asarray(demos.counters))
   monkeypatch.setattr(decoding, "decode", lambda h, capacity, batch: supervisor)
-  segmentation.report(str(tmp_path), None, 3)
+  segment_errors.report(str(tmp_path), None, 3)
   rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
   assert rows == [{"level": 2, "kinds": {"correct": 4}, "where": {}}, {"level": 1, "kinds": {"correct": 4}, "where": {}}]
   procedures = np.asarray(demos.procedures).copy()
   weak = int(np.flatnonzero(~demos.strong)[0])
   procedures[weak, 0, 1] = 1 - procedures[weak, 0, 1]  # the first level-1 procedure of one weak demonstration
   monkeypatch.setattr(decoding, "decode", lambda h, capacity, batch: supervisor._replace(procedures=procedures))
-  segmentation.report(str(tmp_path), 1, 3)
+  segment_errors.report(str(tmp_path), 1, 3)
   assert json.loads(capsys.readouterr().out.splitlines()[0])["kinds"] == {"correct": 3, "other": 1}
   checkpoint.save_hierarchy(str(tmp_path), "nanocraft", hierarchy, (4,))  # without its counter capacities
   with pytest.raises(ValueError, match="records no counter capacities"):
-    segmentation.report(str(tmp_path), None, 3)
+    segment_errors.report(str(tmp_path), None, 3)
 
 
 @pytest.mark.parametrize("entries, message", [
@@ -321,7 +321,7 @@ def test_sweep_and_plot_refuse_a_read_only_file_system_in_one_line(tmp_path, rea
 def test_segmentation_refuses_bad_runs_and_levels(tmp_path):
   run = tmp_path / "run"
   with pytest.raises(ValueError, match="results.json does not exist"):
-    segmentation.report(str(run), None, 3)
+    segment_errors.report(str(run), None, 3)
   run.mkdir()
   (run / "checkpoint").mkdir()
   (run / "checkpoint" / "state.json").write_text("not JSON")
@@ -331,16 +331,16 @@ def test_segmentation_refuses_bad_runs_and_levels(tmp_path):
                            ({**good, "model": "flat_lstm"}, "no hierarchy to decode")]:
     (run / "results.json").write_text(results if isinstance(results, str) else json.dumps(results))
     with pytest.raises(ValueError, match=message):
-      segmentation.report(str(run), None, 3)
+      segment_errors.report(str(run), None, 3)
   (run / "results.json").write_text(json.dumps(good))
   for level in (0, 3):
     with pytest.raises(ValueError, match=r"--level must be in 1..2 for nanocraft"):
-      segmentation.report(str(run), level, 3)
+      segment_errors.report(str(run), level, 3)
   with pytest.raises(checkpoint.CheckpointError, match="state.json: corrupt or truncated JSON"):
-    segmentation.report(str(run), 1, 3)
+    segment_errors.report(str(run), 1, 3)
   (run / "checkpoint" / "state.json").write_text(json.dumps({"meta": "{}"}))
   with pytest.raises(checkpoint.CheckpointError, match="state.json: not a training checkpoint"):
-    segmentation.report(str(run), 1, 3)
-  proc = subprocess.run([sys.executable, "-m", "experiments.segmentation", f"--run={run}", "--level=7"],
+    segment_errors.report(str(run), 1, 3)
+  proc = subprocess.run([sys.executable, "-m", "experiments.segment_errors", f"--run={run}", "--level=7"],
                         capture_output=True, text=True, timeout=300)
   assert proc.returncode == 2 and proc.stderr.strip() == "error: --level must be in 1..2 for nanocraft; got 7"

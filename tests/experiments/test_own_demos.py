@@ -258,7 +258,7 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
                                                    "num_demos": 36, "demos": "train.jsonl"}))
   (fitted / "checkpoint").mkdir()
   cases = [
-      (("experiments.segmentation", f"--run={fitted}"), "is a fit run, whose actions-only demonstrations carry no"),
+      (("experiments.segment_errors", f"--run={fitted}"), "is a fit run, whose actions-only demonstrations carry no"),
       (("experiments.fit", f"--demos={outside}", f"--hierarchy={hierarchy}", f"--workdir={tmp_path / 'w1'}",
         "--call_graph=operations"), f"--demos={outside}: demonstration 1, step 0: no chain of calls"),
       (("experiments.fit", f"--demos={outside}", f"--hierarchy={hierarchy}", f"--workdir={tmp_path / 'w2'}",

@@ -3,7 +3,7 @@ import io
 
 from rich.console import Console
 
-from experiments import progress
+from experiments.common import progress
 from php_jax.training.config import TrainConfig
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from experiments import pictures, run_report, run_view
+from experiments.common import pictures, run_report, run_view
 from php_jax.analysis import decoding
 from php_jax.data import agreement, demo_files
 from php_jax.demos import UNKNOWN

@@ -10,7 +10,7 @@ import pytest
 from absl import flags
 from flax import nnx
 
-from experiments import config_flags
+from experiments.common import config_flags
 from php_jax.envs import tasks
 from php_jax.training import config as config_lib, networks
 

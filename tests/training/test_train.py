@@ -213,7 +213,7 @@ def test_nanocraft_run_solves_held_out_episodes_and_evaluate_loads_it(tmp_path):
   assert results["commit"] is None or len(results["commit"].removesuffix("+dirty")) == 40  # provenance
   assert results["versions"]["jax"] == jax.__version__ and results["versions"]["platform"] == jax.devices()[0].platform
   assert (workdir / "metrics.jsonl").read_text().count("\n") > 10
-  proc = subprocess.run([sys.executable, "-m", "experiments.segmentation", f"--run={workdir}"], capture_output=True,
+  proc = subprocess.run([sys.executable, "-m", "experiments.segment_errors", f"--run={workdir}"], capture_output=True,
                         text=True, timeout=300)
   assert proc.returncode == 0, proc.stderr[-3000:]
   assert [json.loads(line)["level"] for line in proc.stdout.splitlines()] == [2, 1]  # no weak demonstration

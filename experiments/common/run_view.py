@@ -11,7 +11,7 @@ from typing import Callable
 
 import numpy as np
 
-from experiments import pictures
+from experiments.common import pictures
 from php_jax.analysis import decoding
 from php_jax.data import agreement, call_tree, demo_files
 from php_jax.demos import UNKNOWN, Demonstration

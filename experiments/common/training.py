@@ -8,8 +8,8 @@ from typing import Callable
 import jax
 from absl import flags
 
-from experiments import cli, progress, run_report
-from experiments.config_flags import UsageError
+from experiments.common import cli, progress, run_report
+from experiments.common.config_flags import UsageError
 from php_jax.training import checkpoint, run
 
 WORKDIR = flags.DEFINE_string("workdir", None, "Directory for results.json, metrics.jsonl and the model.")

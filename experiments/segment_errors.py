@@ -1,6 +1,6 @@
 r"""Where a trained run's decoded hierarchy differs from the supervisor's, on its weak demonstrations.
 
-  python -m experiments.segmentation --run=runs/nc_sweep/num_demos=64,num_strong=8,seed=1 --level=1
+  python -m experiments.segment_errors --run=runs/nc_sweep/num_demos=64,num_strong=8,seed=1 --level=1
 
 Rebuilds the run's training demonstrations from its results.json and takes each level's segmentation of
 them: for a level-wise run the views decoded during training (in its checkpoint), for a joint run
@@ -19,7 +19,7 @@ import os
 import numpy as np
 from absl import app, flags
 
-from experiments import cli
+from experiments.common import cli
 from php_jax.analysis import decoding
 from php_jax.data import agreement, views
 from php_jax.envs import datasets, tasks

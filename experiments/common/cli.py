@@ -13,7 +13,7 @@ from typing import NoReturn
 
 from absl import flags, logging
 
-from experiments.flag_groups import GROUPS
+from experiments.common.flag_groups import GROUPS
 from php_jax.data import files
 from php_jax.training import checkpoint
 

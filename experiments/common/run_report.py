@@ -10,7 +10,7 @@ import os
 import jax
 import numpy as np
 
-from experiments import pictures, run_view
+from experiments.common import pictures, run_view
 from php_jax.data import files, json_lines
 from php_jax.demos import Demonstration
 from php_jax.model import PHPHierarchy
