@@ -130,7 +130,7 @@ def main(steps: int = 300, seed: int = 0, call_penalty: float = 0.5, restarts: i
   # Decode every demonstration with Viterbi (the penalty is a prior: it takes part in decoding too).
   decode = jax.vmap(lambda obs, act, n: php_jax.viterbi(*lattice_inputs(params, obs, act, call_penalty), length=n))
   path = decode(*data)
-  procs, taus = np.asarray(path.procedure), np.asarray(path.counter)
+  procs, taus = np.asarray(path.procedures), np.asarray(path.counters)
   n = int(data[2][0])
   print("demonstration 0, its first 12 steps:")
   print("  actions:           ", np.asarray(data[1][0, :12]).tolist())

@@ -27,10 +27,10 @@ def main():
 
   best = php_jax.top_k(3, *p)
   for i in range(3):
-    print(f"top_k #{i}: procedures {best.procedure[i]}, counters {best.counter[i]}, log P = {best.log_prob[i]:.4f}")
+    print(f"top_k #{i}: procedures {best.procedures[i]}, counters {best.counters[i]}, log P = {best.log_prob[i]:.4f}")
 
   cold = php_jax.sample_posterior(jax.random.key(2), *p, temperature=0.3)
-  print(f"sample at temperature 0.3: procedures {cold.procedure}, counters {cold.counter}")
+  print(f"sample at temperature 0.3: procedures {cold.procedures}, counters {cold.counters}")
 
   weights = jnp.arange(p.log_op.size, dtype=p.log_op.dtype).reshape(p.log_op.shape)
   grad = jax.grad(lambda op: jnp.sum(weights * php_jax.differentiable_sample(

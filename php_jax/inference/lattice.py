@@ -25,8 +25,9 @@ One dialect for both lattices (this one and php_jax.inference.stack_lattice's wh
 takes its lattice as one inputs object, LatticeInputs here (f(inputs, ...) is f(log_root, log_op, log_stop,
 log_cont, length, ...): the arguments after it fill the function's other parameters in order), and an
 annotation as `procedures`, `counters` (int, −1 = unknown; [T] here, [T, d] for the stack; pass them by
-keyword); results name the frame marginals `marginals`, a path's frames `procedures`, `counters` and its
-log P(ζ, ξ) `log_prob` (here aliases of v, procedure, counter). `php_jax.TwoLevelLattice(inputs, procedures,
+keyword); results name the frame marginals `marginals` (here the posterior's field `v`, the paper's name, which
+`marginals` reads), a path's frames `procedures`, `counters` and its log P(ζ, ξ) `log_prob`.
+`php_jax.TwoLevelLattice(inputs, procedures,
 counters)` (php_jax.inference.lattice_ops) answers the same queries as `php_jax.StackLattice`.
 
 Refused, with a ValueError naming the argument: an input that is not a float array (None, integer and
@@ -222,7 +223,7 @@ def viterbi(log_root, log_op, log_stop, log_cont, length=None, procedures=None, 
     log_root [T, K], log_op, log_stop, log_cont [T, K, C], length [], procedures, counters [T]: as
       forward_backward (or one LatticeInputs for the first five).
   Returns:
-    LatticePath(procedure [T], counter [T], log_prob []).
+    LatticePath(procedures [T], counters [T], log_prob []).
   """
   _, _, _, length = check_inputs(log_root, log_op, log_stop, log_cont, length)
   log_op = annotated_log_op(log_op, procedures, counters, length)
@@ -260,7 +261,7 @@ def sample_posterior(key, log_root, log_op, log_stop, log_cont, length=None, tem
     log_root [T, K], log_op, log_stop, log_cont [T, K, C], length [], procedures, counters [T]: as
       forward_backward (or one LatticeInputs for the five; pass temperature and the annotation by keyword).
   Returns:
-    LatticePath(procedure [T], counter [T], log_prob []): log_prob is log P(ζ, ξ) under the untempered model.
+    LatticePath(procedures [T], counters [T], log_prob []): log_prob is log P(ζ, ξ) under the untempered model.
   Example:
     >>> path = sample_posterior(jax.random.key(0), log_root, log_op, log_stop, log_cont, 5, temperature=0.5)
   """
@@ -290,7 +291,7 @@ def _sample_posterior(key, log_root, log_op, log_stop, log_cont, length, tempera
                            reverse=True)
   path = _path_from_states(states, capacity, jnp.zeros(()))
   return path._replace(log_prob=_complete_log_likelihood(
-      log_root, log_op, log_stop, log_cont, path.procedure, path.counter, length))
+      log_root, log_op, log_stop, log_cont, path.procedures, path.counters, length))
 
 
 def max_marginal_path(posterior: LatticePosterior, length=None) -> LatticePath:
@@ -300,7 +301,7 @@ def max_marginal_path(posterior: LatticePosterior, length=None) -> LatticePath:
     posterior: forward_backward's result (v [T, K, C]). length: [] int in 1..T, default T (as
       forward_backward's: a traced one is not range-checked).
   Returns:
-    LatticePath(procedure [T], counter [T], log_prob [] NaN).
+    LatticePath(procedures [T], counters [T], log_prob [] NaN).
   """
   if not isinstance(posterior, LatticePosterior):
     raise ValueError(f"posterior must be a LatticePosterior (forward_backward's result); got {described(posterior)}")

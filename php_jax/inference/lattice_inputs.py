@@ -13,6 +13,7 @@ import dataclasses
 import functools
 import inspect
 import operator
+import warnings
 from typing import Any, NamedTuple
 
 import jax
@@ -55,26 +56,30 @@ class LatticePosterior(NamedTuple):
 
 
 class LatticePath(NamedTuple):
-  """One latent path through the lattice.
+  """One latent path through the lattice, named as the stack lattice's paths and as an annotation:
+  `forward_backward(inputs, procedures=path.procedures, counters=path.counters)`.
 
   Attributes:
-    procedure: [T] int32 h_t, NO_FRAME on padding. Also `procedures`, the stack lattice's name.
-    counter: [T] int32 τ_t, NO_FRAME on padding. Also `counters`.
+    procedures: [T] int32 h_t, NO_FRAME on padding.
+    counters: [T] int32 τ_t, NO_FRAME on padding.
     log_prob: [] log P(ζ, ξ) of the path (its complete-data log-likelihood).
   """
-  procedure: jax.Array
-  counter: jax.Array
+  procedures: jax.Array
+  counters: jax.Array
   log_prob: jax.Array
 
   @property
-  def procedures(self) -> jax.Array:
-    """[T] procedure, named as an annotation: `forward_backward(inputs, path.procedures, path.counters)`."""
-    return self.procedure
+  def procedure(self) -> jax.Array:
+    """Deprecated: `procedures`, the name both lattices use."""
+    warnings.warn("LatticePath.procedure is deprecated; use LatticePath.procedures", DeprecationWarning,
+                  stacklevel=2)
+    return self.procedures
 
   @property
-  def counters(self) -> jax.Array:
-    """[T] counter."""
-    return self.counter
+  def counter(self) -> jax.Array:
+    """Deprecated: `counters`, the name both lattices use."""
+    warnings.warn("LatticePath.counter is deprecated; use LatticePath.counters", DeprecationWarning, stacklevel=2)
+    return self.counters
 
 
 def accepts_inputs(fn):

@@ -34,7 +34,7 @@ def top_k(k: int, log_root, log_op, log_stop, log_cont, length=None, procedures=
     log_root [T, K], log_op, log_stop, log_cont [T, K, C], length [], procedures, counters [T]: as
       forward_backward (or one LatticeInputs for the five).
   Returns:
-    LatticePath(procedure [k, T], counter [k, T], log_prob [k]), log_prob descending; entry 0 is viterbi's.
+    LatticePath(procedures [k, T], counters [k, T], log_prob [k]), log_prob descending; entry 0 is viterbi's.
   Example:
     >>> best = top_k(3, log_root, log_op, log_stop, log_cont, length=5)
     >>> best.log_prob  # [3] log P(ζ, ξ) of the three most likely paths
@@ -202,8 +202,8 @@ def frame_indicators(path: LatticePath, shape):
   """[T, K, C] with 1 at each step's (h_t, τ_t) of `path` (procedure, counter [T]) and zeros elsewhere and on
   padding; shape: (T, K, C)."""
   num_steps, num_procs, capacity = shape
-  valid = path.procedure != NO_FRAME
-  cells = jnp.where(valid, path.procedure * capacity + path.counter, 0)
+  valid = path.procedures != NO_FRAME
+  cells = jnp.where(valid, path.procedures * capacity + path.counters, 0)
   return (jax.nn.one_hot(cells, num_procs * capacity) * valid[:, None]).reshape(shape)
 
 

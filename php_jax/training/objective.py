@@ -46,7 +46,8 @@ class LevelModel(nnx.Module):
 def lattice_inputs(model: LevelModel, view: views.LevelView, capacity: int, used_capacity=None):
   """One view (a LevelView without its batch axis: observations [T+1, D], actions [T, F], procedures and
   counters [T] (UNKNOWN = −1), length []) → the lattice's inputs, annotated where procedures/counters are
-  known: (log_root [T, K], log_op, log_stop, log_cont [T, K, C]). With used_capacity [] int (≤ capacity),
+  known: LatticeInputs(log_root [T, K], log_op, log_stop, log_cont [T, K, C], length), the one object every
+  E-step function takes. With used_capacity [] int (≤ capacity),
   counters ≥ used_capacity are masked out: the same lattice as with capacity = used_capacity, padded (seeds
   of different capacities trained as one program, `levelwise.train_seeds`).
   """
@@ -63,15 +64,15 @@ def lattice_inputs(model: LevelModel, view: views.LevelView, capacity: int, used
     log_stop = lattice.top_level(log_stop, length)
   else:
     log_root = model.root(observations[:-1]) - model.call_penalty
-  return log_root, lattice.annotate(log_op, view.procedures, view.counters), log_stop, log_cont
+  return lattice.LatticeInputs(log_root, lattice.annotate(log_op, view.procedures, view.counters), log_stop,
+                               log_cont, length)
 
 
 def view_log_likelihoods(model: LevelModel, batch: views.LevelView, capacity: int,
                          used_capacity=None) -> jax.Array:
   """[B] log P(ζ, ξ) for annotated views, log P(ξ) for the others."""
   def one(view):
-    return lattice.forward_backward(*lattice_inputs(model, view, capacity, used_capacity),
-                                    length=view.length).log_likelihood
+    return lattice.forward_backward(lattice_inputs(model, view, capacity, used_capacity)).log_likelihood
   return jax.vmap(one)(batch)
 
 
@@ -178,13 +179,13 @@ def decode(model: LevelModel, view: views.LevelView, capacity: int, method: str,
   batch = views.device_view(view)
 
   def one(view, k):
-    inputs, n = lattice_inputs(model, view, capacity), view.length
+    inputs = lattice_inputs(model, view, capacity)
     if method == "viterbi":
-      return lattice.viterbi(*inputs, length=n)
+      return lattice.viterbi(inputs)
     if method == "sample":
-      return lattice.sample_posterior(k, *inputs, length=n)
-    return lattice.max_marginal_path(lattice.forward_backward(*inputs, length=n), length=n)
+      return lattice.sample_posterior(k, inputs)
+    return lattice.max_marginal_path(lattice.forward_backward(inputs), length=inputs.length)
 
   keys = jax.random.split(key, view.length.shape[0])
   paths = jax.jit(jax.vmap(one))(batch, keys)
-  return np.asarray(paths.procedure), np.asarray(paths.counter)
+  return np.asarray(paths.procedures), np.asarray(paths.counters)

@@ -68,8 +68,8 @@ def test_viterbi_matches_brute_force_argmax(shape):
   best = paths[int(np.argmax(log_probs))]
   with jax.enable_x64(True):
     path = php_jax.viterbi(*_jnp(inputs, jnp.float64), length=length)
-  assert [(int(h), int(t)) for h, t in zip(path.procedure[:length], path.counter[:length])] == best
-  assert np.all(np.asarray(path.procedure[length:]) == php_jax.NO_FRAME)
+  assert [(int(h), int(t)) for h, t in zip(path.procedures[:length], path.counters[:length])] == best
+  assert np.all(np.asarray(path.procedures[length:]) == php_jax.NO_FRAME)
   np.testing.assert_allclose(path.log_prob, log_probs.max(), atol=1e-8)
 
 
@@ -84,7 +84,7 @@ def test_posterior_samples_match_enumerated_posterior():
       keys, *_jnp(inputs, jnp.float32), length)
   index = {tuple(p): i for i, p in enumerate(paths)}
   counts = np.zeros(len(paths))
-  procs, taus = np.asarray(samples.procedure), np.asarray(samples.counter)
+  procs, taus = np.asarray(samples.procedures), np.asarray(samples.counters)
   for proc, tau in zip(procs, taus):
     counts[index[tuple(zip(proc[:length].tolist(), tau[:length].tolist()))]] += 1
   assert np.all(procs[:, length:] == php_jax.NO_FRAME)
@@ -176,9 +176,9 @@ def test_max_marginal_path_is_per_step_argmax_of_v():
   post = php_jax.forward_backward(*_jnp(inputs, jnp.float32), length=5)
   path = php_jax.max_marginal_path(post, length=5)
   flat = v[:5].reshape(5, -1).argmax(axis=1)
-  np.testing.assert_array_equal(path.procedure[:5], flat // 3)
-  np.testing.assert_array_equal(path.counter[:5], flat % 3)
-  assert path.procedure[5] == php_jax.NO_FRAME
+  np.testing.assert_array_equal(path.procedures[:5], flat // 3)
+  np.testing.assert_array_equal(path.counters[:5], flat % 3)
+  assert path.procedures[5] == php_jax.NO_FRAME
 
 
 @pytest.mark.parametrize("shape", [(5, 2, 3, 5), (6, 3, 2, 4), (4, 1, 4, 4)])

@@ -46,14 +46,23 @@ def _enumerated_log_probs(inputs, paths, length):
 
 
 def _as_path(path_result, i, length):
-  procedure, counter = np.asarray(path_result.procedure), np.asarray(path_result.counter)
+  procedure, counter = np.asarray(path_result.procedures), np.asarray(path_result.counters)
   return list(zip(procedure[i, :length].tolist(), counter[i, :length].tolist()))
 
 
 def _as_paths(path_result, length):
   """Every path of a batched LatticePath as a tuple of (h, τ), read once into numpy."""
-  procedure, counter = np.asarray(path_result.procedure), np.asarray(path_result.counter)
+  procedure, counter = np.asarray(path_result.procedures), np.asarray(path_result.counters)
   return [tuple(zip(h[:length].tolist(), c[:length].tolist())) for h, c in zip(procedure, counter)]
+
+
+def test_a_paths_old_field_names_still_read_with_a_deprecation_warning():
+  path = php_jax.viterbi(php_jax.LatticeInputs(*_jnp(_lattice(0, (5, 2, 3, 4))), length=4))
+  with pytest.warns(DeprecationWarning, match="use LatticePath.procedures"):
+    np.testing.assert_array_equal(path.procedure, path.procedures)
+  with pytest.warns(DeprecationWarning, match="use LatticePath.counters"):
+    np.testing.assert_array_equal(path.counter, path.counters)
+  assert php_jax.LatticePath._fields == ("procedures", "counters", "log_prob")
 
 
 def test_lattice_inputs_unpack_into_every_function():
@@ -61,7 +70,7 @@ def test_lattice_inputs_unpack_into_every_function():
   inputs = php_jax.LatticeInputs(*_jnp(_lattice(0, shape)), length=4)
   direct = php_jax.forward_backward(*inputs[:4], length=4)
   np.testing.assert_array_equal(php_jax.forward_backward(*inputs).v, direct.v)
-  np.testing.assert_array_equal(php_jax.viterbi(*inputs).procedure, php_jax.viterbi(*inputs[:4], 4).procedure)
+  np.testing.assert_array_equal(php_jax.viterbi(*inputs).procedures, php_jax.viterbi(*inputs[:4], 4).procedures)
   assert php_jax.LatticeInputs(*inputs[:4]).length is None  # length defaults to T
 
 
@@ -75,15 +84,15 @@ def test_top_k_matches_enumeration(shape, mask_prob):
   possible = int(np.isfinite(log_probs).sum())
   k = possible + 3  # more than there are: the rest is −inf and NO_FRAME
   best = php_jax.top_k(k, *_jnp(inputs), length)
-  assert best.procedure.shape == (k, shape[0]) and best.log_prob.shape == (k,)
+  assert best.procedures.shape == (k, shape[0]) and best.log_prob.shape == (k,)
   np.testing.assert_allclose(best.log_prob[:possible], log_probs[order[:possible]], atol=1e-6)
   assert [_as_path(best, i, length) for i in range(possible)] == [paths[j] for j in order[:possible]]
   assert np.all(np.isneginf(best.log_prob[possible:]))
-  assert np.all(np.asarray(best.procedure[possible:]) == php_jax.NO_FRAME)
-  assert np.all(np.asarray(best.counter[:, length:]) == php_jax.NO_FRAME)
+  assert np.all(np.asarray(best.procedures[possible:]) == php_jax.NO_FRAME)
+  assert np.all(np.asarray(best.counters[:, length:]) == php_jax.NO_FRAME)
   viterbi = php_jax.viterbi(*_jnp(inputs), length)
   if possible:
-    np.testing.assert_array_equal(best.procedure[0], viterbi.procedure)
+    np.testing.assert_array_equal(best.procedures[0], viterbi.procedures)
 
 
 def test_top_k_with_ties_returns_distinct_paths_deterministically():
@@ -95,8 +104,8 @@ def test_top_k_with_ties_returns_distinct_paths_deterministically():
   assert sorted(got) == sorted(tuple(p) for p in paths)  # every path once
   np.testing.assert_array_equal(best.log_prob, 0.0)
   again = php_jax.top_k(len(paths), *_jnp(zeros))
-  np.testing.assert_array_equal(again.procedure, best.procedure)
-  np.testing.assert_array_equal(again.counter, best.counter)
+  np.testing.assert_array_equal(again.procedures, best.procedures)
+  np.testing.assert_array_equal(again.counters, best.counters)
 
 
 def test_top_k_under_vmap_with_different_lengths():
@@ -108,7 +117,7 @@ def test_top_k_under_vmap_with_different_lengths():
   for i, b in enumerate(batch):
     single = php_jax.top_k(4, *_jnp(b), int(lengths[i]))
     np.testing.assert_allclose(out.log_prob[i], single.log_prob, atol=1e-9)
-    np.testing.assert_array_equal(out.procedure[i], single.procedure)
+    np.testing.assert_array_equal(out.procedures[i], single.procedures)
 
 
 @pytest.mark.parametrize("shape", CASES[:4])
@@ -446,7 +455,7 @@ def test_annotation_arguments_are_annotate_and_results_speak_the_stack_names():
       np.testing.assert_array_equal(g, w)
   assert np.isfinite(pairs[0][0].log_likelihood)
   post, path = php_jax.forward_backward(inputs), php_jax.viterbi(inputs)
-  assert post.marginals is post.v and path.procedures is path.procedure and path.counters is path.counter
+  assert post.marginals is post.v and path.procedures is path.procedures and path.counters is path.counters
   np.testing.assert_allclose(php_jax.forward_backward(inputs, path.procedures, path.counters).log_likelihood,
                              path.log_prob, atol=1e-12)
 

@@ -241,8 +241,8 @@ def test_two_levels_equal_the_lattice():
     want_path, got_path = php_jax.viterbi(*lattice, length=length), sl.viterbi(args)
   np.testing.assert_allclose(got.log_likelihood, want.log_likelihood, atol=1e-6)
   np.testing.assert_allclose(got.marginals[1], want.v, atol=1e-6)
-  np.testing.assert_array_equal(got_path.procedures[:, 1], want_path.procedure)
-  np.testing.assert_array_equal(got_path.counters[:, 1], want_path.counter)
+  np.testing.assert_array_equal(got_path.procedures[:, 1], want_path.procedures)
+  np.testing.assert_array_equal(got_path.counters[:, 1], want_path.counters)
   np.testing.assert_allclose(got_path.log_prob, want_path.log_prob, atol=1e-6)
 
 

@@ -63,7 +63,7 @@ def test_level_loss_is_the_complete_data_log_likelihood_for_strong_views():
     none = -jnp.ones_like(batch.procedures[b])
     one = jax.tree.map(lambda x: x[b], batch)._replace(procedures=none, counters=none)
     inputs = lattice_inputs(model, one)
-    direct.append(lattice.complete_log_likelihood(*inputs, batch.procedures[b], batch.counters[b], batch.length[b]))
+    direct.append(lattice.complete_log_likelihood(inputs, batch.procedures[b], batch.counters[b]))
   np.testing.assert_allclose(loss, -np.mean(direct), rtol=1e-5)
 
 
@@ -335,16 +335,16 @@ def test_call_penalty_is_a_prior_on_the_number_of_calls():
     penalised = objective.lattice_inputs(objective.LevelModel(php, root, penalty), one, capacity)
 
     def log_likelihood(cost):
-      return lattice.forward_backward(free[0] - cost, *free[1:], length=n).log_likelihood
+      return lattice.forward_backward(free._replace(log_root=free.log_root - cost)).log_likelihood
 
     if view.strong[b]:  # one known path: its log-likelihood drops by the penalty once per call
       calls = np.sum(np.asarray(one.counters[:n]) == 0)
       np.testing.assert_allclose(log_likelihood(penalty), log_likelihood(0.0) - penalty * calls, rtol=1e-5)
     else:  # d/dλ log Σ_ζ P(ζ, ξ) e^(−λ·calls(ζ)) = −E[calls | ξ] under the penalised posterior
-      posterior = lattice.forward_backward(*penalised, length=n)
+      posterior = lattice.forward_backward(penalised)
       expected_calls = jnp.sum(posterior.v[:, :, 0])
       np.testing.assert_allclose(jax.grad(log_likelihood)(penalty), -expected_calls, rtol=1e-4)
-      unpenalised_calls = jnp.sum(lattice.forward_backward(*free, length=n).v[:, :, 0])
+      unpenalised_calls = jnp.sum(lattice.forward_backward(free).v[:, :, 0])
       assert expected_calls <= unpenalised_calls + 1e-4
   with pytest.raises(ValueError, match="call_penalty"):
     levelwise.train_hierarchy(NANOCRAFT.spec, demos, dataclasses.replace(config, call_penalty=(0.0, 1.0)))
