@@ -27,8 +27,8 @@ log_cont, length, ...): the arguments after it fill the function's other paramet
 annotation as `procedures`, `counters` (int, −1 = unknown; [T] here, [T, d] for the stack; pass them by
 keyword); results name the frame marginals `marginals` (here the posterior's field `v`, the paper's name, which
 `marginals` reads), a path's frames `procedures`, `counters` and its log P(ζ, ξ) `log_prob`.
-`php_jax.TwoLevelLattice(inputs, procedures,
-counters)` (php_jax.inference.lattice_ops) answers the same queries as `php_jax.StackLattice`.
+`php_jax.TwoLevelLattice(inputs, procedures, counters)` (php_jax.inference.lattice_ops) answers the same queries
+as `php_jax.StackLattice`.
 
 Refused, with a ValueError naming the argument: an input that is not a float array (None, integer and
 boolean arrays; nested lists of floats are taken), shapes that do not match, a length that is not an integer
