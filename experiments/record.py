@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import os
 
+import gymnasium
 from absl import app, flags
 
 from experiments.common import cli, environment_flags, progress
@@ -59,6 +60,8 @@ def main(argv):
     annotate = _annotate()
     spec = demo_files.read_hierarchy(_HIERARCHY.value).spec if _HIERARCHY.value else None
     env = gym.env_maker(environment_flags.ENV.value)()
+    if environment_flags.MAX_STEPS.value is not None:
+      env = gymnasium.wrappers.TimeLimit(env, environment_flags.MAX_STEPS.value)
     expert = gym.expert_maker(_EXPERT.value)(env)
     if spec is not None and spec.action_sizes != gym.action_sizes(env.action_space):
       raise ValueError(f"--hierarchy={_HIERARCHY.value} has action factor sizes {list(spec.action_sizes)}; "
@@ -71,8 +74,7 @@ def main(argv):
         on_episode()
 
       lines = gym.record(env, expert, _EPISODES.value, environment_flags.SEED.value,
-                         _ANNOTATED.value if annotate is None else annotate, spec, environment_flags.MAX_STEPS.value,
-                         ended)
+                         _ANNOTATED.value if annotate is None else annotate, spec, ended)
   except (OSError, ValueError) as e:  # GymError and DemoFileError are ValueErrors
     cli.fail(str(e))
   with cli.output_errors("out", _OUT.value):

@@ -3,6 +3,7 @@ command refused at its flags spends its seconds importing JAX on one core; the n
 from __future__ import annotations
 
 import concurrent.futures
+import json
 import os
 import subprocess
 import sys
@@ -24,3 +25,20 @@ def assert_refused(cases: Sequence[tuple[Sequence[str], str]], timeout: float = 
   for (args, message), proc in zip(cases, procs):
     assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, (
         args, proc.stderr)
+  _record(cases, procs)
+
+
+RECORD_REFUSALS = "PHP_JAX_RECORD_REFUSALS"  # a file: each refusal assert_refused checks is appended to it
+
+
+def _record(cases, procs) -> None:
+  """Appends {"test", "command", "refusal"} per case to the file RECORD_REFUSALS names, if it names one: the
+  rows of docs/bad-inputs.md's generated table (`python docs/refusals.py FILE` writes it)."""
+  path = os.environ.get(RECORD_REFUSALS)
+  if not path:
+    return
+  test = os.environ.get("PYTEST_CURRENT_TEST", "").split(" ")[0]
+  with open(path, "a", encoding="utf-8") as f:
+    for (args, _), proc in zip(cases, procs):
+      f.write(json.dumps({"test": test, "command": ["python", "-m", *map(str, args)],
+                          "refusal": proc.stderr.strip()}) + "\n")

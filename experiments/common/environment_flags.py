@@ -15,7 +15,7 @@ MAX_STEPS = flags.DEFINE_integer("max_steps", None, "Step limit per episode. Def
 SUCCESS = flags.DEFINE_string(
     "success", None, "What counts as a successful episode: info:KEY (the last step's info[KEY] is true), "
     "return>X or return>=X (the episode's return), reward>X or reward>=X (the last step's reward; BabyAI: "
-    "reward>0), or terminated (the environment ended it, not its time limit). Default: info:is_success where the "
+    "reward>0), or terminated (it reached a terminal state of the environment, not just its time limit). Default: info:is_success where the "
     "environment reports it; otherwise success is unknown and not counted.")
 
 

@@ -7,7 +7,8 @@ the text the `--success` flag takes:
   info:KEY     the info the environment gave with the episode's last step holds a true KEY
   return>X     the episode's return is above X (also return>=X)
   reward>X     the last step's reward is above X (also reward>=X); BabyAI's own rule is reward>0
-  terminated   the environment terminated the episode (not truncated it, and the policy did not end it)
+  terminated   the episode reached a terminal state of the environment (Gymnasium's `terminated`, also where its
+               time limit truncated the same step), not one only truncated or ended by the policy
 
 Without a rule, an environment that reports `info["is_success"]` at the end of any episode is judged by
 info:is_success; for any other, success is unknown (None), never guessed.
@@ -82,7 +83,7 @@ def judge(rule: SuccessRule | None, ending: Ending) -> bool | None:
   if rule.kind == "info":
     return bool(ending.info.get(rule.key, False))
   if rule.kind == "terminated":
-    return ending.terminated and not ending.truncated
+    return ending.terminated
   value = ending.episode_return if rule.kind == "return" else ending.last_reward
   compare = operator.ge if rule.inclusive else operator.gt
   return value is not None and bool(compare(value, rule.threshold))

@@ -228,6 +228,15 @@ class FixedWalker:
     return 2 if self.t % 2 else 1
 
 
+def test_a_step_limit_is_the_environments_own_time_limit():
+  ended = []
+  lines = gym.record(gymnasium.wrappers.TimeLimit(make_corridor(), 2), CorridorExpert(None), episodes=6, seed=0,
+                     on_episode=ended.append)
+  assert all(len(line["actions"]) <= 2 for line in lines) and any(len(line["actions"]) == 2 for line in lines)
+  assert [e.truncated for e in ended] == [len(line["actions"]) == 2 for line in lines]
+  assert any(e.terminated and e.truncated for e in ended)  # the goal reached on the limit's step: both, as Gymnasium says
+
+
 def test_record_takes_any_sequence_for_a_stack_and_names_a_malformed_one():
   lists = gym.record(make_corridor(), CorridorExpert(None), episodes=3, seed=2, annotate=3, spec=SPEC)
   assert gym.record(make_corridor(), TupleExpert(None), episodes=3, seed=2, annotate=3, spec=SPEC) == lists

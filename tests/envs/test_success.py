@@ -35,7 +35,8 @@ def test_each_rule_parses_prints_back_and_judges_what_it_says():
       ("reward>0", "reward>0", _ending(), False),  # no step, no reward
       ("reward>=1e-3", "reward>=0.001", _ending(0.0, 0.001), True),
       ("terminated", "terminated", _ending(terminated=True), True),
-      ("terminated", "terminated", _ending(terminated=True, truncated=True), False),
+      ("terminated", "terminated", _ending(terminated=True, truncated=True), True),  # at the time limit's last step
+      ("terminated", "terminated", _ending(truncated=True), False),
       ("terminated", "terminated", _ending(), False),  # ended by the policy
   ]
   for text, printed, ending, expected in cases:
@@ -91,7 +92,7 @@ def test_act_gives_the_true_rate_with_the_rule_and_unknown_without_it(make_env, 
   assert [{k: v for k, v in e.items() if k != "success"} for e in judged] == [
       {k: v for k, v in e.items() if k != "success"} for e in unknown]
   terminated = gym.act(policy, gym.vector_env(make_env, 3), 60, seed=1, success_rule=success.parse("terminated"))
-  assert [e["success"] for e in terminated] == [e["terminated"] and not e["truncated"] for e in judged]
+  assert [e["success"] for e in terminated] == [e["terminated"] for e in judged]
   # the episodes hold failures that end the episode: counting every ending a success would be wrong here
   assert any(e["terminated"] and not truth(e) for e in judged), judged
 

@@ -66,23 +66,24 @@ def _stack_spec(stacks: list, sizes: tuple[int, ...], episode: int) -> Hierarchy
 
 
 def record(env: gymnasium.Env, expert, episodes: int, seed: int, annotate: int | Collection[int] = 0,
-           spec: HierarchySpec | None = None, max_steps: int | None = None,
-           on_episode: Callable[[success.Ending], None] | None = None) -> list[dict]:
+           spec: HierarchySpec | None = None, on_episode: Callable[[success.Ending], None] | None = None
+           ) -> list[dict]:
   """The expert's episodes as demonstration lines (dicts in the demonstration file's format).
 
   annotate: how many of the first episodes keep the stacks the expert gives, or which ones (their 0-based
   numbers, e.g. those `experiments.suggest` chose); the others are actions only. Every line is checked as the
   demonstration file reader checks it (against spec where given: procedure ids in range), so the stacks
   follow the call-stack rules. Raises GymError naming the episode and step of the first problem. An episode
-  ends when the environment terminates or truncates it, or after max_steps actions (default: the
-  environment's time limit, else DEFAULT_MAX_STEPS; then it counts as truncated). on_episode(ending) is
+  ends when the environment terminates or truncates it (wrap it in `gymnasium.wrappers.TimeLimit` for a step
+  limit of your own), or, where it has no time limit, after DEFAULT_MAX_STEPS actions (then it counts as
+  truncated). on_episode(ending) is
   called as each episode ends, with how it ended (`success.Ending`: for a progress display and for judging
   the expert's success).
   """
   on_episode = on_episode or (lambda _: None)
   check_observation_space(env.observation_space)
   sizes = action_sizes(env.action_space)
-  limit = max_steps_of(env, max_steps)
+  limit = max_steps_of(env, None)
   keep = set(range(annotate) if isinstance(annotate, int) else annotate)
   lines = []
   for episode in range(episodes):
