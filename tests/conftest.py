@@ -3,13 +3,18 @@ identical computations the training tests compile again (each training run jits 
 compiled by XLA once per run, and removed at the end of the run; with pytest-xdist (`-n 2`), the workers
 share the cache of the process that started them. XLA without LLVM's optimizations. Also puts
 the checkout on the PYTHONPATH of the commands the tests run: experiments/ is not installed, and
-`python -m experiments.X` must find it whatever the working directory."""
+`python -m experiments.X` must find it whatever the working directory. With PHP_JAX_RECORD_REFUSALS set,
+every refusal a test's command gives is recorded (`tests.processes.record_refusal`)."""
 import os
 import pathlib
 import shutil
+import subprocess
 import tempfile
 
 import jax
+import pytest
+
+from tests import processes
 
 ROOT = str(pathlib.Path(__file__).resolve().parents[1])
 os.environ["PYTHONPATH"] = os.pathsep.join([ROOT, *filter(None, [os.environ.get("PYTHONPATH")])])
@@ -34,3 +39,18 @@ def pytest_sessionfinish(session, exitstatus):
   """Leaves nothing behind in the temporary directory: the cache goes with the run."""
   if not WORKER:
     shutil.rmtree(CACHE, ignore_errors=True)
+
+
+@pytest.fixture(autouse=True)
+def _record_refusals(monkeypatch):
+  """With PHP_JAX_RECORD_REFUSALS set, subprocess.run records each command's refusal as it returns."""
+  if not os.environ.get(processes.RECORD_REFUSALS):
+    return
+  run = subprocess.run
+
+  def recorded(command, *args, **kwargs):
+    proc = run(command, *args, **kwargs)
+    processes.record_refusal(command, proc)
+    return proc
+
+  monkeypatch.setattr(subprocess, "run", recorded)

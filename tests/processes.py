@@ -25,20 +25,22 @@ def assert_refused(cases: Sequence[tuple[Sequence[str], str]], timeout: float = 
   for (args, message), proc in zip(cases, procs):
     assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, (
         args, proc.stderr)
-  _record(cases, procs)
 
 
-RECORD_REFUSALS = "PHP_JAX_RECORD_REFUSALS"  # a file: each refusal assert_refused checks is appended to it
+RECORD_REFUSALS = "PHP_JAX_RECORD_REFUSALS"  # a file: every refusal a test's command gives is appended to it
 
 
-def _record(cases, procs) -> None:
-  """Appends {"test", "command", "refusal"} per case to the file RECORD_REFUSALS names, if it names one: the
-  rows of docs/bad-inputs.md's generated table (`python docs/refusals.py FILE` writes it)."""
+def record_refusal(command, proc: subprocess.CompletedProcess) -> None:
+  """Appends {"test", "command", "refusal"} to the file RECORD_REFUSALS names, if it names one and the command
+  was `python -m experiments.X` refused as every command refuses (exit status 2, one line on stderr): the rows of
+  docs/bad-inputs.md's generated table (`python docs/refusals.py FILE` writes it). tests/conftest.py calls it
+  for every subprocess.run of a test."""
   path = os.environ.get(RECORD_REFUSALS)
-  if not path:
+  command = [str(part) for part in command] if isinstance(command, (list, tuple)) else []
+  stderr = proc.stderr if isinstance(proc.stderr, str) else ""
+  if not (path and proc.returncode == 2 and len(command) > 2 and command[1] == "-m"
+          and command[2].startswith("experiments.") and len(stderr.strip().splitlines()) == 1):
     return
   test = os.environ.get("PYTEST_CURRENT_TEST", "").split(" ")[0]
   with open(path, "a", encoding="utf-8") as f:
-    for (args, _), proc in zip(cases, procs):
-      f.write(json.dumps({"test": test, "command": ["python", "-m", *map(str, args)],
-                          "refusal": proc.stderr.strip()}) + "\n")
+    f.write(json.dumps({"test": test, "command": ["python", *command[1:]], "refusal": stderr.strip()}) + "\n")
