@@ -17,21 +17,25 @@ import sys
 
 PAGE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "bad-inputs.md")
 _TABLE = re.compile(r"^<!-- refusals: generated -->\n.*?^<!-- end of refusals -->$", re.M | re.S)
-_TEMPORARY = re.compile(r"/tmp/pytest-of-[^/\s]+/pytest-\d+/[^/\s]+?\d*/|/tmp/tmp\w+/")
+_TEMPORARY = re.compile(r"/tmp/pytest-of-[^/\s]+/pytest-\d+/(?:popen-gw\d+/)?[^/\s'\"]+/?|/tmp/tmp\w+/?")
+
+
+def _temporary(match: re.Match) -> str:
+  return "TMP/" if match[0].endswith("/") else "TMP"
 
 
 def table(rows: list[dict]) -> str:
   """The Markdown table of recorded refusals: one row per distinct (command, refusal), sorted by command."""
   seen = {}
   for row in rows:
-    command = _TEMPORARY.sub("TMP/", shlex.join(row["command"]))
-    refusal = _TEMPORARY.sub("TMP/", row["refusal"])
+    command = _TEMPORARY.sub(_temporary, shlex.join(row["command"]))
+    refusal = _TEMPORARY.sub(_temporary, row["refusal"])
     test = row["test"].split("[")[0]
     seen.setdefault((command, refusal), test)
   lines = [f"{len(seen)} refusals, each checked by the test named (exit status 2, this one line on stderr, nothing "
            "written):", "", "| command | refusal | test |", "| --- | --- | --- |"]
   for (command, refusal), test in sorted(seen.items()):
-    cells = [f"`{command}`", refusal, f"`{test}`"]
+    cells = [f"`{command}`", refusal.replace("<", "&lt;").replace(">", "&gt;"), f"`{test}`"]
     lines.append("| " + " | ".join(c.replace("|", "\\|").replace("\n", " ") for c in cells) + " |")
   return "\n".join(lines)
 
