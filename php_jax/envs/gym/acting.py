@@ -168,7 +168,8 @@ def _copy_infos(infos: dict, num: int) -> list[dict]:
       continue
     given = infos.get(f"_{key}", np.ones(num, bool))
     for m in np.flatnonzero(given):
-      per_copy[m][key] = values[m].item() if values[m].ndim == 0 else values[m]
+      value = values[m]  # a NumPy scalar, an array, or (from an object array) any Python value
+      per_copy[m][key] = value.item() if isinstance(value, (np.generic, np.ndarray)) and np.ndim(value) == 0 else value
   return per_copy
 
 
