@@ -5,7 +5,8 @@
 
 Each refusal `tests/processes.assert_refused` checks (a command run with bad input: exit status 2, one line on
 stderr) is one row: the command, its one-line refusal and the test that holds it. The table sits in the page
-between `<!-- refusals: generated -->` and `<!-- end of refusals -->`; the test folders' temporary paths read TMP.
+between `<!-- refusals: generated -->` and `<!-- end of refusals -->`; the test folders' temporary paths read TMP,
+the checkout's paths are relative to it.
 """
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ import re
 import shlex
 import sys
 
-PAGE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "bad-inputs.md")
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PAGE = os.path.join(ROOT, "docs", "bad-inputs.md")
 _TABLE = re.compile(r"^<!-- refusals: generated -->\n.*?^<!-- end of refusals -->$", re.M | re.S)
 _TEMPORARY = re.compile(r"/tmp/pytest-of-[^/\s]+/pytest-\d+/(?:popen-gw\d+/)?[^/\s'\"]+/?|/tmp/tmp\w+/?")
 
@@ -24,12 +26,17 @@ def _temporary(match: re.Match) -> str:
   return "TMP/" if match[0].endswith("/") else "TMP"
 
 
+def _portable(text: str) -> str:
+  """text with the tests' temporary folders as TMP and the checkout's own paths relative to it."""
+  return _TEMPORARY.sub(_temporary, text).replace(ROOT + os.sep, "")
+
+
 def table(rows: list[dict]) -> str:
   """The Markdown table of recorded refusals: one row per distinct (command, refusal), sorted by command."""
   seen = {}
   for row in rows:
-    command = _TEMPORARY.sub(_temporary, shlex.join(row["command"]))
-    refusal = _TEMPORARY.sub(_temporary, row["refusal"])
+    command = _portable(shlex.join(row["command"]))
+    refusal = _portable(row["refusal"])
     test = row["test"].split("[")[0]
     seen.setdefault((command, refusal), test)
   lines = [f"{len(seen)} refusals, each checked by the test named (exit status 2, this one line on stderr, nothing "

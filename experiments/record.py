@@ -21,7 +21,6 @@ and the file format: docs/own-environment.md and docs/own-demonstrations.md.
 from __future__ import annotations
 
 import json
-import os
 
 import gymnasium
 from absl import app, flags
@@ -78,7 +77,6 @@ def main(argv):
   except (OSError, ValueError) as e:  # GymError and DemoFileError are ValueErrors
     cli.fail(str(e))
   with cli.output_errors("out", _OUT.value):
-    os.makedirs(os.path.dirname(os.path.abspath(_OUT.value)), exist_ok=True)
     files.write_atomically(_OUT.value, "".join(json.dumps(line) + "\n" for line in lines).encode())
   steps = sum(len(line["actions"]) for line in lines)
   annotated = sum("stack" in line for line in lines)

@@ -94,7 +94,8 @@ def main(argv):
   with cli.output_errors("out", _OUT.value):
     files.write_atomically(_OUT.value, lines.encode())
   for rank, s in enumerate(chosen, 1):
-    print(f"{rank}. demonstration {s.index}: {s.why}")
+    line = f" (line {s.index + 1} of {_DEMOS.value})" if _DEMOS.value else ""
+    print(f"{rank}. demonstration {s.index}{line}: {s.why}")
   print(f"{len(chosen)} of {int((~demos.strong).sum())} actions-only demonstrations chosen -> {_OUT.value}")
 
 

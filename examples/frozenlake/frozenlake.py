@@ -20,7 +20,7 @@ class RouteExpert:
     self.calls, self.steps, self.move = 0, 0, None  # root's counter, the running call's counter, its move
 
   def act(self, observation, info):  # observation: the raw cell, an int 0..15 (row * 4 + column)
-    move = ROUTE[int(observation)]
+    move = ROUTE.get(int(observation), DOWN)  # off the route (only on a slippery lake): down
     if self.move is not None and move != self.move:  # the call returns; the root resumes and calls again
       self.calls, self.steps = self.calls + 1, 0
     self.move = move

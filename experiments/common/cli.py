@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import signal
 import sys
 import tempfile
@@ -164,5 +165,8 @@ def grouped_help(program: str) -> str:
       parts.append(textwrap.fill(f"{flag.help}{default}", width=100, initial_indent=f"  {name}: ",
                                  subsequent_indent="      "))
     parts.append("")
+  pages = sorted(set(re.findall(r"docs/[\w./-]+\.md", module.__doc__ or "")))
+  if pages:
+    parts.append(f"Documentation: {', '.join(pages)}.")
   parts.append("--helpfull lists absl's own flags too (logging, --flagfile).")
   return "\n".join(parts)

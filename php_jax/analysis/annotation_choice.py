@@ -89,14 +89,16 @@ def _why(new: list[tuple], counts: dict, total: int, length: int, action_name, d
   """In words: the demonstration's length and what it shows that no annotated or earlier chosen one shows
   (new: those behaviours, rarest first; counts: in how many of the total demonstrations each is)."""
   if not new:
-    text = f"{length} steps, the longest left; what it shows, the annotated and earlier chosen show already"
+    text = (f"{length} steps, the {'longest' if doubt is None else 'most uncertain'} left: every action and pair "
+            "of consecutive actions in it is shown already by the annotated or earlier chosen demonstrations")
   else:
-    values = sum(kind[0] == "action" for kind in new)
-    parts = [f"{n} {name}{'s' if n > 1 else ''}" for n, name in ((values, "action value"),
-                                                                 (len(new) - values, "action pair")) if n]
-    rare = ", ".join(f"{_named(k, action_name)} ({counts[k]} of {total})" for k in new[:3])
+    actions = [_named(k, action_name) for k in new if k[0] == "action"]
+    pairs = len(new) - len(actions)
+    parts = ([f"{len(actions)} action{'s' if len(actions) > 1 else ''} ({', '.join(actions)})"] if actions else []
+             ) + ([f"{pairs} pair{'s' if pairs > 1 else ''} of consecutive actions"] if pairs else [])
+    rare = ", ".join(f"{_named(k, action_name)} (in {counts[k]} of the {total} demonstrations)" for k in new[:3])
     text = (f"{length} steps; shows {' and '.join(parts)} that no annotated or earlier chosen demonstration "
-            f"shows; the rarest, with the demonstrations that show each: {rare}")
+            f"shows, the rarest {rare}")
   if doubt is not None:
     text += f"; the model's uncertainty about its segmentation: {doubt:.2f} nats per step"
   return text

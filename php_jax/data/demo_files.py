@@ -330,7 +330,7 @@ def read_demonstrations(path: str, spec: HierarchySpec) -> tuple[Demonstration, 
         parsed.append(one)
       except UnicodeDecodeError as e:
         raise DemoFileError(f"{path}:{number}: not UTF-8 text ({e.reason} at byte {e.start})") from None
-      except ValueError as e:  # json.JSONDecodeError and json_lines.JSONBoundsError included
+      except ValueError as e:  # json_lines.JSONSyntaxError and JSONBoundsError included
         raise DemoFileError(f"{path}:{number}: malformed demonstration: {e}") from None
   if not parsed:
     raise DemoFileError(f"{path}: no demonstrations")

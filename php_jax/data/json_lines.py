@@ -65,7 +65,7 @@ class JSONSyntaxError(ValueError):
 
 def _where(e: json.JSONDecodeError) -> str:
   """"not JSON at column C: " for an error in a text of one line (its line number is the reader's to give),
-  "at the end: " past its last character, else "not JSON at line L, column C: "."""
+  "not JSON, it ends too soon: " past its last character, else "not JSON at line L, column C: "."""
   body = e.doc.rstrip("\r\n")
   if e.pos >= len(body.rstrip()):
     return "not JSON, it ends too soon: "

@@ -19,6 +19,8 @@ import operator
 import re
 from typing import Any, NamedTuple
 
+import numpy as np
+
 DEFAULT_KEY = "is_success"
 HOW_TO_DEFINE = "--success=info:KEY, return>X, reward>X or terminated defines it"
 
@@ -57,8 +59,8 @@ def parse(text: str) -> SuccessRule:
   text = text.strip()
   if text == "terminated":
     return SuccessRule("terminated")
-  if text.startswith("info:") and text[5:]:
-    return SuccessRule("info", key=text[5:])
+  if text.startswith("info:") and text[5:].strip():
+    return SuccessRule("info", key=text[5:].strip())
   match = _BOUND.match(text.replace(" ", ""))
   if match:
     return SuccessRule(match[1], threshold=float(match[3]), inclusive=match[2] == ">=")
@@ -81,7 +83,7 @@ def judge(rule: SuccessRule | None, ending: Ending) -> bool | None:
   if rule is None:
     return None
   if rule.kind == "info":
-    return bool(ending.info.get(rule.key, False))
+    return bool(np.all(ending.info.get(rule.key, False)))  # an array: true where every entry is
   if rule.kind == "terminated":
     return ending.terminated
   value = ending.episode_return if rule.kind == "return" else ending.last_reward

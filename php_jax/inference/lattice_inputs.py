@@ -28,7 +28,7 @@ class LatticeInputs(NamedTuple):
   `forward_backward(inputs)`, or unpacked, `forward_backward(*inputs)`.
 
   Attributes:
-    log_root: [T, K]. log_op, log_stop, log_cont: [T, K, C]. length: [] int or None (= T). (Module docstring.)
+    log_root: [T, K]. log_op, log_stop, log_cont: [T, K, C]. length: [] int or None (= T). (php_jax.inference.lattice's docstring.)
   """
   log_root: jax.Array
   log_op: jax.Array
@@ -108,7 +108,7 @@ def accepts_inputs(fn):
 class LatticeStructure:
   """Base of php_jax.TwoLevelLattice and php_jax.StackLattice: one demonstration's lattice and annotation, a
   frozen pytree (it passes through jit and vmap; batch by building it inside vmap). Built once: construction
-  checks shapes and dtypes, and values when concrete (module docstring); jit and vmap rebuild it unchecked.
+  checks shapes and dtypes, and values when concrete (php_jax.inference.lattice's docstring); jit and vmap rebuild it unchecked.
 
   Attributes:
     inputs: the lattice (LatticeInputs or StackInputs).
@@ -152,7 +152,7 @@ _HALF_PRECISION = (jnp.dtype(jnp.float16), jnp.dtype(jnp.bfloat16))
 
 def in_common_dtype(*arrays):
   """The arrays (or nested lists) as arrays of their common (promoted) dtype, float16 and bfloat16 as float32
-  (module docstring, Dtypes): the public E-step functions compute in one dtype of at least float32. The
+  (php_jax.inference.lattice's docstring, Dtypes): the public E-step functions compute in one dtype of at least float32. The
   cast's gradient returns cotangents in the caller's dtype."""
   arrays = tuple(x if hasattr(x, "dtype") else jnp.asarray(x) for x in arrays)  # nested lists as arrays
   dtype = jnp.result_type(*arrays)

@@ -70,9 +70,8 @@ from php_jax.inference.lattice_inputs import (
   check_temperature,
   described,
 )
-from php_jax.inference.stack_recursions import (annotation_potentials, backtrack, entropy_and_events,
-                                                expected_log_joint, forward, forward_top_k, logsumexp,
-                                                path_log_likelihood)
+from php_jax.inference.stack_recursions import (annotation_potentials, backtrack, entropy_and_events, evidence,
+                                                expected_log_joint, forward, forward_top_k, logsumexp)
 
 
 class StackInputs(NamedTuple):
@@ -185,12 +184,12 @@ def _unknown_as_arrays(inputs: StackInputs, procedures, counters):
 @jax.jit
 def _posterior(inputs: StackInputs, procedures, counters, length):
   potentials = annotation_potentials(inputs, procedures, counters)
-  return jax.value_and_grad(path_log_likelihood, argnums=1)(inputs, potentials, length)
+  return jax.value_and_grad(evidence, argnums=1)(inputs, potentials, length)
 
 
 @jax.jit
 def _annotated_log_likelihood(inputs: StackInputs, procedures, counters, length):
-  return path_log_likelihood(inputs, annotation_potentials(inputs, procedures, counters), length)
+  return evidence(inputs, annotation_potentials(inputs, procedures, counters), length)
 
 
 def log_likelihood(inputs: StackInputs, procedures=None, counters=None, temperature=1.0) -> jax.Array:
@@ -340,7 +339,7 @@ def _entropies(p: StackInputs, p_annotation, q: StackInputs, q_annotation, lengt
   q_potentials = annotation_potentials(q, *q_annotation)
   entropy, events = entropy_and_events(p, annotation_potentials(p, *p_annotation), length)
   expected = expected_log_joint(events, (q, q_potentials))
-  cross = jnp.where(jnp.isneginf(expected), jnp.inf, path_log_likelihood(q, q_potentials, length) - expected)
+  cross = jnp.where(jnp.isneginf(expected), jnp.inf, evidence(q, q_potentials, length) - expected)
   return entropy, cross
 
 

@@ -65,7 +65,7 @@ def rescaled(conts: list, mass, t, length, dtype):
 
 
 def forward(inputs, potentials, length, semiring_max=False, keep_stops=False):
-  """The forward recursion (module docstring) as one lax.scan, carry renormalised every step.
+  """The forward recursion (php_jax.inference.stack_lattice's docstring) as one lax.scan, carry renormalised every step.
 
   The carry is the continuing mass cont_i (τ_i < C_i − 1) of every level and its maximum, the step's scale,
   which the next step subtracts as it reads the carry (one pass fewer than renormalising in place); step t
@@ -112,7 +112,8 @@ def prefix_shape(log_stop, level):
   return tuple(n for x in log_stop[:level + 1] for n in x.shape[1:])
 
 
-def path_log_likelihood(inputs, potentials, length):
+def evidence(inputs, potentials, length):
+  """[] log P(ξ) summed over every path the potentials allow (the forward pass's increments)."""
   return jnp.sum(forward(inputs, potentials, length)[0])
 
 
@@ -202,5 +203,5 @@ def expected_log_joint(events, log_factors):
 
 def entropy_and_events(p, potentials, length):
   """(H(p), the posterior of every event: jax.grad of log P(ξ) w.r.t. the inputs and potentials)."""
-  log_z, events = jax.value_and_grad(path_log_likelihood, argnums=(0, 1))(p, potentials, length)
+  log_z, events = jax.value_and_grad(evidence, argnums=(0, 1))(p, potentials, length)
   return log_z - expected_log_joint(events, (p, potentials)), events

@@ -50,7 +50,7 @@ def _spec_json(spec: HierarchySpec) -> dict:
 def save_hierarchy(workdir: str, task_name: str, hierarchy: PHPHierarchy, hidden,
                    capacity: list[int] | None = None) -> None:
   """Writes workdir/model.json (task, hierarchy spec, architecture and, when given, the counter capacity per
-  level it was trained with, root first) and workdir/model.msgpack (parameters)."""
+  level it was trained with, root first) and workdir/model/ (parameters)."""
   _save(workdir, hierarchy, {"task": task_name, "kind": "php", "spec": _spec_json(hierarchy.spec),
                              "hidden": list(hidden),
                              "tau_in_termination": [level.tau_in_termination for level in hierarchy.levels],

@@ -1,7 +1,7 @@
 """Training settings, written once: every setting's default, meaning and check live on `TrainConfig`'s fields.
 
 A task contributes only overrides (`task.TrainingDefaults`); the training commands generate one flag per field
-(`experiments.common.training`), with the field's help and default. `TrainConfig(...)` validates itself and raises
+(`experiments.common.config_flags`), with the field's help and default. `TrainConfig(...)` validates itself and raises
 ConfigError naming the field of the first value it refuses; `check_levels` checks the per-level settings
 against a hierarchy. The settings that follow the demonstrations where they are left unset (the strong
 weight, the training mode, what a run without annotation starts from) are resolved here too (`prepare`,

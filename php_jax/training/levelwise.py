@@ -2,7 +2,7 @@
 
 Each level is fitted on its views (`views`) with its EG objective (`objective`); then its weak views are
 decoded (Viterbi, per-step max-marginal, or a posterior sample) into the views of the level above. Progress
-is checkpointed (`checkpoint`), and a rerun resumes it. Several seeds train as one program (`train_seeds`):
+is checkpointed (`resume`), and a rerun resumes it. Several seeds train as one program (`train_seeds`):
 one seed's run is the same loop with S = 1.
 """
 from __future__ import annotations

@@ -242,7 +242,9 @@ def workdir_lock(workdir: str, wait: bool = False):
     lock.flush()
     yield
   finally:
-    os.unlink(path)  # while still held: a run waiting on this file finds it gone and locks a new one
+    if _is_file_at(lock, path):  # while still held: a run waiting on this file finds it gone and locks a new one
+      with contextlib.suppress(FileNotFoundError):
+        os.unlink(path)
     fcntl.flock(lock, fcntl.LOCK_UN)
     lock.close()
 

@@ -192,7 +192,7 @@ def _remove_temporary(directory: str) -> None:
 
 def restore_arrays(directory: str, files: Any, source: str) -> dict[str, np.ndarray]:
   """The named arrays of the Orbax checkpoint at directory, once its files are those `files` ({path:
-  sha256}, as _save_arrays returned, from `source`) lists; CheckpointError naming the first that is not."""
+  sha256}, as save_arrays returned, from `source`) lists; CheckpointError naming the first that is not."""
   found = _files(directory) if os.path.isdir(directory) else {}
   if not isinstance(files, dict) or not files:
     raise CheckpointError(f"{source}: no list of the files of {directory}")

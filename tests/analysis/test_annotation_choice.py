@@ -46,10 +46,11 @@ def test_the_choice_takes_the_longest_that_shows_what_no_annotated_one_shows_the
   # 4 and 2 are the longest, but 2 shows only what the annotated 0 does; once 4 is chosen nothing is left
   # unshown, and the longest of the others come next.
   assert [c.index for c in chosen] == [4, 2, 3] and [c.score for c in chosen] == [4, 4, 3]
-  assert chosen[0].why == ("4 steps; shows 2 action values and 3 action pairs that no annotated or earlier chosen "
-                           "demonstration shows; the rarest, with the demonstrations that show each: c → c (1 of 5), "
-                           "c (2 of 5), b → c (2 of 5)")
-  assert chosen[1].why == "4 steps, the longest left; what it shows, the annotated and earlier chosen show already"
+  assert chosen[0].why == ("4 steps; shows 2 actions (c, b) and 3 pairs of consecutive actions that no annotated or "
+                           "earlier chosen demonstration shows, the rarest c → c (in 1 of the 5 demonstrations), c "
+                           "(in 2 of the 5 demonstrations), b → c (in 2 of the 5 demonstrations)")
+  assert chosen[1].why == ("4 steps, the longest left: every action and pair of consecutive actions in it is shown "
+                           "already by the annotated or earlier chosen demonstrations")
   assert all(c.index != 0 for c in chosen)  # the annotated one is never suggested
 
 

@@ -141,3 +141,18 @@ def test_each_copys_info_is_read_out_of_the_vector_environments_batched_infos():
   assert first["mission"] == "go" and second["mission"] == {"to": 1}
   np.testing.assert_array_equal(second["cell"], [3, 4])
   assert "episode" not in first  # a nested dict is not one entry per copy
+
+
+def test_an_info_key_is_read_without_spaces_and_an_array_value_is_true_where_every_entry_is():
+  rule = success.parse("info: done ")
+  assert rule.key == "done" and str(rule) == "info:done"
+  assert success.judge(rule, _ending(info={"done": np.array([True, True])})) is True
+  assert success.judge(rule, _ending(info={"done": np.array([True, False])})) is False
+
+
+def test_the_step_limit_of_an_environment_without_a_spec_is_its_time_limit_wrapper():
+  from php_jax.envs.gym.loading import DEFAULT_MAX_STEPS, max_steps_of
+  from tests.envs.test_gym import Corridor
+  assert max_steps_of(Corridor(), None) == DEFAULT_MAX_STEPS
+  assert max_steps_of(gymnasium.wrappers.TimeLimit(Corridor(), 12_345), None) == 12_345
+  assert max_steps_of(gymnasium.wrappers.TimeLimit(Corridor(), 12_345), 7) == 7

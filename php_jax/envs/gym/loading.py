@@ -68,9 +68,14 @@ def expert_maker(name: str) -> Callable[[gymnasium.Env], Any]:
 
 
 def max_steps_of(env: gymnasium.Env | gymnasium.vector.VectorEnv, max_steps: int | None) -> int:
-  """An episode's step limit: max_steps where given, else the environment's time limit, else
-  DEFAULT_MAX_STEPS."""
+  """An episode's step limit: max_steps where given, else the environment's time limit (a TimeLimit wrapper's,
+  or its spec's), else DEFAULT_MAX_STEPS."""
   if max_steps is not None:
     return max_steps
+  wrapped = env
+  while isinstance(wrapped, gymnasium.Wrapper):
+    if isinstance(wrapped, gymnasium.wrappers.TimeLimit):
+      return wrapped._max_episode_steps
+    wrapped = wrapped.env
   spec = getattr(env, "spec", None)
   return (spec.max_episode_steps if spec and spec.max_episode_steps else None) or DEFAULT_MAX_STEPS
