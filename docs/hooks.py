@@ -41,7 +41,7 @@ def on_files(files, config):
 
 def on_page_markdown(markdown: str, page, config, files) -> str:
   check_commands(markdown, page.file.src_path)
-  if markdown.count("<!-- flags: ") != len(_FLAG_TABLE.findall(markdown)):
+  if len(re.findall(r"^<!-- flags: ", markdown, re.M)) != len(_FLAG_TABLE.findall(markdown)):
     raise SystemExit(f"docs: {page.file.src_path}: a <!-- flags: experiments.X --> line without its "
                      "<!-- end of flags -->")
   for module, table in _FLAG_TABLE.findall(markdown):
