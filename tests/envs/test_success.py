@@ -132,11 +132,11 @@ def test_success_flag_refuses_what_is_not_a_rule(tmp_path):
 
 
 def test_each_copys_info_is_read_out_of_the_vector_environments_batched_infos():
-  from php_jax.envs.gym.acting import _copy_infos
+  from php_jax.envs.gym.acting import copy_info
   infos = {"is_success": np.array([True, False]), "_is_success": np.array([True, False]),
            "mission": np.array(["go", {"to": 1}], dtype=object), "_mission": np.array([True, True]),
            "cell": np.array([[1, 2], [3, 4]]), "episode": {"r": np.array([1.0, 2.0])}}
-  first, second = _copy_infos(infos, 2)
+  first, second = copy_info(infos, 0), copy_info(infos, 1)
   assert first["is_success"] is True and "is_success" not in second  # the copy that did not report it
   assert first["mission"] == "go" and second["mission"] == {"to": 1}
   np.testing.assert_array_equal(second["cell"], [3, 4])

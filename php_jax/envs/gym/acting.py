@@ -119,7 +119,8 @@ class _Episodes:
     self.steps = np.zeros(num_copies, np.int64)
     self.returns = np.zeros(num_copies)
     self.last_rewards = np.zeros(num_copies)
-    self.infos: list[dict] = [{} for _ in range(num_copies)]  # each copy's info of its last step or reset
+    self.step_infos: dict = {}  # the vector environment's infos of its last step, every copy's
+    self.reset_infos: list[dict] = [{} for _ in range(num_copies)]  # each copy's info at its episode's reset
     self.stacks = [[] for _ in range(num_copies)] if with_stacks else None
     self.results: list[dict | None] = [None] * episodes
     self.endings: list[success.Ending | None] = [None] * episodes
@@ -143,7 +144,8 @@ class _Episodes:
     """Ends copy m's episode; returns how it ended."""
     steps = int(self.steps[m])
     ending = success.Ending(float(self.returns[m]), float(self.last_rewards[m]) if steps else None,
-                            bool(terminated), bool(truncated), self.infos[m])
+                            bool(terminated), bool(truncated),
+                            copy_info(self.step_infos, m) if steps else self.reset_infos[m])
     self.endings[self.episode[m]] = ending
     self.results[self.episode[m]] = {
         "return": ending.episode_return, "steps": steps, "success": None, "terminated": ending.terminated,
@@ -159,18 +161,17 @@ class _Episodes:
     return self.results
 
 
-def _copy_infos(infos: dict, num: int) -> list[dict]:
-  """A vector environment's infos as one dict per copy, each with the entries that copy gave (arrays only:
-  the entries Gymnasium batches per copy)."""
-  per_copy = [{} for _ in range(num)]
+def copy_info(infos: dict, m: int) -> dict:
+  """Copy m's info out of a vector environment's infos: the entries it gave (arrays only: the entries
+  Gymnasium batches per copy), read only when an episode ends."""
+  info = {}
   for key, values in infos.items():
-    if key.startswith("_") or not isinstance(values, np.ndarray):
+    given = infos.get(f"_{key}")  # Gymnasium's mask of the copies that gave the entry
+    if key.startswith("_") or not isinstance(values, np.ndarray) or (given is not None and not given[m]):
       continue
-    given = infos.get(f"_{key}", np.ones(num, bool))
-    for m in np.flatnonzero(given):
-      value = values[m]  # a NumPy scalar, an array, or (from an object array) any Python value
-      per_copy[m][key] = value.item() if isinstance(value, (np.generic, np.ndarray)) and np.ndim(value) == 0 else value
-  return per_copy
+    value = values[m]  # a NumPy scalar, an array, or (from an object array) any Python value
+    info[key] = value.item() if isinstance(value, (np.generic, np.ndarray)) and np.ndim(value) == 0 else value
+  return info
 
 
 def act(policy: PHPHierarchy | FlatLSTMPolicy, env: gymnasium.Env | gymnasium.vector.VectorEnv, episodes: int,
@@ -197,7 +198,7 @@ def act(policy: PHPHierarchy | FlatLSTMPolicy, env: gymnasium.Env | gymnasium.ve
   limit, num = max_steps_of(env, max_steps), envs.num_envs
   state = _Episodes(num, episodes, seed, isinstance(policy, PHPHierarchy))
   observations, infos = envs.reset(seed=state.assign(np.arange(num)))
-  state.infos = _copy_infos(infos, num)
+  state.reset_infos = [copy_info(infos, m) for m in range(num)]
   memory, fresh, key = _initial_memory(policy, num), np.ones(num, bool), jax.random.key(seed)
   graphdef, params = nnx.split(policy)
   leaves, treedef = jax.tree.flatten(params)
@@ -210,9 +211,8 @@ def act(policy: PHPHierarchy | FlatLSTMPolicy, env: gymnasium.Env | gymnasium.ve
     for m, s in zip(copies, state.assign(copies)):
       seeds[m] = s
     observations, infos = envs.reset(seed=seeds, options={"reset_mask": mask})  # every copy's observation
-    reset_infos = _copy_infos(infos, num)
     for m in copies:
-      state.infos[m] = reset_infos[m]
+      state.reset_infos[m] = copy_info(infos, m)
     fresh[copies] = True
 
   while (state.episode >= 0).any():
@@ -236,7 +236,7 @@ def act(policy: PHPHierarchy | FlatLSTMPolicy, env: gymnasium.Env | gymnasium.ve
     state.steps += 1
     state.returns += rewards
     state.last_rewards[:] = rewards
-    state.infos = _copy_infos(infos, num)
+    state.step_infos = infos
     truncated = truncated | ((state.steps >= limit) & ~terminated)
     done = np.flatnonzero(terminated | truncated)
     for m in done:
