@@ -50,10 +50,10 @@ def _stack_spec(stacks: list, sizes: tuple[int, ...], episode: int) -> Hierarchy
   if not given:  # nothing to check
     return HierarchySpec("expert", (("p",), ("p",)), sizes, 0)
   first, depth = given[0][0], len(given[0][1])
+  if depth < 2:
+    raise GymError(f"episode {episode}, step {first}: the expert's stack {given[0][1]!r} has fewer than two "
+                   "levels (a stack lists one [procedure, counter] pair per level, root first)")
   for t, frames in given:
-    if depth < 2:
-      raise GymError(f"episode {episode}, step {t}: the expert's stack {frames!r} has fewer than two levels (a "
-                     "stack lists one [procedure, counter] pair per level, root first)")
     if len(frames) != depth:
       raise GymError(f"episode {episode}, step {t}: the expert's stack has {len(frames)} levels; at step {first} "
                      f"it had {depth} (one [procedure, counter] pair per level, root first, at every step)")
