@@ -83,7 +83,8 @@ def run() -> dict:
     demos, spec = demo_files.read_demonstrations(_DEMOS.value, hierarchy.spec)
   except demo_files.DemoFileError as e:
     raise config_flags.UsageError(str(e)) from None
-  config = config_flags.config_from_flags(fit_overrides(hierarchy, bool(np.any(demos.strong))))
+  overrides = fit_overrides(hierarchy, bool(np.any(demos.strong)))
+  config = config_flags.config_from_flags(overrides)
   config_flags.check_levels(hierarchy.spec, config)
   try:
     in_file, numbers = demos, None
@@ -116,8 +117,11 @@ def run() -> dict:
       action_name=demo_files.action_namer(hierarchy.action_names), numbers=numbers, validation_demos=held_out)
   flat = training.flat_lstm_hidden()
   with progress.shown(config, None if flat else spec.num_levels, training.WORKDIR.value) as echo:
-    results = train_and_evaluate(experiment, config, training.WORKDIR.value, training.OVERWRITE.value, flat,
-                                 training.WAIT.value, echo)
+    if flat:
+      results = train_and_evaluate(experiment, config, training.WORKDIR.value, training.OVERWRITE.value, flat,
+                                   training.WAIT.value, echo)
+    else:
+      results = training.train_php(experiment, config, config_flags.given_settings(overrides), echo)
   training.write_report(training.WORKDIR.value)  # drawn from --demos, numbered as in that file
   return results
 

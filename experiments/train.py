@@ -99,7 +99,10 @@ def run(task_name: str) -> dict:
   if SEEDS.value is None:
     experiment = _experiment(task_name, task, config.seed, num_demos, num_test, lengths, annotated)
     with progress.shown(config, None if flat else task.spec.num_levels, workdir) as echo:
-      results = train_and_evaluate(experiment, config, workdir, overwrite, flat, wait, echo)
+      if flat:
+        results = train_and_evaluate(experiment, config, workdir, overwrite, flat, wait, echo)
+      else:
+        results = training.train_php(experiment, config, config_flags.given_settings(defaults.overrides()), echo)
     training.write_report(workdir, experiment.demos)
     return results
   seeds = _seeds(config)
@@ -124,6 +127,8 @@ def _seeds(config: TrainConfig) -> list[int]:
     raise config_flags.UsageError("--seeds trains PHP hierarchies (not --model=flat_lstm)")
   if config.training == "joint":
     raise config_flags.UsageError(config_flags.joint_refusal("--seeds trains level-wise only"))
+  if training.RESTARTS.value > 1:
+    raise config_flags.UsageError("--seeds and --restarts: give one of them (--seeds trains one run per seed)")
   try:
     return cli.seed_list(SEEDS.value)
   except ValueError as e:

@@ -66,6 +66,12 @@ def config_from_flags(overrides: dict, flag_values: flags.FlagValues = flags.FLA
   return config
 
 
+def given_settings(overrides: dict, flag_values: flags.FlagValues = flags.FLAGS) -> frozenset[str]:
+  """The TrainConfig fields asked for: by a flag, or in overrides (a task's or a hierarchy file's). The recipe
+  chooses the others (`php_jax.training.recipe`)."""
+  return frozenset(overrides) | {f.name for f in config_lib.fields() if flag_values[f.name].value is not None}
+
+
 def check_levels(spec, config: config_lib.TrainConfig) -> None:
   """config_lib.check_levels, a refusal naming the flag."""
   try:

@@ -17,7 +17,7 @@ from rich.progress import (BarColumn, MofNCompleteColumn, Progress, ProgressColu
 from rich.table import Table
 from rich.text import Text
 
-from php_jax.training import run
+from php_jax.training import run, selection
 from php_jax.training.config import TrainConfig
 
 
@@ -75,14 +75,23 @@ class TrainingProgress:
     self.progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                              TextColumn("{task.fields[status]}"), TimeElapsedColumn(), TimeLeftColumn(),
                              console=self.console)
-    self.tasks, self.seed = {}, None
+    self.tasks, self.seed, self.candidate, self.first = {}, None, None, None
     self.progress.start()
     self.starting = self.progress.add_task("building the data and compiling", total=None, status="")
 
   def __call__(self, row: dict) -> None:
+    candidate = row.get("candidate")
+    if "chosen" in row or (candidate is not None and "test" in row):
+      self._judged(row)
+      return
     if "test" in row:
       self._finish(row)
       return
+    if candidate is not None and (row.get("phase") == "testing" or "warning" in row and candidate != self.first):
+      return  # a candidate's judging; warnings about the data, once
+    self.candidate = candidate
+    if self.first is None:
+      self.first = candidate
     if row.get("phase") == "testing":
       self.progress.add_task("testing", total=None, status="")
       return
@@ -100,28 +109,29 @@ class TrainingProgress:
     elif "capacity" in row:
       self._phase(row.get("level", "joint"))
     elif "split_rounds" in row:
-      self.tasks["split"] = self.progress.add_task("split search", total=row["split_rounds"],
+      self.tasks[(self.candidate, "split")] = self.progress.add_task("split search", total=row["split_rounds"],
                                                    status="round 1 training its candidates")
     elif "split_search" in row:
       entry = row["split_search"]
-      if "split" not in self.tasks:  # resumed in the search: its number of rounds was logged before
-        self.tasks["split"] = self.progress.add_task("split search", total=None, status="")
+      if (self.candidate, "split") not in self.tasks:  # resumed in the search: its number of rounds was logged before
+        self.tasks[(self.candidate, "split")] = self.progress.add_task("split search", total=None, status="")
       score = entry["log_likelihood_per_step"]
       judged = ("no stack fits a validation demonstration" if score is None
                 else f"log-likelihood per step {score:.4g}")
-      self.progress.update(self.tasks["split"], completed=entry["round"] + 1,
+      self.progress.update(self.tasks[(self.candidate, "split")], completed=entry["round"] + 1,
                            status=f"kept: {entry['kept']} ({judged})")
     elif "iteration" in row:
       phase = row.get("level", "joint" if self.num_levels else "flat")
-      task = self.tasks.get(phase) or self._phase(phase)
+      task = self.tasks.get((self.candidate, phase)) or self._phase(phase)
       validation = f"  best validation {row['validation']:.3f}" if "validation" in row else ""
       self.progress.update(task, completed=row["iteration"], status=f"loss {row['loss']:.4g}{validation}")
 
   def _phase(self, phase) -> int:
     """The display's line for a phase: a level (an int), "joint" or "flat"."""
     self.progress.update(self.starting, visible=False)
-    if phase in self.tasks:
-      return self.tasks[phase]
+    key = (self.candidate, phase)
+    if key in self.tasks:
+      return self.tasks[key]
     if phase == "joint":
       description, total = "every level at once", self.config.iterations
     elif phase == "flat":
@@ -130,8 +140,20 @@ class TrainingProgress:
       warmup = self.config.strong_warmup if phase > 0 else 0
       done = self.num_levels - phase
       description, total = f"level {phase} ({done} of {self.num_levels})", warmup + self.config.iterations
-    self.tasks[phase] = self.progress.add_task(description, total=total, status="compiling")
-    return self.tasks[phase]
+    if self.candidate is not None:
+      description = f"{self.candidate}: {description}"
+    self.tasks[key] = self.progress.add_task(description, total=total, status="compiling")
+    return self.tasks[key]
+
+  def _judged(self, row: dict) -> None:
+    """A candidate's held-out score, or which candidate was kept."""
+    score = row.get(selection.SCORE)
+    judged = (f"{row.get(selection.EXPLAINED)} held-out demonstrations explained, log-likelihood per step "
+              + ("–" if score is None else f"{score:.4g}"))
+    if "chosen" in row:
+      self.console.print(f"kept candidate {row['chosen']} ({judged})")
+    else:
+      self.console.print(f"candidate {row['candidate']}: {judged}")
 
   def _finish(self, row: dict) -> None:
     self.progress.stop()

@@ -10,7 +10,7 @@ from absl import flags
 
 from experiments.common import cli, progress, run_report
 from experiments.common.config_flags import UsageError
-from php_jax.training import checkpoint, run
+from php_jax.training import checkpoint, recipe, run, selection
 
 WORKDIR = flags.DEFINE_string("workdir", None, "Directory for results.json, metrics.jsonl and the model.")
 DISTRIBUTED = flags.DEFINE_bool("distributed", False, "One of several processes (a multi-host run): "
@@ -26,6 +26,9 @@ MODEL = flags.DEFINE_enum("model", "php", ["php", "flat_lstm"],
                           "php: the hierarchy (--training says how); flat_lstm: the behaviour-cloning baseline, "
                           "an LSTM over observations and previous actions.")
 LSTM_HIDDEN = flags.DEFINE_integer("lstm_hidden", 128, "Hidden units of the flat LSTM baseline.")
+RESTARTS = flags.DEFINE_integer("restarts", 1, "Train each of the recipe's candidates from this many "
+                                "initialisations and keep the one most likely on the held-out demonstrations "
+                                "(docs/training.md, the recipe).", lower_bound=1)
 REPORT = flags.DEFINE_bool("report", True, "At the end, write WORKDIR/report.html: settings, results, learning "
                            "curves, call graph and three training demonstrations decoded and drawn (a few seconds).")
 
@@ -39,9 +42,12 @@ def write_report(workdir: str, demos=None) -> None:
 
 
 def flat_lstm_hidden() -> int | None:
-  """--lstm_hidden where --model=flat_lstm, else None; UsageError if it is not positive."""
+  """--lstm_hidden where --model=flat_lstm, else None; UsageError if it is not positive, or if --restarts
+  is given to the flat LSTM (which has no recipe)."""
   if LSTM_HIDDEN.value < 1:
     raise UsageError(f"--lstm_hidden must be a positive integer; got {LSTM_HIDDEN.value}")
+  if MODEL.value == "flat_lstm" and RESTARTS.value > 1:
+    raise UsageError("--restarts applies to PHP hierarchies (not --model=flat_lstm)")
   return LSTM_HIDDEN.value if MODEL.value == "flat_lstm" else None
 
 
@@ -68,3 +74,11 @@ def run_resumable(body: Callable[[], object]) -> None:
 def _environment_int(name: str) -> int | None:
   value = os.environ.get(name)
   return int(value) if value else None
+
+
+def train_php(experiment: run.Experiment, config, given, echo) -> dict:
+  """Trains experiment's PHP hierarchy in --workdir by the recipe (`php_jax.training.recipe`) for config,
+  whose settings named in `given` were asked for; returns its results.json."""
+  chosen = recipe.choose(experiment.spec, experiment.demos, config, given, RESTARTS.value)
+  return selection.train_and_choose(experiment, config, chosen, WORKDIR.value, OVERWRITE.value, WAIT.value, echo)
+

@@ -1,0 +1,125 @@
+"""The recipe: how a run trains, read from the demonstrations where they decide it, and where they do not, a
+list of candidates of which the one most likely on held-out demonstrations is kept (`run.train_and_choose`).
+
+What the demonstrations decide (`config.resolved`, for every candidate): the strong weight, the counter
+capacities (the longest annotated call), annealing and the segmentation's length without annotation. What
+they leave open, and so is contested:
+- with some demonstration annotated, the training mode: level-wise with every operation allowed (the
+  paper's), and joint with the call graph the annotation shows (`--call_graph=operations`). Measured: the
+  first fails NanoCraft with 2 of 64 annotated where the second solves it, and segments Taxi's level 2 less
+  well with 16 of 64 (RESULTS.md);
+- with nothing annotated (joint training), where the segmentation starts from: each rule of
+  `segmentation.RULES` that applies to the actions, and none. A rule can mislead (the successors rule on
+  addition), so none is always a candidate.
+Settings the user (or a task) gives are never contested. `restarts` repeats every candidate with other
+initialisations (`TrainConfig.init_seed`).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from php_jax.demos import Demonstration
+from php_jax.hierarchy import HierarchySpec
+from php_jax.training import call_graph, segmentation
+from php_jax.training.config import TrainConfig, asks_joint, fields
+
+RESTART_SEED_STRIDE = 1000  # restart r initialises from init_seed + r × this: other seeds' restarts differ
+MODE_CALL_GRAPH = {"levelwise": "all", "joint": "operations"}  # each mode's candidate call graph
+SEGMENTATION_SETTINGS = ("segment_rule", "segment_iterations", "split_rounds")
+UNSEGMENTED = "unsegmented"
+
+
+@dataclasses.dataclass(frozen=True)
+class Candidate:
+  """One way to train: name (a word, also its folder under the run's candidates/) and the TrainConfig
+  settings it sets."""
+  name: str
+  settings: dict
+
+  def config(self, base: TrainConfig) -> TrainConfig:
+    return dataclasses.replace(base, **self.settings)
+
+
+@dataclasses.dataclass(frozen=True)
+class Recipe:
+  """candidates: the ways to train (one: nothing to choose); reasons: what the demonstrations showed and
+  what that decided, in words."""
+  candidates: tuple[Candidate, ...]
+  reasons: tuple[str, ...]
+
+  def as_json(self) -> dict:
+    return {"candidates": [{"name": c.name, "settings": c.settings} for c in self.candidates],
+            "reasons": list(self.reasons)}
+
+
+def choose(spec: HierarchySpec, demos: Demonstration, config: TrainConfig, given: frozenset[str] | set[str],
+           restarts: int = 1) -> Recipe:
+  """The recipe for training spec's hierarchy on demos from config, whose settings named in `given` were
+  asked for (by a flag, a task or a hierarchy file) and are kept; restarts ≥ 1: initialisations of each
+  candidate. Raises ValueError if restarts < 1."""
+  if not (isinstance(restarts, int) and restarts >= 1):
+    raise ValueError(f"restarts must be a positive integer; got {restarts!r}")
+  num_strong, num = int(np.sum(demos.strong)), len(demos.length)
+  mode = _fixed_mode(config, given, num_strong > 0)
+  if num_strong:
+    modes = [mode] if mode else ["levelwise", "joint"]
+    candidates = [Candidate(m, _mode_settings(m, config, given)) for m in modes]
+    reasons = [f"{num_strong} of {num} demonstrations are annotated: "
+               + (f"{mode} training, as asked" if mode else
+                  "level-wise training (the paper's) and joint training with the call graph the annotation shows "
+                  "are both tried")]
+  else:
+    candidates, reasons = _discovery_candidates(spec, demos, config, given, mode)
+  if restarts > 1:
+    first = config.network_seed
+    candidates = [Candidate(c.name if r == 0 else f"{c.name}-restart{r}",
+                            {**c.settings, "init_seed": first + r * RESTART_SEED_STRIDE})
+                  for c in candidates for r in range(restarts)]
+    reasons.append(f"each is trained from {restarts} initialisations")
+  if len(candidates) > 1:
+    reasons.append("the candidate most likely on the held-out demonstrations is kept")
+  return Recipe(tuple(candidates), tuple(reasons))
+
+
+def _fixed_mode(config: TrainConfig, given, annotated: bool) -> str | None:
+  """The training mode the settings fix (None: open to the recipe): the one given, joint where a setting of
+  joint training only is on, level-wise where a setting of level-wise training only is given (or where
+  nothing is annotated: joint, the one mode that learns a hierarchy from actions alone)."""
+  if "training" in given and config.training is not None:
+    return config.training
+  if any(asks_joint(config, f) for f in fields()):
+    return "joint"
+  if any(f.name in given and getattr(config, f.name) != f.default for f in fields() if f.metadata["levelwise_only"]):
+    return "levelwise"
+  return None if annotated else "joint"
+
+
+def _mode_settings(mode: str, config: TrainConfig, given) -> dict:
+  settings = {"training": mode}
+  if "call_graph" not in given:
+    settings["call_graph"] = MODE_CALL_GRAPH[mode]
+  return settings
+
+
+def _discovery_candidates(spec: HierarchySpec, demos: Demonstration, config: TrainConfig, given,
+                          mode: str) -> tuple[list[Candidate], list[str]]:
+  """The candidates without annotation: where the segmentation starts from."""
+  reason = f"no demonstration is annotated: {mode} training"
+  if mode != "joint":
+    return [Candidate(mode, {"training": mode})], [reason + ", as asked"]
+  base = {"training": "joint"}
+  if given & set(SEGMENTATION_SETTINGS):
+    return [Candidate("joint", base)], [reason + "; the segmentation as asked"]
+  if call_graph.restricts(spec.allowed_ops):
+    return [Candidate("joint", base)], [reason + "; no segmentation: the hierarchy declares its call graph"]
+  rules = {name: segmentation.read_rule(demos, name) for name in segmentation.RULES}
+  applying = [name for name, rule in rules.items() if rule is not None]
+  candidates = [Candidate(name, {**base, "segment_rule": name}) for name in applying]
+  candidates.append(Candidate(UNSEGMENTED, {**base, "segment_iterations": 0, "split_rounds": 0}))
+  words = [f"the {name} segmentation applies" if rules[name] else
+           f"the {name} segmentation does not apply ({segmentation.UNSEGMENTED[name]})" for name in rules]
+  return candidates, [reason + "; " + "; ".join(words) + "; " + (
+      "it and starting unsegmented are both tried" if len(applying) == 1 else
+      "each, and starting unsegmented, are tried" if applying else "training starts unsegmented")]

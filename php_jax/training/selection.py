@@ -1,0 +1,159 @@
+"""A recipe's candidates trained, each as its own run in workdir/candidates/NAME, and the one most likely on the
+held-out demonstrations kept: its model, metrics and training summary become the run's, tested as a single
+run's would be, and results.json's "recipe" says what was tried and how each candidate scored.
+
+A candidate's score is judged on the experiment's validation demonstrations, actions only: first how many of
+them some call stack within its counter capacities explains (log P > −inf), then Σ log P(actions |
+observations) / Σ steps over those. Each candidate's run resumes and finishes as any run does, so a rerun
+after an interruption trains only what was left.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from typing import Callable
+
+import jax
+import numpy as np
+
+from php_jax.data import files
+from php_jax.demos import Demonstration
+from php_jax.inference import stack_lattice
+from php_jax.model import PHPHierarchy
+from php_jax.training import checkpoint, objective, provenance, resume, storage
+from php_jax.training.config import TrainConfig, resolved
+from php_jax.training.recipe import Recipe
+from php_jax.training.run import (METRICS_FILE, RESULTS_FILE, RUN_FILES, Experiment, WorkdirError, clear_workdir,
+                                  print_row, train_and_evaluate, workdir_lock)
+
+CANDIDATES_DIR = "candidates"
+SCORE = "held_out_log_likelihood_per_step"
+EXPLAINED = "held_out_explained"
+
+
+def held_out_score(hierarchy: PHPHierarchy, capacity: tuple[int, ...], demos: Demonstration) -> dict:
+  """{EXPLAINED: how many of demos some stack within capacity explains, SCORE: Σ log P(actions | observations)
+  / Σ steps over those (None if none)}, the annotation unused."""
+  log_p = np.asarray(jax.device_get(objective.stack_query(hierarchy, capacity, stack_lattice.log_likelihood,
+                                                          demos.observations, demos.actions, demos.length)),
+                     np.float64)
+  explained = np.isfinite(log_p)
+  steps = float(np.sum(np.asarray(demos.length)[explained]))
+  return {EXPLAINED: int(explained.sum()), SCORE: float(np.sum(log_p[explained]) / steps) if steps else None}
+
+
+def rank(score: dict) -> tuple:
+  """A candidate's test results as a sort key: more held-out demonstrations explained, then likelier."""
+  return (score[EXPLAINED], -np.inf if score[SCORE] is None else score[SCORE])
+
+
+def train_and_choose(experiment: Experiment, config: TrainConfig, recipe: Recipe, workdir: str,
+                     overwrite: bool = False, wait: bool = False, echo: Callable[[dict], None] = print_row) -> dict:
+  """Trains config's PHP hierarchy by the recipe in workdir and returns its results.json. One candidate: an
+  ordinary run (`run.train_and_evaluate`) with its settings, results.json's "recipe" saying why. Several:
+  each trained in workdir/candidates/NAME (its rows echoed with "candidate": NAME) and judged by
+  `held_out_score` on experiment.validation_demos (else its training demonstrations); the best's model and
+  metrics are copied to workdir and tested there. overwrite: train every candidate again. A finished run with
+  the same recipe is not trained again."""
+  plan = recipe.as_json()
+  if len(recipe.candidates) == 1:
+    [candidate] = recipe.candidates
+    experiment = dataclasses.replace(experiment, extra={**experiment.extra,
+                                                        "recipe": {**plan, "chosen": candidate.name}})
+    return train_and_evaluate(experiment, candidate.config(config), workdir, overwrite, wait=wait, echo=echo)
+  judged_on = experiment.validation_demos if experiment.validation_demos is not None else experiment.demos
+  commit = provenance.code_version()
+  with workdir_lock(workdir, wait):
+    clear_workdir(workdir, RUN_FILES + (CANDIDATES_DIR,), overwrite)
+    finished = _finished(workdir, experiment, config, recipe)
+    if finished:
+      echo({"test": finished["test"], "wall_seconds": finished["wall_seconds"], "finished_before": True})
+      return finished
+    tried = []
+    for candidate in recipe.candidates:
+      run_dir = os.path.join(workdir, CANDIDATES_DIR, candidate.name)
+
+      def judge(model, run_dir=run_dir):
+        return held_out_score(model, checkpoint.saved_capacity(run_dir), judged_on)
+
+      results = train_and_evaluate(
+          dataclasses.replace(experiment, test=judge, extra={**experiment.extra, "candidate": candidate.name}),
+          candidate.config(config), run_dir, overwrite, wait=wait,
+          echo=lambda row, name=candidate.name: echo({"candidate": name, **row}))
+      tried.append((candidate, results))
+    start = time.time()
+    chosen, results = max(tried, key=lambda pair: rank(pair[1]["test"]))
+    echo({"chosen": chosen.name, **results["test"]})
+    _adopt(os.path.join(workdir, CANDIDATES_DIR, chosen.name), workdir, experiment.name, results)
+    _, model = checkpoint.load_policy(workdir)
+    echo({"phase": "testing"})
+    summary = {k: v for k, v in results.items() if k not in ("test", "wall_seconds", "commit", "versions",
+                                                               "candidate")}
+    record = {**plan, "chosen": chosen.name, "demonstrations": _digest(experiment), "judged_on": len(judged_on.length), "scores": [
+        {"name": c.name, **r["test"], "wall_seconds": r["wall_seconds"]} for c, r in tried]}
+    test = experiment.test(model)
+    spent = sum(r["wall_seconds"] for _, r in tried) + time.time() - start
+    final = {**summary, "recipe": record, "test": test, "wall_seconds": round(spent, 1), "commit": commit,
+             "versions": provenance.environment_versions()}
+    text = json.dumps(final, indent=1)
+    files.write_atomically(os.path.join(workdir, RESULTS_FILE), text.encode())
+    echo({"test": test, "wall_seconds": final["wall_seconds"]})
+    return json.loads(text)  # as a rerun reads it
+
+
+def _adopt(run_dir: str, workdir: str, task_name: str, results: dict) -> None:
+  """The chosen candidate's model and metrics.jsonl, written again in workdir."""
+  for name in (checkpoint.ARCHITECTURE_FILE, checkpoint.MODEL_DIR):
+    storage.remove_saved(os.path.join(workdir, name))
+  _, model = checkpoint.load_policy(run_dir)
+  checkpoint.save_hierarchy(workdir, task_name, model, tuple(results["config"]["hidden"]),
+                            list(checkpoint.saved_capacity(run_dir)))
+  with open(os.path.join(run_dir, METRICS_FILE), "rb") as f:
+    files.write_atomically(os.path.join(workdir, METRICS_FILE), f.read())
+
+
+def _finished(workdir: str, experiment: Experiment, config: TrainConfig, recipe: Recipe) -> dict | None:
+  """The results.json of a choice that finished in workdir with these settings, recipe and experiment; None
+  if none finished there. Raises WorkdirError if one finished with others."""
+  plan = recipe.as_json()
+  path = os.path.join(workdir, RESULTS_FILE)
+  if not all(os.path.exists(os.path.join(workdir, name))
+             for name in (RESULTS_FILE, checkpoint.ARCHITECTURE_FILE, checkpoint.MODEL_DIR)):
+    return None
+  try:
+    with open(path, encoding="utf-8") as f:
+      results = json.load(f)
+  except (OSError, ValueError):
+    return None
+  recipe_entry = results.get("recipe") if isinstance(results, dict) else None
+  if not isinstance(results, dict) or "test" not in results:
+    return None
+  if not isinstance(recipe_entry, dict):
+    raise WorkdirError(f"{workdir} holds a finished run that chose no recipe (an older php_jax's); use a fresh "
+                       "workdir, or --overwrite to train again")
+  expected = json.loads(json.dumps({"task": experiment.name, **experiment.extra}))
+  differ = [f"{k}: {results.get(k)!r} there, {v!r} here" for k, v in expected.items() if results.get(k) != v]
+  saved_plan = {k: recipe_entry.get(k) for k in plan}
+  if saved_plan != json.loads(json.dumps(plan)):
+    differ.append(f"the recipe's candidates: {[c['name'] for c in recipe_entry.get('candidates') or []]} there, "
+                  f"{[c['name'] for c in plan['candidates']]} here")
+  chosen = [c for c in recipe.candidates if c.name == recipe_entry.get("chosen")]
+  if chosen and not differ:
+    asked = json.loads(json.dumps(dataclasses.asdict(resolved(chosen[0].config(config), experiment.demos,
+                                                              experiment.spec))))
+    saved = resume.saved_config(results.get("config") or {})
+    differ += [f"--{k}: {saved.get(k)!r} there, {v!r} here" for k, v in asked.items() if saved.get(k) != v]
+  if differ:
+    raise WorkdirError(f"{workdir} holds a finished run made with other settings ({'; '.join(differ)}); use a "
+                       "fresh workdir, or --overwrite to train again")
+  if recipe_entry.get("demonstrations") != _digest(experiment):
+    raise WorkdirError(f"{workdir} holds a finished run made with other demonstrations; use a fresh workdir, or "
+                       "--overwrite to train again")
+  return results
+
+
+def _digest(experiment: Experiment) -> str:
+  """A digest of the training demonstrations (`resume.run_settings`')."""
+  return resume.run_settings(experiment.spec, experiment.demos, TrainConfig())["demonstrations"]

@@ -1,0 +1,131 @@
+"""The recipe: which candidates the demonstrations leave open, and the choice among them by held-out likelihood."""
+import dataclasses
+import json
+
+import jax
+import numpy as np
+import pytest
+from flax import nnx
+
+from php_jax.demos import UNKNOWN, Demonstration
+from php_jax.envs import datasets, tasks
+from php_jax.hierarchy import HierarchySpec
+from php_jax.training import checkpoint, recipe, selection
+from php_jax.training.config import TrainConfig
+from php_jax.training.run import Experiment, WorkdirError
+
+NANOCRAFT = tasks.get("nanocraft")
+
+
+def _names(chosen):
+  return [c.name for c in chosen.candidates]
+
+
+def _actions_only(*action_rows):
+  """Demonstrations of one action factor (values < 10), none annotated."""
+  width = max(map(len, action_rows))
+  actions = np.zeros((len(action_rows), width, 1), np.int32)
+  for b, row in enumerate(action_rows):
+    actions[b, :len(row), 0] = row
+  stacks = np.full((len(action_rows), width, 3), UNKNOWN, np.int32)
+  return Demonstration(np.zeros((len(action_rows), width + 1, 2), np.float32), actions, stacks, stacks.copy(),
+                       np.array([len(r) for r in action_rows]), np.zeros(len(action_rows), bool))
+
+
+SPEC = HierarchySpec(name="toy", levels=(("root",), ("a", "b"), ("c", "d")), action_sizes=(10,), obs_dim=2)
+
+
+def test_with_annotation_both_modes_are_tried_each_with_its_call_graph():
+  demos = datasets.training_demos(NANOCRAFT, 1, 8, 2)
+  chosen = recipe.choose(NANOCRAFT.spec, demos, TrainConfig(), frozenset())
+  assert [(c.name, c.settings) for c in chosen.candidates] == [
+      ("levelwise", {"training": "levelwise", "call_graph": "all"}),
+      ("joint", {"training": "joint", "call_graph": "operations"})]
+  assert "2 of 8 demonstrations are annotated" in chosen.reasons[0]
+  # a mode asked for (or implied by a setting of one mode only) is the only candidate
+  assert recipe.choose(NANOCRAFT.spec, demos, TrainConfig(training="joint"), {"training"}).candidates == (
+      recipe.Candidate("joint", {"training": "joint", "call_graph": "operations"}),)
+  assert _names(recipe.choose(NANOCRAFT.spec, demos, TrainConfig(strong_warmup=5), {"strong_warmup"})) == ["levelwise"]
+  assert _names(recipe.choose(NANOCRAFT.spec, demos, TrainConfig(anneal_temperature=2.0),
+                              {"anneal_temperature"})) == ["joint"]
+  # a call graph asked for is kept by both modes
+  both = recipe.choose(NANOCRAFT.spec, demos, TrainConfig(call_graph="calls"), {"call_graph"})
+  assert [c.settings for c in both.candidates] == [{"training": "levelwise"}, {"training": "joint"}]
+
+
+@pytest.mark.parametrize("rows, names", [
+    ([[1, 1, 9, 2, 2, 9], [1, 9, 2, 9]], ["loops", "unsegmented"]),   # 1 and 2 loop, 9 ends their calls
+    ([[1, 2, 3, 1, 2, 4], [3, 1, 2]], ["successors", "unsegmented"]),  # 1 is always followed by 2
+    ([[1, 1, 9, 2, 9], [1, 9, 2, 9]], ["loops", "successors", "unsegmented"]),  # both, 2 always followed by 9
+    ([[1, 2, 1, 3, 2, 3, 1]], ["unsegmented"])])                        # no loop, no single successor
+def test_without_annotation_each_segmentation_that_applies_and_none_are_tried(rows, names):
+  demos = _actions_only(*rows)
+  chosen = recipe.choose(SPEC, demos, TrainConfig(), frozenset())
+  assert _names(chosen) == names
+  assert all(c.settings["training"] == "joint" for c in chosen.candidates)
+  assert chosen.candidates[-1].settings == {"training": "joint", "segment_iterations": 0, "split_rounds": 0}
+
+
+def test_a_segmentation_asked_for_or_a_declared_call_graph_leaves_one_candidate():
+  demos = _actions_only([1, 1, 9, 2, 2, 9])
+  assert _names(recipe.choose(SPEC, demos, TrainConfig(segment_rule="successors"), {"segment_rule"})) == ["joint"]
+  assert _names(recipe.choose(SPEC, demos, TrainConfig(segment_iterations=0), {"segment_iterations"})) == ["joint"]
+  declared = dataclasses.replace(SPEC, allowed_ops=(((True, False),), ((True, False), (False, True)),
+                                                    ((True,) * 10, (True,) * 10)))
+  chosen = recipe.choose(declared, demos, TrainConfig(), frozenset())
+  assert _names(chosen) == ["joint"] and "declares its call graph" in chosen.reasons[0]
+
+
+def test_restarts_repeat_every_candidate_from_other_initialisations():
+  demos = datasets.training_demos(NANOCRAFT, 1, 8, 2)
+  chosen = recipe.choose(NANOCRAFT.spec, demos, TrainConfig(seed=7), frozenset(), restarts=2)
+  assert _names(chosen) == ["levelwise", "levelwise-restart1", "joint", "joint-restart1"]
+  assert [c.config(TrainConfig(seed=7)).network_seed for c in chosen.candidates] == [7, 1007, 7, 1007]
+  with pytest.raises(ValueError, match="restarts must be a positive integer"):
+    recipe.choose(NANOCRAFT.spec, demos, TrainConfig(), frozenset(), restarts=0)
+
+
+def test_a_score_ranks_what_is_explained_before_how_likely():
+  assert selection.rank({selection.EXPLAINED: 3, selection.SCORE: -2.0}) > selection.rank(
+      {selection.EXPLAINED: 2, selection.SCORE: -0.1})
+  assert selection.rank({selection.EXPLAINED: 3, selection.SCORE: -0.5}) > selection.rank(
+      {selection.EXPLAINED: 3, selection.SCORE: -0.6})
+  assert selection.rank({selection.EXPLAINED: 0, selection.SCORE: None}) < selection.rank(
+      {selection.EXPLAINED: 1, selection.SCORE: -9.0})
+
+
+def _experiment(demos):
+  return Experiment("nanocraft", NANOCRAFT.spec, demos, validate=lambda model: 0.0,
+                    test=lambda model: {"tested": 1.0}, extra={"seed": 1})
+
+
+@pytest.mark.parametrize("trained_first", [True, False])
+def test_the_candidate_most_likely_on_held_out_demonstrations_is_kept_and_becomes_the_run(tmp_path, trained_first):
+  """Of two candidates, one trained 40 iterations and one a single iteration, the trained one explains the
+  held-out demonstrations better and is kept, whichever comes first; its model is the run's; a rerun trains
+  nothing; other settings are refused."""
+  demos = datasets.training_demos(NANOCRAFT, 1, 6, 6)
+  trained, untrained = (recipe.Candidate("trained", {"training": "joint", "iterations": 40}),
+                        recipe.Candidate("untrained", {"training": "joint", "iterations": 1}))
+  chosen = recipe.Recipe((trained, untrained) if trained_first else (untrained, trained), ("by hand",))
+  config = TrainConfig(hidden=(8,), eval_every=20, seed=1)
+  rows = []
+  results = selection.train_and_choose(_experiment(demos), config, chosen, str(tmp_path), echo=rows.append)
+  assert results["recipe"]["chosen"] == "trained" and results["config"]["iterations"] == 40
+  scores = {s["name"]: s for s in results["recipe"]["scores"]}
+  assert scores["trained"][selection.SCORE] > scores["untrained"][selection.SCORE]
+  assert results["test"] == {"tested": 1.0} and json.loads((tmp_path / "results.json").read_text()) == results
+  _, kept = checkpoint.load_policy(str(tmp_path))
+  _, candidate = checkpoint.load_policy(str(tmp_path / selection.CANDIDATES_DIR / "trained"))
+  for a, b in zip(jax.tree.leaves(nnx.state(kept)), jax.tree.leaves(nnx.state(candidate))):
+    np.testing.assert_array_equal(a, b)
+  assert any(r.get("candidate") == "untrained" for r in rows) and {"chosen": "trained"}.items() <= rows[-3].items()
+  rows.clear()
+  again = selection.train_and_choose(_experiment(demos), config, chosen, str(tmp_path), echo=rows.append)
+  assert again == results and rows == [{"test": results["test"], "wall_seconds": results["wall_seconds"],
+                                        "finished_before": True}]
+  with pytest.raises(WorkdirError, match="--hidden: \\[8\\] there, \\[16\\] here"):
+    selection.train_and_choose(_experiment(demos), dataclasses.replace(config, hidden=(16,)), chosen, str(tmp_path))
+  with pytest.raises(WorkdirError, match="other demonstrations"):
+    selection.train_and_choose(_experiment(datasets.training_demos(NANOCRAFT, 2, 6, 6)), config, chosen,
+                               str(tmp_path))
