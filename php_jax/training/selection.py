@@ -91,8 +91,9 @@ def train_and_choose(experiment: Experiment, config: TrainConfig, recipe: Recipe
     echo({"phase": "testing"})
     summary = {k: v for k, v in results.items() if k not in ("test", "wall_seconds", "commit", "versions",
                                                                "candidate")}
-    record = {**plan, "chosen": chosen.name, "demonstrations": _digest(experiment), "judged_on": len(judged_on.length), "scores": [
-        {"name": c.name, **r["test"], "wall_seconds": r["wall_seconds"]} for c, r in tried]}
+    record = {**plan, "chosen": chosen.name, "demonstrations": _digest(experiment),
+              "judged_on": len(judged_on.length),
+              "scores": [{"name": c.name, **r["test"], "wall_seconds": r["wall_seconds"]} for c, r in tried]}
     test = experiment.test(model)
     spent = sum(r["wall_seconds"] for _, r in tried) + time.time() - start
     final = {**summary, "recipe": record, "test": test, "wall_seconds": round(spent, 1), "commit": commit,
