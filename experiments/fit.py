@@ -22,7 +22,7 @@ from experiments.common import cli, config_flags, progress, training
 from php_jax.data import demo_files
 from php_jax.demos import Demonstration
 from php_jax.envs import replay
-from php_jax.training import call_graph
+from php_jax.training import call_graph, recipe
 from php_jax.training.run import Experiment, train_and_evaluate
 
 _DEMOS = flags.DEFINE_string("demos", None, "Training demonstrations, JSON lines.")
@@ -36,7 +36,8 @@ DEFAULT_CAPACITY = 8
 _FIT_DEFAULTS = {"hidden": '64, or the hierarchy file\'s "hidden"', "tau_in_termination": "1 at every level",
                  "min_capacity": f'{DEFAULT_CAPACITY} below the root where some demonstration is annotated, or the '
                                  'hierarchy file\'s "capacity"'}
-config_flags.define_config_flags(lambda name, default: _FIT_DEFAULTS.get(name) or config_flags.default_text(default))
+config_flags.define_config_flags(lambda name, default: _FIT_DEFAULTS.get(name) or recipe.DEFAULT_TEXT.get(name)
+                                 or config_flags.default_text(default))
 flags.adopt_module_key_flags(training)
 flags.adopt_module_key_flags(config_flags)
 

@@ -25,7 +25,7 @@ from absl import app, flags
 from experiments.common import cli, config_flags, progress, training
 from php_jax.data import demo_files
 from php_jax.envs import datasets, evaluation, tasks
-from php_jax.training import levelwise
+from php_jax.training import levelwise, recipe
 from php_jax.training.run import Experiment, train_and_evaluate, train_and_evaluate_seeds
 from php_jax.training.config import TrainConfig
 
@@ -57,9 +57,14 @@ _NUM_TEST = flags.DEFINE_integer("num_test", None, "Test problems per test set. 
 
 
 def _task_defaults(name: str, default) -> str:
-  """A setting's default as --help shows it: TrainConfig's, and the registered tasks that override it."""
-  return config_flags.default_text(default, {task.name: task.defaults.overrides()[name] for task in tasks.TASKS.values()
-                                         if name in task.defaults.overrides()})
+  """A setting's default as --help shows it: TrainConfig's (or the recipe's), and the registered tasks that
+  override it."""
+  overrides = {task.name: task.defaults.overrides()[name] for task in tasks.TASKS.values()
+               if name in task.defaults.overrides()}
+  text = config_flags.default_text(default, overrides)
+  if name in recipe.DEFAULT_TEXT:
+    text = recipe.DEFAULT_TEXT[name] + (text[text.index(" ("):] if overrides else "")
+  return text
 
 
 config_flags.define_config_flags(_task_defaults)

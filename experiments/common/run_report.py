@@ -5,6 +5,7 @@ write it at the end of every run; `experiments.report` writes it again."""
 from __future__ import annotations
 
 import html
+import json
 import os
 
 import jax
@@ -29,7 +30,7 @@ def write(workdir: str, demos: Demonstration | None = None) -> str:
   flat = results.get("model") == "flat_lstm"
   run = None if flat else run_view.load(workdir)  # a hierarchy that cannot be read is refused
   title = f"{results.get('task', 'run')}: {workdir}"
-  parts = [_summary(results), *_split_search(results), "<h2>Learning curves</h2>"]
+  parts = [_summary(results), *_recipe(results), *_split_search(results), "<h2>Learning curves</h2>"]
   curves = pictures.curves_figure(_metrics(workdir), "flat LSTM" if flat else "every level at once")
   parts.append(pictures.svg(curves) if curves else "<p>No training iterations were logged.</p>")
   if flat:
@@ -107,6 +108,25 @@ def _summary(results: dict) -> str:
   tested = "".join(f"<tr><td>{html.escape(str(k))}</td><td>{_number(v)}</td></tr>" for k, v in test.items())
   return (f"<h2>Settings</h2><table>{settings}</table>"
           f"<h2>Results</h2><table><tr><th>test set</th><th>result</th></tr>{tested}</table>")
+
+
+def _recipe(results: dict) -> list[str]:
+  """How the run chose to train: the reasons, and each candidate tried with its held-out score."""
+  recipe = results.get("recipe")
+  if not isinstance(recipe, dict):
+    return []
+  reasons = "".join(f"<li>{html.escape(str(r))}</li>" for r in recipe.get("reasons") or [])
+  scores = {s.get("name"): s for s in recipe.get("scores") or []}
+  rows = "".join(
+      f"<tr><td>{html.escape(str(c.get('name')))}{' (chosen)' if c.get('name') == recipe.get('chosen') else ''}"
+      f"</td><td>{html.escape(json.dumps(c.get('settings')))}</td>"
+      f"<td>{scores.get(c.get('name'), {}).get('held_out_explained', '–')}</td>"
+      f"<td>{_number(scores.get(c.get('name'), {}).get('held_out_log_likelihood_per_step'))}</td>"
+      f"<td>{_number(scores.get(c.get('name'), {}).get('wall_seconds'))}</td></tr>"
+      for c in recipe.get("candidates") or [])
+  return [f"<h2>Recipe</h2><ul>{reasons}</ul><table><tr><th>candidate</th><th>settings</th>"
+          f"<th>held-out demonstrations explained (of {recipe.get('judged_on', '–')})</th><th>held-out "
+          f"log-likelihood per step</th><th>seconds</th></tr>{rows}</table>"]
 
 
 def _split_search(results: dict) -> list[str]:

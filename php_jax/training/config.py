@@ -94,9 +94,9 @@ class TrainConfig:
       "(--seed's data); unset: --seed.", "int")
   training: str | None = _setting(
       None, "levelwise: one level at a time from the lowest, a stand-in root for the levels above (the paper); "
-      "joint: every level at once by exact inference over the whole call stack; unset: joint where no "
-      "demonstration is annotated and no level-wise setting is given (it alone learns addition there; "
-      "RESULTS.md), else levelwise.", "str", TRAININGS)
+      "joint: every level at once by exact inference over the whole call stack. A trainer given none trains "
+      "jointly where no demonstration is annotated and no level-wise setting is given, else level-wise.", "str",
+      TRAININGS)
   anneal_temperature: float | None = _setting(
       None, "Joint training: the posterior temperature T ≥ 1 at the first iteration (deterministic annealing): "
       "the loss takes its expectation over call stacks under P(stack | actions)^(1/T), flatter for T > 1, T "

@@ -29,6 +29,10 @@ RESTART_SEED_STRIDE = 1000  # restart r initialises from init_seed + r × this: 
 MODE_CALL_GRAPH = {"levelwise": "all", "joint": "operations"}  # each mode's candidate call graph
 SEGMENTATION_SETTINGS = ("segment_rule", "segment_iterations", "split_rounds")
 UNSEGMENTED = "unsegmented"
+DEFAULT_TEXT = {  # the defaults the recipe chooses, as the commands' --help states them
+    "training": "the recipe's: with annotation both are tried, without it joint",
+    "call_graph": "the recipe's: all for level-wise training, operations for joint training",
+    "segment_rule": "the recipe's: without annotation, each rule that applies is tried, and none"}
 
 
 @dataclasses.dataclass(frozen=True)

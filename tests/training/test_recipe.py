@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
+from experiments.common import run_report
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.envs import datasets, tasks
 from php_jax.hierarchy import HierarchySpec
@@ -120,6 +121,8 @@ def test_the_candidate_most_likely_on_held_out_demonstrations_is_kept_and_become
   for a, b in zip(jax.tree.leaves(nnx.state(kept)), jax.tree.leaves(nnx.state(candidate))):
     np.testing.assert_array_equal(a, b)
   assert any(r.get("candidate") == "untrained" for r in rows) and {"chosen": "trained"}.items() <= rows[-3].items()
+  page = open(run_report.write(str(tmp_path), demos)).read()
+  assert "<h2>Recipe</h2>" in page and "trained (chosen)" in page and "by hand" in page
   rows.clear()
   again = selection.train_and_choose(_experiment(demos), config, chosen, str(tmp_path), echo=rows.append)
   assert again == results and rows == [{"test": results["test"], "wall_seconds": results["wall_seconds"],
