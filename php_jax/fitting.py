@@ -1,4 +1,4 @@
-"""Full-batch Adam with the project's snapshot rule and resumable progress: the loop that the PHP levels
+"""Adam, full-batch or on minibatches of demonstrations, with the project's snapshot rule and resumable progress: the loop that the PHP levels
 (php_jax.training.levelwise), joint training (php_jax.training.joint) and the flat LSTM baseline (php_jax.flat_lstm) train with
 (`fit`), and the same loop and update step for several seeds' models at once, vmapped (`fit_seeds`, for
 php_jax.training.levelwise.train_seeds)."""
@@ -35,13 +35,16 @@ class Schedule(NamedTuple):
   """How a fit runs: `iterations` Adam updates at `learning_rate`; every `eval_every` iterations and at the
   end, an evaluation (a validation score, a logged row, a save); `snapshot`, which of the equally
   best-validated snapshots is kept (SNAPSHOT_RULES); a save also whenever `save_seconds` have passed;
-  `weight_decay`, AdamW's decoupled decay of every parameter (0: plain Adam)."""
+  `weight_decay`, AdamW's decoupled decay of every parameter (0: plain Adam); `batch_size`, demonstrations
+  per update (`minibatched`; None: all of them), drawn by `batch_seed`."""
   iterations: int
   learning_rate: float
   eval_every: int
   snapshot: str = "latest"
   save_seconds: float = 30.0
   weight_decay: float = 0.0
+  batch_size: int | None = None
+  batch_seed: int = 0
 
 
 class Hooks(NamedTuple):
@@ -71,11 +74,42 @@ class IterationLoss(NamedTuple):
   fn: Callable[..., jax.Array]
 
 
+def minibatched(loss_fn: Callable[..., jax.Array] | IterationLoss, batch_size: int, seed: int) -> IterationLoss:
+  """loss_fn on a minibatch of its first argument, a list of buckets (pytrees whose leaves lead with the
+  bucket's B_b rows): each update draws, without replacement, round(batch_size · B_b / Σ B) rows (at least 1)
+  of every bucket, afresh from seed and the number of updates made before it, so a resumed fit draws what an
+  uninterrupted one would. The loss's own normalisation (a mean over the rows it is given) then makes it an
+  estimate of the full loss, and its gradient of the full gradient."""
+  takes_iteration = isinstance(loss_fn, IterationLoss)
+  fn = loss_fn.fn if takes_iteration else loss_fn
+
+  def loss(model, iteration, buckets, *rest):
+    sizes = [jax.tree.leaves(bucket)[0].shape[0] for bucket in buckets]
+    key = jax.random.fold_in(jax.random.key(seed), iteration)
+    drawn = []
+    for index, (bucket, size) in enumerate(zip(buckets, sizes)):
+      count = min(size, max(1, round(batch_size * size / sum(sizes))))
+      rows = jax.random.choice(jax.random.fold_in(key, index), size, (count,), replace=False)
+      drawn.append(jax.tree.map(lambda x, rows=rows: x[rows], bucket))
+    return fn(model, *((iteration,) if takes_iteration else ()), drawn, *rest)
+  return IterationLoss(loss)
+
+
+def _per_batch(loss_fn, schedule: Schedule, args: tuple, axis: int = 0):
+  """loss_fn, or where schedule.batch_size is below the rows of args[0]'s buckets (along their leaves' axis
+  `axis`), `minibatched`."""
+  if schedule.batch_size is None or not args:
+    return loss_fn
+  rows = sum(jax.tree.leaves(bucket)[0].shape[axis] for bucket in args[0])
+  return loss_fn if schedule.batch_size >= rows else minibatched(loss_fn, schedule.batch_size, schedule.batch_seed)
+
+
 def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array] | IterationLoss, schedule: Schedule,
         hooks: Hooks = Hooks(), resume: Progress | None = None, args: tuple = (),
         mesh: Mesh | None = None) -> Progress:
-  """Full-batch Adam on loss_fn(model, *args) [] (an IterationLoss: also given the iteration). Updates `model`
-  in place to the kept snapshot.
+  """Adam on loss_fn(model, *args) [] (an IterationLoss: also given the iteration), on every demonstration
+  or, with schedule.batch_size, on a minibatch of args[0]'s buckets (`minibatched`). Updates `model` in
+  place to the kept snapshot.
 
   args (the data) follow the model into loss_fn: as constants of the compiled update without a mesh, as its
   arguments with one (arrays split over `mesh`); then the parameters and optimizer state are replicated on
@@ -90,7 +124,7 @@ def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array] | IterationLoss, sc
   optimizer = _optimizer(schedule)
   progress = resume if resume is not None else Progress(0, params, optimizer.init(params), params, None, None,
                                                         [])
-  step = _adam_step(graphdef, loss_fn, optimizer)
+  step = _adam_step(graphdef, _per_batch(loss_fn, schedule, args), optimizer)
   if mesh is None:  # the data as constants, folded into the program by XLA
     update = jax.jit(lambda params, opt_state: step(params, opt_state, rest, args))
   else:  # as arguments: a constant would sit whole on one device
@@ -104,18 +138,25 @@ def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array] | IterationLoss, sc
 
 def fit_seeds(models: Sequence[nnx.Module], loss_fn: Callable[..., jax.Array], schedule: Schedule,
               hooks: Hooks = Hooks(), resume: list[Progress] | None = None, args: tuple = (),
-              mesh: Mesh | None = None) -> list[Progress]:
+              mesh: Mesh | None = None, batch_seeds: Sequence[int] | None = None) -> list[Progress]:
   """`fit` for S independent models of one architecture (one per seed), as one vmapped program: model s is
   trained on loss_fn(models[s], *args_s) [], where args' leaves are stacked along a leading S axis, and keeps
   its own snapshot. hooks take every model's losses, scores and progress (`Hooks`); resume takes one Progress
   per model (each as `fit` makes it). With a mesh (args placed on it by the caller), the parameters and
-  optimizer states are replicated on it. Updates each model in place to its kept snapshot; returns the
-  Progress of each."""
+  optimizer states are replicated on it. With schedule.batch_size, model s draws its minibatches from
+  batch_seeds[s] (default: schedule.batch_seed), as its own `fit` would. Updates each model in place to its
+  kept snapshot; returns the Progress of each."""
   splits = [nnx.split(model, nnx.Param, ...) for model in models]
   graphdef, rest = splits[0][0], _stack([r for _, _, r in splits])
   optimizer = _optimizer(schedule)
   progress = resume if resume is not None else [Progress(0, p, optimizer.init(p), p, None, None, [])
                                                 for _, p, _ in splits]
+  if _per_batch(loss_fn, schedule, args, axis=1) is not loss_fn:  # each model's seed, an argument of its own
+    seeds = batch_seeds or [schedule.batch_seed] * len(models)
+    args = (*args, sharding.replicate(jnp.asarray(seeds, jnp.int32), mesh))
+    each = loss_fn
+    loss_fn = IterationLoss(lambda model, iteration, *rest: minibatched(each, schedule.batch_size, rest[-1]).fn(
+        model, iteration, *rest[:-1]))
   update = jax.jit(jax.vmap(_adam_step(graphdef, loss_fn, optimizer)))
   state = sharding.replicate((_stack([p.params for p in progress]), _stack([p.opt_state for p in progress])), mesh)
   rest = sharding.replicate(rest, mesh)

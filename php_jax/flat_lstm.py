@@ -103,11 +103,12 @@ def rollout_batch(policy: FlatLSTMPolicy, env, states, max_steps: int) -> execut
 
 def train(policy: FlatLSTMPolicy, demos: Demonstration, schedule: fitting.Schedule,
           hooks: fitting.Hooks = fitting.Hooks()) -> dict:
-  """Behaviour cloning: full-batch Adam on −mean log p(demonstration) (`fitting.fit`: the snapshot with the
+  """Behaviour cloning: Adam on −mean log p(demonstration) (schedule.batch_size: of a minibatch) (`fitting.fit`: the snapshot with the
   best hooks.on_eval score is kept, else the final one). Updates `policy` in place. Returns a report."""
-  observations, actions = jnp.asarray(demos.observations), jnp.asarray(demos.actions)
-  length = jnp.asarray(demos.length)
-  progress = fitting.fit(
-      policy, lambda model: -jnp.mean(jax.vmap(model.log_likelihood)(observations, actions, length)), schedule,
-      hooks)
+  data = [(jnp.asarray(demos.observations), jnp.asarray(demos.actions), jnp.asarray(demos.length))]
+
+  def loss(model, buckets):
+    [(observations, actions, length)] = buckets
+    return -jnp.mean(jax.vmap(model.log_likelihood)(observations, actions, length))
+  progress = fitting.fit(policy, loss, schedule, hooks, args=(data,))
   return {"losses": progress.losses, "best_iteration": progress.best_iteration, "validation": progress.best_score}

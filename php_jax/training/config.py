@@ -88,6 +88,10 @@ class TrainConfig:
   snapshot: str = _setting("latest", "Which of the equally best-validated snapshots is kept.", "str",
                            fitting.SNAPSHOT_RULES)
   length_buckets: int = _setting(4, "Demonstrations are batched by length into this many buckets.", "int")
+  batch_size: int | None = _setting(
+      None, "Demonstrations (level-wise: views) per Adam update, drawn afresh at each from every length bucket "
+      "in proportion (minibatch Expectation–Gradient: each update's E-step is exact for its demonstrations); "
+      "unset: all of them.", "int")
   seed: int = _setting(0, "Seed for data, and for initialisation and decoding unless --init_seed is given.", "int")
   init_seed: int | None = _setting(
       None, "Seed for the networks' initialisation and decoding alone, so that restarts share one training set "
@@ -140,7 +144,8 @@ class TrainConfig:
   def schedule(self, iterations: int | None = None) -> fitting.Schedule:
     """The fit's schedule from these settings: `iterations` updates (default: self.iterations)."""
     return fitting.Schedule(self.iterations if iterations is None else iterations, self.learning_rate,
-                            self.eval_every, self.snapshot, weight_decay=self.weight_decay)
+                            self.eval_every, self.snapshot, weight_decay=self.weight_decay,
+                            batch_size=self.batch_size, batch_seed=self.network_seed)
 
   def __post_init__(self):
     """Raises ConfigError naming the first setting that is not allowed."""
@@ -151,6 +156,8 @@ class TrainConfig:
     for name in ("iterations", "strong_warmup", "seed", "split_iterations", "split_hint_iterations"):
       if not (_is_int(getattr(self, name)) and getattr(self, name) >= 0):
         raise ConfigError(name, f"must be a non-negative integer; got {getattr(self, name)!r}")
+    if self.batch_size is not None and not (_is_int(self.batch_size) and self.batch_size >= 1):
+      raise ConfigError("batch_size", f"must be a positive integer; got {self.batch_size!r}")
     if self.init_seed is not None and not (_is_int(self.init_seed) and 0 <= self.init_seed):
       raise ConfigError("init_seed", f"must be a non-negative integer; got {self.init_seed!r}")
     for name in ("seed", "init_seed"):

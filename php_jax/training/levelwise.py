@@ -87,7 +87,7 @@ class LevelFit:
     largest = max(self.capacities)
     return fitting.fit_seeds(self.models, lambda model, buckets, weight, used_capacity: level_loss(
         model, buckets, largest, weight, used_capacity), schedule, hooks, resume, args=(buckets, weights, used),
-        mesh=mesh)
+        mesh=mesh, batch_seeds=[c.network_seed for c in self.configs])
 
 
 def level_strong_weight(config: TrainConfig, is_root: bool) -> float:
