@@ -28,7 +28,8 @@ A hierarchy file holds at most MAX_COUNT levels, action factors and hidden layer
 procedures per level, values per action factor, units per layer and counters per level. Lines and files are
 read by php_jax.data.json_lines (its bounds: length, nesting, numbers within float32's range, no repeated keys);
 observations must be real numbers (not booleans), actions, procedures and counters integers. Every reader
-raises DemoFileError with "PATH:LINE: what is wrong" at the first problem.
+raises DemoFileError with "PATH:LINE: what is wrong" at the first problem. For large data sets the same
+demonstrations can be a binary set (a directory, `php_jax.data.shards`): `read_demonstrations` reads either.
 """
 from __future__ import annotations
 
@@ -38,8 +39,9 @@ import os
 
 import numpy as np
 
-from php_jax import demos as demos_lib
-from php_jax.data import json_lines
+from php_jax.data import json_lines, shards
+from php_jax.data.demo_checks import (DemoFileError, action_error, check_stack, counter_error, fitted_spec,
+                                      observation_size_error)
 from php_jax.data.files import write_atomically
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.hierarchy import HierarchySpec
@@ -48,10 +50,6 @@ HIERARCHY_KEYS = ("levels", "action_sizes", "name", "capacity", "hidden", "calls
 DEMONSTRATION_KEYS = ("observations", "actions", "stack")
 MAX_COUNT = 64
 MAX_SIZE = 4096
-
-
-class DemoFileError(ValueError):
-  """A malformed demonstration or hierarchy file; the message starts with the path (and line)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -231,8 +229,7 @@ def parse_demonstration(obj, spec: HierarchySpec) -> tuple[np.ndarray, np.ndarra
     raise ValueError(f'"observations" must list T+1 = {len(actions) + 1} vectors (one more than the actions)')
   obs = _observations(observations)
   if spec.obs_dim and obs.shape[1] != spec.obs_dim:
-    raise ValueError(f"observations have {obs.shape[1]} numbers where the hierarchy's have {spec.obs_dim} (a "
-                     "file of another hierarchy or environment)")
+    raise observation_size_error(obs.shape[1], spec)
   rows = _actions(actions, spec.action_sizes)
   stack = obj.get("stack")
   procs = taus = None
@@ -252,8 +249,7 @@ def _actions(actions: list, sizes: tuple[int, ...]) -> np.ndarray:
                        f"got {json_lines.shown(action)}")
     for f, (a, size) in enumerate(zip(action, sizes)):
       if not 0 <= a < size:
-        raise ValueError(f"action {t}: factor {f} = {a} is outside 0..{size - 1} (the hierarchy's action factor "
-                         f"sizes are {list(sizes)})")
+        raise action_error(t, f, a, sizes)
     rows.append(action)
   return np.array(rows, np.int32)
 
@@ -291,28 +287,20 @@ def _parse_stack(stack, num_steps: int, spec: HierarchySpec) -> tuple[np.ndarray
         if not UNKNOWN <= procedure < spec.num_procs(level):
           raise ValueError(f"stack step {t}: procedure id {procedure} at level {level} is unknown (level "
                            f"{level} has {spec.num_procs(level)} procedures)")
-        if not UNKNOWN <= counter <= t + 1:  # stored in int32; stack_error and the check below see the rest
-          raise _counter_error(t, level, counter)
+        if not UNKNOWN <= counter <= t + 1:  # stored in int32; check_stack sees the rest
+          raise counter_error(t, level, counter)
         procs[t, level], taus[t, level] = frame
-  error = demos_lib.stack_error(procs, taus, spec)
-  if error:
-    raise ValueError(f"stack {error}")
-  late = np.argwhere(taus > np.arange(num_steps)[:, None])
-  if late.size:
-    t, level = late[0]
-    raise _counter_error(t, level, taus[t, level])
+  check_stack(procs, taus, spec)
   return procs, taus
-
-
-def _counter_error(t: int, level: int, counter: int) -> ValueError:
-  return ValueError(f"stack step {t}, level {level}: counter {counter} is outside 0..{t} (a procedure runs at "
-                    "most one operation per step)")
 
 
 def read_demonstrations(path: str, spec: HierarchySpec) -> tuple[Demonstration, HierarchySpec]:
   """All demonstrations of a file as one padded batch [B, ...] (strong = annotated), and spec with the
-  observation size the file shows (checked against spec.obs_dim unless that is 0). Raises DemoFileError at
-  the first bad line, or naming the file if it holds no demonstration."""
+  observation size the file shows (checked against spec.obs_dim unless that is 0). A directory is read as a
+  binary set (`shards`), anything else as JSON lines. Raises DemoFileError at the first bad line (or shard),
+  or naming the file if it holds no demonstration."""
+  if shards.read_as_binary(path):
+    return shards.read_demonstrations(path, spec)
   parsed = []
   try:
     f = open(path, "rb")
@@ -334,11 +322,7 @@ def read_demonstrations(path: str, spec: HierarchySpec) -> tuple[Demonstration, 
         raise DemoFileError(f"{path}:{number}: malformed demonstration: {e}") from None
   if not parsed:
     raise DemoFileError(f"{path}: no demonstrations")
-  try:
-    spec = dataclasses.replace(spec, obs_dim=obs_dim)
-  except ValueError as e:  # the hierarchy's "observes" names an entry these observations do not have
-    raise DemoFileError(f"{path}: the hierarchy does not fit these demonstrations: {e}") from None
-  return _batch(parsed, spec.num_levels), spec
+  return _batch(parsed, spec.num_levels), fitted_spec(path, spec, obs_dim)
 
 
 def _batch(parsed: list, depth: int) -> Demonstration:
@@ -369,6 +353,15 @@ def demonstration_lines(batch: Demonstration, annotated) -> list[str]:
                        for t in range(n)]
     lines.append(json.dumps(line))
   return lines
+
+
+def write_demonstrations(path: str, batch: Demonstration, annotated, shard_size: int = shards.SHARD_SIZE) -> None:
+  """Writes a batch [B, ...] (annotated [B] bool: which carry their "stack") to path whole or not at all: a
+  binary set of shard_size demonstrations a shard where path ends in shards.SUFFIX, else JSON lines."""
+  if shards.write_as_binary(path):
+    shards.write_shards(path, shards.unpadded(batch, annotated), shard_size)
+  else:
+    write_atomically(path, "".join(line + "\n" for line in demonstration_lines(batch, annotated)).encode())
 
 
 def read_indices(path: str, count: int) -> list[int]:
