@@ -292,7 +292,8 @@ def _define_flags():
   d.compile_dir = flags.DEFINE_string("compile_dir", None, "CompILE's code: a checkout of github.com/tkipf/compile "
                                       "(modules.py, utils.py) or its git directory (HEAD is read).")
   d.hierarchy = flags.DEFINE_string("hierarchy", None, "Hierarchy file (JSON) of the demonstrations.")
-  d.demos = flags.DEFINE_string("demos", None, "Training demonstrations, JSON lines (stacks, if any, unused).")
+  d.demos = flags.DEFINE_string("demos", None, "Training demonstrations, JSON lines or a binary set (stacks, if any, "
+                                "unused).")
   d.held_out = flags.DEFINE_string("held_out", None, "Held-out demonstrations annotated with their stack.")
   d.out = flags.DEFINE_string("out", None, "Output JSON file (the printed line).")
   d.level = flags.DEFINE_integer("level", 1, "Level of the supervisor's calls to score against.", lower_bound=1)

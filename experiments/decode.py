@@ -36,7 +36,7 @@ from php_jax.model import PHPHierarchy
 from php_jax.training import checkpoint
 
 _POLICY = flags.DEFINE_string("policy", None, "Workdir holding a fitted hierarchy.")
-_DEMOS = flags.DEFINE_string("demos", None, "Demonstrations to decode, JSON lines.")
+_DEMOS = flags.DEFINE_string("demos", None, "Demonstrations to decode: JSON lines, or a binary set (a directory).")
 _OUT = flags.DEFINE_string("out", None, "Output JSON-lines file.")
 _BATCH_SIZE = flags.DEFINE_integer("batch_size", 512, "Demonstrations decoded together.", lower_bound=1)
 

@@ -8,14 +8,15 @@ r"""Writes a task's supervisor demonstrations, and its hierarchy, in the file fo
 
 --split=training gives exactly the training set `experiments.train` builds for the same --seed, --num_demos
 and --num_strong (num_strong of them carry their call stack, chosen at random by the seed); validation and
-test draw fresh problems with train's seeds for those sets.
+test draw fresh problems with train's seeds for those sets. An --out ending in .shards is written as a binary
+set (a directory of shards, for large data sets; docs/own-demonstrations.md), any other as JSON lines.
 """
 from __future__ import annotations
 
 from absl import app, flags
 
 from experiments.common import cli
-from php_jax.data import demo_files, files
+from php_jax.data import demo_files
 from php_jax.envs import datasets, tasks
 from php_jax.training.config import MAX_SEED
 
@@ -26,7 +27,8 @@ _NUM_STRONG = flags.DEFINE_integer("num_strong", 0, "How many carry their call s
 _SIZE = flags.DEFINE_integer("size", None, "test: problem size (digits, array length) where the task has sizes; "
                              "default: the training distribution.")
 _SEED = flags.DEFINE_integer("seed", 0, "Seed (the training command's --seed for the same data).")
-_OUT = flags.DEFINE_string("out", None, "Output demonstration file (JSON lines).")
+_OUT = flags.DEFINE_string("out", None, "Output demonstration file: JSON lines, or a binary set where it ends in "
+                           ".shards.")
 _HIERARCHY_OUT = flags.DEFINE_string("hierarchy_out", None, "Also write the task's hierarchy file here.")
 
 
@@ -39,7 +41,7 @@ def main(argv):
   except ValueError as e:
     cli.fail(f"--task: {e}")
   try:
-    cli.check_outputs({"out": _OUT.value, "hierarchy_out": _HIERARCHY_OUT.value}, {})
+    cli.check_outputs({"out": _OUT.value, "hierarchy_out": _HIERARCHY_OUT.value}, {}, demo_sets=True)
   except ValueError as e:
     cli.fail(str(e))
   num = task.defaults.num_demos if _NUM_DEMOS.value is None else _NUM_DEMOS.value
@@ -66,13 +68,13 @@ def main(argv):
     cli.fail(f"--size={_SIZE.value}: {e}" if _SIZE.value is not None else str(e))
   batch = datasets.problem_demonstrations(task, problems, 0)
   annotated = datasets.strong_mask(len(problems), _NUM_STRONG.value, _SEED.value)
-  lines = demo_files.demonstration_lines(batch, annotated)
   with cli.output_errors("out", _OUT.value):
-    files.write_atomically(_OUT.value, "".join(line + "\n" for line in lines).encode())
+    demo_files.write_demonstrations(_OUT.value, batch, annotated)
   if _HIERARCHY_OUT.value:
     with cli.output_errors("hierarchy_out", _HIERARCHY_OUT.value):
       demo_files.write_hierarchy(_HIERARCHY_OUT.value, task.spec)
-  print(f"{task.name}: {len(lines)} {_SPLIT.value} demonstrations ({int(annotated.sum())} annotated) -> {_OUT.value}")
+  print(f"{task.name}: {len(problems)} {_SPLIT.value} demonstrations ({int(annotated.sum())} annotated) -> "
+        f"{_OUT.value}")
 
 
 if __name__ == "__main__":

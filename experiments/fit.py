@@ -25,7 +25,7 @@ from php_jax.envs import replay
 from php_jax.training import call_graph, recipe
 from php_jax.training.run import Experiment, train_and_evaluate
 
-_DEMOS = flags.DEFINE_string("demos", None, "Training demonstrations, JSON lines.")
+_DEMOS = flags.DEFINE_string("demos", None, "Training demonstrations: JSON lines, or a binary set (a directory).")
 _HIERARCHY = flags.DEFINE_string("hierarchy", None, "Hierarchy file (JSON): procedure names per level, root "
                                  "first, and the action factor sizes.")
 _VALIDATION = flags.DEFINE_string("validation", None, "Held-out demonstrations for choosing the snapshot. "

@@ -11,7 +11,8 @@ expert's MODULE:ATTR is a callable that takes the environment and returns an obj
 their call stacks (with --annotate instead: the episodes whose "index" its lines give, as
 `experiments.suggest` writes them), the others are actions only. A stack that breaks the call-stack rules
 (or, with --hierarchy, names a procedure the hierarchy does not have) is refused naming the episode and
-step; every refusal is one line with exit status 2 and nothing written. --out's folder is made if missing.
+step; every refusal is one line with exit status 2 and nothing written. --out's folder is made if missing;
+an --out ending in .shards is written as a binary set (a directory of shards, for large data sets).
 
 The expert sees the environment's own observations (a dict stays a dict); the file holds them flattened
 (`gymnasium.spaces.flatten`). The closing lines say how the expert did: its success rate under --success
@@ -20,13 +21,11 @@ and the file format: docs/own-environment.md and docs/own-demonstrations.md.
 """
 from __future__ import annotations
 
-import json
-
 import gymnasium
 from absl import app, flags
 
 from experiments.common import cli, environment_flags, progress
-from php_jax.data import demo_files, files
+from php_jax.data import demo_files
 from php_jax.envs import gym, success
 
 _EXPERT = flags.DEFINE_string("expert", None, "module:attribute of a callable that takes the environment and "
@@ -37,7 +36,8 @@ _ANNOTATED = flags.DEFINE_integer("annotated", 0, "How many of the first episode
 _ANNOTATE = flags.DEFINE_string("annotate", None, "Which episodes keep the expert's call stacks: the \"index\" "
                                 "(0-based) of each line of this file (experiments.suggest's output), instead of "
                                 "--annotated.")
-_OUT = flags.DEFINE_string("out", None, "Output demonstration file (JSON lines).")
+_OUT = flags.DEFINE_string("out", None, "Output demonstration file: JSON lines, or a binary set where it ends in "
+                           ".shards.")
 _HIERARCHY = flags.DEFINE_string("hierarchy", None, "Optional hierarchy file: stacks are also checked "
                                  "against its procedures.")
 
@@ -50,7 +50,7 @@ def main(argv):
   cli.exit_on_interrupt(f"--out={_OUT.value} not written")
   try:
     cli.check_outputs({"out": _OUT.value}, {"hierarchy": _HIERARCHY.value, "annotate": _ANNOTATE.value},
-                      make_folders=True)
+                      make_folders=True, demo_sets=True)
     rule = environment_flags.success_rule()
     if _ANNOTATED.value > _EPISODES.value:
       raise ValueError(f"--annotated={_ANNOTATED.value} is more than --episodes={_EPISODES.value}")
@@ -77,7 +77,7 @@ def main(argv):
   except (OSError, ValueError) as e:  # GymError and DemoFileError are ValueErrors
     cli.fail(str(e))
   with cli.output_errors("out", _OUT.value):
-    files.write_atomically(_OUT.value, "".join(json.dumps(line) + "\n" for line in lines).encode())
+    gym.write_demonstrations(_OUT.value, lines)
   steps = sum(len(line["actions"]) for line in lines)
   annotated = sum("stack" in line for line in lines)
   print(f"{len(lines)} episodes ({annotated} annotated), {steps} steps -> {_OUT.value}")

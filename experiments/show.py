@@ -20,7 +20,7 @@ from experiments.common import cli, pictures, run_view
 from php_jax.data import files
 
 _POLICY = flags.DEFINE_string("policy", None, "Workdir of a trained hierarchy's run.")
-_DEMOS = flags.DEFINE_string("demos", None, "Demonstrations (JSON lines). Default: the run's training "
+_DEMOS = flags.DEFINE_string("demos", None, "Demonstrations (JSON lines, or a binary set). Default: the run's training "
                              "demonstrations.")
 _INDEX = flags.DEFINE_integer("index", 0, "Which demonstration (0-based line number).", lower_bound=0)
 _OUT = flags.DEFINE_string("out", None, "Picture to write: .png, .svg or .html (the picture and the call trees). "

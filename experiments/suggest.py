@@ -23,11 +23,11 @@ from absl import app, flags
 
 from experiments.common import cli, run_view
 from php_jax.analysis import annotation_choice
-from php_jax.data import demo_files, files
+from php_jax.data import demo_files, files, shards
 from php_jax.envs import datasets, tasks
 from php_jax.training.config import MAX_SEED
 
-_DEMOS = flags.DEFINE_string("demos", None, "Demonstrations (JSON lines), some perhaps annotated.")
+_DEMOS = flags.DEFINE_string("demos", None, "Demonstrations (JSON lines, or a binary set), some perhaps annotated.")
 _HIERARCHY = flags.DEFINE_string("hierarchy", None, "Their hierarchy file (with --demos).")
 _TASK = flags.DEFINE_string("task", None, "A registered task (or module:attribute) whose training set to rank, "
                             "instead of --demos.")
@@ -93,8 +93,9 @@ def main(argv):
   lines = "".join(json.dumps(dataclasses.asdict(s)) + "\n" for s in chosen)
   with cli.output_errors("out", _OUT.value):
     files.write_atomically(_OUT.value, lines.encode())
+  in_lines = _DEMOS.value and not shards.read_as_binary(_DEMOS.value)  # a binary set has no lines to name
   for rank, s in enumerate(chosen, 1):
-    line = f" (line {s.index + 1} of {_DEMOS.value})" if _DEMOS.value else ""
+    line = f" (line {s.index + 1} of {_DEMOS.value})" if in_lines else ""
     print(f"{rank}. demonstration {s.index}{line}: {s.why}")
   print(f"{len(chosen)} of {int((~demos.strong).sum())} actions-only demonstrations chosen -> {_OUT.value}")
 

@@ -15,7 +15,7 @@ from typing import NoReturn
 from absl import flags, logging
 
 from experiments.common.flag_groups import GROUPS
-from php_jax.data import files
+from php_jax.data import files, shards
 from php_jax.training import checkpoint
 
 
@@ -50,12 +50,13 @@ def exit_on_interrupt(message: str) -> None:
   threading.Thread(target=watch, name="interrupt watcher", daemon=True).start()
 
 
-def check_outputs(outputs: dict[str, str | None], inputs: dict[str, str | None], make_folders: bool = False
-                  ) -> None:
+def check_outputs(outputs: dict[str, str | None], inputs: dict[str, str | None], make_folders: bool = False,
+                  demo_sets: bool = False) -> None:
   """Raises ValueError naming the flag of the first output ({flag: path}; None: not asked for) that could
   not be written, before any work: an empty path, a directory, a file in a missing (unless make_folders: the
   command makes it) or unwritable directory, one of the inputs ({flag: path}; a --policy workdir's flag: its
-  model files) or another output."""
+  model files) or another output. demo_sets: an output ending in shards.SUFFIX is a binary demonstration set,
+  which replaces a set there but nothing else."""
   seen = {}
   for flag, path in inputs.items():
     if flag == "policy" and path:
@@ -67,7 +68,10 @@ def check_outputs(outputs: dict[str, str | None], inputs: dict[str, str | None],
       continue
     if not path:
       raise ValueError(f"--{flag}: must name a file; got ''")
-    if os.path.isdir(path):
+    if demo_sets and shards.write_as_binary(path):
+      if os.path.lexists(path) and not shards.is_set(path):
+        raise ValueError(f"--{flag}={path}: something that is not a demonstration set is there; not replaced")
+    elif os.path.isdir(path):
       raise ValueError(f"--{flag}={path} is a directory")
     directory = os.path.dirname(os.path.realpath(path))  # a symbolic link writes the file it names
     while make_folders and not os.path.exists(directory):  # the folder that making it would write in

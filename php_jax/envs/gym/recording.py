@@ -4,17 +4,20 @@ An expert is any object with `act(observation, info)` returning an action, or a 
 whose stack is the call stack that chose it (`[[procedure, counter], ...]`, root first, the demonstration
 file's format, any sequences of ints, or None), and optionally `reset(observation, info)`, called at each
 episode's start. The expert sees the environment's own observations (a dict stays a dict); the lines hold
-them flattened. Episode i is reset with seed + i.
+them flattened. Episode i is reset with seed + i. `write_demonstrations` writes the lines as JSON lines or as
+a binary set.
 """
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Collection
 from typing import Any
 
 import gymnasium
 import numpy as np
 
-from php_jax.data import demo_files
+from php_jax.data import demo_files, files, shards
+from php_jax.demos import UNKNOWN
 from php_jax.envs import success
 from php_jax.envs.gym.loading import max_steps_of
 from php_jax.envs.gym.spaces import (GymError, action_factors, action_sizes, check_observation_space,
@@ -130,3 +133,24 @@ def _episode(env: gymnasium.Env, expert, seed: int, limit: int, episode: int
     truncated = bool(truncated) or (len(actions) >= limit and not terminated)
   ending = success.Ending(sum(rewards), rewards[-1] if rewards else None, bool(terminated), truncated, dict(info))
   return {"observations": observations, "actions": actions}, stacks, ending
+
+
+def write_demonstrations(path: str, lines: list[dict]) -> None:
+  """Writes `record`'s lines to path whole or not at all: a binary set (`php_jax.data.shards`) where path ends
+  in shards.SUFFIX, else JSON lines."""
+  if shards.write_as_binary(path):
+    frames = (frames for line in lines for frames in line.get("stack") or () if frames is not None)
+    depth = len(next(frames, ()))
+    shards.write_shards(path, (_arrays(line, depth) for line in lines))
+  else:
+    files.write_atomically(path, "".join(json.dumps(line) + "\n" for line in lines).encode())
+
+
+def _arrays(line: dict, depth: int) -> shards.Unpadded:
+  """One of `record`'s lines as arrays: observations [T+1, D] float32, actions [T, F] int32 and, where it
+  carries a stack, its procedures and counters [T, depth] int32 (UNKNOWN where the expert gave none)."""
+  stack, procs, taus = line.get("stack"), None, None
+  if stack is not None:
+    rows = [[[UNKNOWN, UNKNOWN] if f is None else f for f in frames or [None] * depth] for frames in stack]
+    procs, taus = np.array(rows, np.int32).reshape(len(stack), depth, 2).transpose(2, 0, 1)
+  return np.array(line["observations"], np.float32), np.array(line["actions"], np.int32), procs, taus
