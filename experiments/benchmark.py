@@ -6,16 +6,22 @@ r"""Benchmarks as commands: ratios against baselines measured in the same proces
   python -m experiments.benchmark train_step --task=NAME --hidden=64  # one EG iteration, split
   python -m experiments.benchmark scaling --task=NAME --hidden=32  # one EG step on 1 vs all devices; seeds vmapped
   python -m experiments.benchmark act --policy=RUN --env=ENV --num_envs=64  # a policy in a Gymnasium env vs the env
+  python -m experiments.benchmark demo_files --num_demos=300  # the binary demonstration format vs JSON lines
 
 estep times values + marginals for B demonstrations of T steps (vmapped, jitted) at the paper's sizes and beyond,
 checks that the three agree on log P(ξ), and prints lattice cells (B·T·K·C) per second and ratios.
+demo_files writes and reads N synthetic demonstrations of BabyAI's size as JSON lines and as a binary set
+(`php_jax.data.shards`), checks that both read to the same arrays, and prints the sizes and times and their
+ratios.
 """
 from __future__ import annotations
 
 import dataclasses
 import importlib.util
 import json
+import os
 import statistics
+import tempfile
 import time
 
 import jax
@@ -26,8 +32,10 @@ from flax import nnx
 
 import php_jax
 from php_jax import executor, sharding
-from php_jax.data import views
+from php_jax.data import demo_files, shards, views
+from php_jax.demos import Demonstration
 from php_jax.envs import datasets, tasks
+from php_jax.hierarchy import HierarchySpec
 from php_jax.training import joint, levelwise, networks, objective
 from php_jax.training.config import TrainConfig, balanced_strong_weight
 
@@ -47,7 +55,7 @@ _ROOT = flags.DEFINE_enum("root", "lstm", ["lstm", "mlp"], "train_step, scaling:
 _NUM_STRONG = flags.DEFINE_integer("num_strong", 3, "train_step, scaling: annotated demonstrations of the training "
                                    "set.")
 _NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "scaling: demonstrations of the training set (default: the "
-                                  "task's).")
+                                  "task's); demo_files: synthetic demonstrations (default: 300).")
 _POLICY = flags.DEFINE_string("policy", None, "act: a workdir of experiments.fit.")
 _ENV = flags.DEFINE_string("env", None, "act: the Gymnasium environment (what experiments.act --env takes).")
 _NUM_ENVS = flags.DEFINE_integer("num_envs", 64, "act: copies of the environment stepped together.")
@@ -351,6 +359,73 @@ def bench_act():
   return [row]
 
 
+BABYAI_LIKE = HierarchySpec("babyai_like", (("root",), ("go_to", "pick_up", "open", "drop")), (7,), 1004)
+
+
+def babyai_like_demos(num: int, seed: int = 0) -> Demonstration:
+  """num synthetic demonstrations [num, ...] of BabyAI's size (BABYAI_LIKE): 5–30 steps; each observation
+  1,004 numbers, a 7 × 7 view of 20 one-hot entries per cell, a one-hot direction and 20 small integers (the
+  mission's words); random actions of 7 values; half annotated with a stack of calls of 1–6 steps."""
+  rng = np.random.default_rng(seed)
+  lengths = rng.integers(5, 31, num)
+  width = int(lengths.max())
+  obs = np.zeros((num, width + 1, 1004), np.float32)
+  cell = rng.integers(0, 20, (num, width + 1, 49)) + 20 * np.arange(49)
+  np.put_along_axis(obs, cell, 1.0, axis=2)
+  np.put_along_axis(obs, 980 + rng.integers(0, 4, (num, width + 1, 1)), 1.0, axis=2)
+  obs[..., 984:] = rng.integers(0, 12, (num, width + 1, 20))
+  starts = rng.random((num, width)) < 0.3  # a call starts there (and at step 0)
+  starts[:, 0] = True
+  call = np.cumsum(starts, axis=1) - 1
+  step_in_call = np.arange(width) - np.maximum.accumulate(np.where(starts, np.arange(width), 0), axis=1)
+  procedures = np.stack([np.zeros_like(call), rng.integers(0, 4, (num, width))[np.arange(num)[:, None], call]], -1)
+  counters = np.stack([call, step_in_call], -1)
+  pad = np.arange(width)[None, :, None] >= lengths[:, None, None]
+  obs[np.arange(width + 1)[None, :] > lengths[:, None]] = 0
+  actions = np.where(pad, 0, rng.integers(0, 7, (num, width, 1)))
+  procedures, counters = (np.where(pad, -1, x).astype(np.int32) for x in (procedures, counters))
+  return Demonstration(obs, actions.astype(np.int32), procedures, counters, lengths.astype(np.int32),
+                       np.arange(num) % 2 == 0)
+
+
+def _size(path: str) -> int:
+  return sum(os.path.getsize(os.path.join(path, n)) for n in os.listdir(path)) if os.path.isdir(path) else (
+      os.path.getsize(path))
+
+
+def bench_demo_files():
+  """Writing and reading --num_demos synthetic demonstrations (babyai_like_demos) as JSON lines (the
+  baseline) and as a binary set, each the median of 3 rounds: bytes and seconds, and the binary's ratios."""
+  num = _NUM_DEMOS.value or 1000
+  batch = babyai_like_demos(num)
+  print(f"{num} synthetic demonstrations of BabyAI's size: {int(batch.length.sum())} steps, 1,004 numbers an "
+        f"observation, {int(batch.strong.sum())} annotated; JSON lines vs a binary set of {shards.SHARD_SIZE} a shard")
+  rows, read = [], {}
+  with tempfile.TemporaryDirectory() as folder:
+    for name, path in (("JSON lines", "demos.jsonl"), ("binary", "demos" + shards.SUFFIX)):
+      path = os.path.join(folder, path)
+      write_s = statistics.median(_seconds(demo_files.write_demonstrations, path, batch, batch.strong)
+                                  for _ in range(3))
+      read_s = statistics.median(_seconds(demo_files.read_demonstrations, path, BABYAI_LIKE) for _ in range(3))
+      read[name], _ = demo_files.read_demonstrations(path, BABYAI_LIKE)
+      rows.append({"format": name, "bytes": _size(path), "write_s": write_s, "read_s": read_s})
+  assert all(np.array_equal(a, b) for a, b in zip(*read.values())), "the two formats read to different arrays"
+  for row in rows:
+    print(f"{row['format']:>11}: {row['bytes']:13,} bytes, written in {row['write_s']:6.2f} s, read in "
+          f"{row['read_s']:6.2f} s")
+  lines, binary = rows
+  print(f"binary / JSON: size {binary['bytes'] / lines['bytes']:.4f} (1/{lines['bytes'] / binary['bytes']:.0f}), "
+        f"write time {binary['write_s'] / lines['write_s']:.3f}, read time {binary['read_s'] / lines['read_s']:.3f}; "
+        "both read to the same arrays")
+  return rows
+
+
+def _seconds(fn, *args) -> float:
+  start = time.perf_counter()
+  fn(*args)
+  return time.perf_counter() - start
+
+
 def _task():
   if not _TASK.value:
     raise app.UsageError("--task is required for rollout, train_step and scaling")
@@ -359,7 +434,8 @@ def _task():
 
 def main(argv):
   commands = {"estep": bench_estep, "estep_grad": bench_estep_grad, "rollout": bench_rollout,
-              "train_step": bench_train_step, "scaling": bench_scaling, "act": bench_act}
+              "train_step": bench_train_step, "scaling": bench_scaling, "act": bench_act,
+              "demo_files": bench_demo_files}
   if len(argv) != 2 or argv[1] not in commands:
     raise app.UsageError(f"usage: python -m experiments.benchmark {{{'|'.join(commands)}}} [--flags]")
   rows = commands[argv[1]]()
