@@ -67,8 +67,23 @@ class ProcedureMLPs(nnx.Module):
     return out.reshape(num_procs, -1, num_obs, num_taus)
 
 
+class Trunk(nnx.Module):
+  """One level's encoding of the observation, shared by its K procedures' networks and computed once per
+  observation: a ReLU layer. [N, obs_dim] → [N, width]."""
+
+  def __init__(self, obs_dim: int, width: int, *, rngs: nnx.Rngs):
+    self.layer = nnx.Linear(obs_dim, width, rngs=rngs)
+
+  def __call__(self, obs: jax.Array) -> jax.Array:
+    return jax.nn.relu(self.layer(obs))
+
+
 class PHPLevel(nnx.Module):
   """The K procedures of one level: operation η_h^τ(·|o) and termination ψ_h^τ(·|o) networks.
+
+  The networks read the level's features of each observation (`encode`): the observation itself, or with a
+  trunk its shared encoding, so that an observation's first layer is computed once for the level's K
+  procedures and their counters rather than once per procedure.
 
   Attributes:
     op_sizes: factor sizes of the operation (callees of the next level, or the elementary action factors).
@@ -81,15 +96,17 @@ class PHPLevel(nnx.Module):
       any.
     observes: per procedure, None or the observation entries (indices) both its networks see
       (`HierarchySpec.observes`); None: every entry for every procedure.
+    trunk: the width of the level's shared encoding (`Trunk`); None: the networks read the observation.
   Raises ValueError naming the argument: num_procs < 1, obs_dim < 0, no op_sizes or one < 1, a hidden size
   < 1, tau_limit < 0, allowed_ops of another shape, observes not one entry per procedure or naming an
-  entry outside 0..obs_dim−1.
+  entry outside 0..obs_dim−1, a trunk < 1 or beside observes (a shared encoding sees every entry).
   """
 
   def __init__(self, num_procs: int, obs_dim: int, op_sizes: tuple[int, ...], hidden=(64, 64),
                tau_in_termination: bool = True, tau_limit: int | None = None,
                allowed_ops: tuple[tuple[bool, ...], ...] | None = None,
-               observes: tuple[tuple[int, ...] | None, ...] | None = None, *, rngs: nnx.Rngs):
+               observes: tuple[tuple[int, ...] | None, ...] | None = None, trunk: int | None = None, *,
+               rngs: nnx.Rngs):
     check_size("num_procs", num_procs)
     check_size("obs_dim", obs_dim, 0)
     if not _check_sizes("op_sizes", op_sizes):
@@ -109,19 +126,33 @@ class PHPLevel(nnx.Module):
         raise ValueError(f"observes must give one entry per procedure ({num_procs}), a tuple; got {observes!r}")
       check_observes((observes,), (tuple(f"procedure {k}" for k in range(num_procs)),), obs_dim)
     self.observes = observes
+    if trunk is not None:
+      check_size("trunk", trunk)
+      if observes is not None:
+        raise ValueError("trunk: a level whose procedures observe different entries (observes) cannot share "
+                         "an encoding of the observation; give one or the other")
     mask = None if observes is None else tuple(
         tuple(entries is None or d in entries for d in range(obs_dim)) for entries in observes)
-    self.operation = ProcedureMLPs(num_procs, obs_dim, tuple(hidden), sum(op_sizes), observes=mask, rngs=rngs)
-    self.termination = ProcedureMLPs(num_procs, obs_dim, tuple(hidden), 1, observes=mask, rngs=rngs)
+    self.trunk = None if trunk is None else Trunk(obs_dim, trunk, rngs=rngs)
+    features = obs_dim if trunk is None else trunk
+    self.operation = ProcedureMLPs(num_procs, features, tuple(hidden), sum(op_sizes), observes=mask, rngs=rngs)
+    self.termination = ProcedureMLPs(num_procs, features, tuple(hidden), 1, observes=mask, rngs=rngs)
+
+  def encode(self, obs: jax.Array) -> jax.Array:
+    """The level's features of observations [N, obs_dim]: [N, obs_dim] (no trunk) or [N, trunk]; every other
+    method takes these."""
+    return obs if self.trunk is None else self.trunk(obs)
 
   def op_log_probs(self, obs: jax.Array, tau: jax.Array) -> list[jax.Array]:
-    """Per factor f: [N, K, M, op_sizes[f]] log-probabilities (the factorized action head)."""
+    """Per factor f: [N, K, M, op_sizes[f]] log-probabilities (the factorized action head). obs: features
+    [N, ·] (`encode`)."""
     logits = jnp.transpose(self._operation_logits(obs, tau), (2, 0, 3, 1))
     splits = np.cumsum(self.op_sizes)[:-1]
     return [jax.nn.log_softmax(part, axis=-1) for part in jnp.split(logits, splits, axis=-1)]
 
   def log_op(self, obs: jax.Array, tau: jax.Array, ops: jax.Array) -> jax.Array:
-    """log η_h^τ(ops_n | obs_n) for every procedure and counter. obs [N, D], tau [M], ops [N, F] → [N, K, M]."""
+    """log η_h^τ(ops_n | obs_n) for every procedure and counter. obs [N, ·] features (`encode`), tau [M], ops
+    [N, F] → [N, K, M]."""
     logits = self._operation_logits(obs, tau)                             # [K, Σ op_sizes, N, M]
     total, start = 0.0, 0
     for f, size in enumerate(self.op_sizes):
@@ -133,7 +164,8 @@ class PHPLevel(nnx.Module):
     return jnp.transpose(total, (1, 0, 2))
 
   def termination_logits(self, obs: jax.Array, tau: jax.Array) -> jax.Array:
-    """logit of ψ_h^τ(1 | obs). obs [N, D], tau [M] → [N, K, M]; log ψ(1) = log σ(z), log ψ(0) = log σ(−z)."""
+    """logit of ψ_h^τ(1 | obs). obs [N, ·] features (`encode`), tau [M] → [N, K, M]; log ψ(1) = log σ(z),
+    log ψ(0) = log σ(−z)."""
     tau = self._limited(tau) if self.tau_in_termination else jnp.zeros_like(tau)
     return jnp.transpose(self.termination(obs, tau)[:, 0], (1, 0, 2))
 
@@ -187,10 +219,11 @@ class PHPHierarchy(nnx.Module):
   """A whole hierarchy of PHP levels; a Policy for the executor (argmax, or sampling when `sample`)."""
 
   def __init__(self, spec: HierarchySpec, hidden=(64, 64), tau_in_termination=None, sample: bool = False,
-               tau_limit=None, allowed_ops=None, *, rngs: nnx.Rngs):
+               tau_limit=None, allowed_ops=None, trunk: int | None = None, *, rngs: nnx.Rngs):
     """tau_in_termination, tau_limit, allowed_ops: per level, root first (PHPLevel); None: τ everywhere,
     unlimited, every operation allowed. Each procedure's networks see the observation entries spec.observes
-    gives it (every entry where it gives none)."""
+    gives it (every entry where it gives none); trunk: each level's shared encoding width (PHPLevel), None:
+    none."""
     if not isinstance(spec, HierarchySpec):
       raise ValueError(f"spec must be a HierarchySpec; got {spec!r}")
     tau_in_termination = tau_in_termination or (True,) * spec.num_levels
@@ -205,19 +238,21 @@ class PHPHierarchy(nnx.Module):
     observes = spec.observes or (None,) * spec.num_levels
     self.levels = nnx.List([
         PHPLevel(spec.num_procs(i), spec.obs_dim, spec.op_sizes(i), hidden, tau_in_termination[i], tau_limit[i],
-                 allowed_ops[i], observes[i], rngs=rngs)
+                 allowed_ops[i], observes[i], trunk, rngs=rngs)
         for i in range(spec.num_levels)])
 
   def operation(self, level, proc, tau, obs, key):
     tau = jnp.asarray(tau, jnp.float32)[None]
-    factors = [lp[0, proc, 0] for lp in self.levels[level].op_log_probs(obs[None], tau)]
+    php = self.levels[level]
+    factors = [lp[0, proc, 0] for lp in php.op_log_probs(php.encode(obs[None]), tau)]
     if self.sample:
       keys = jax.random.split(key, len(factors))
       return jnp.stack([jax.random.categorical(k, lp) for k, lp in zip(keys, factors)]).astype(jnp.int32)
     return jnp.stack([jnp.argmax(lp) for lp in factors]).astype(jnp.int32)
 
   def terminates(self, level, proc, tau, obs, key):
-    logit = self.levels[level].termination_logits(obs[None], jnp.asarray(tau, jnp.float32)[None])[0, proc, 0]
+    php = self.levels[level]
+    logit = php.termination_logits(php.encode(obs[None]), jnp.asarray(tau, jnp.float32)[None])[0, proc, 0]
     if self.sample:
       return jax.random.bernoulli(key, jax.nn.sigmoid(logit))
     return logit > 0

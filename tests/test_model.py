@@ -127,3 +127,38 @@ def test_sampling_hierarchy_draws_valid_operations():
   ops = draws(model)
   assert ops <= set(range(6)) and len(ops) > 1
   assert len(draws(PHPHierarchy(task.spec, rngs=nnx.Rngs(0)))) == 1
+
+
+def test_a_trunk_is_one_encoding_every_procedure_and_counter_reads():
+  """With a trunk, each network is the plain MLP on concat(relu(W o + b), τ): the encoding computed once and
+  shared by every procedure, for both heads; a model saved with one loads with it and acts alike."""
+  level = PHPLevel(3, 44, (2, 4), hidden=(8,), trunk=6, rngs=nnx.Rngs(0))
+  obs, tau = jax.random.normal(jax.random.key(1), (5, 44)), jnp.arange(3.0)
+  features = level.encode(obs)
+  assert features.shape == (5, 6) and bool(jnp.all(features >= 0))
+  np.testing.assert_allclose(features, jax.nn.relu(obs @ level.trunk.layer.kernel[...] + level.trunk.layer.bias[...]),
+                             atol=1e-5)
+  grid = level.operation(features, tau)
+  for n, k, m in [(0, 0, 0), (4, 2, 2)]:
+    np.testing.assert_allclose(grid[k, :, n, m], _plain_mlp(level.operation, k, features[n], tau[m]), atol=1e-5)
+  assert level.operation.kernels[0][...].shape == (3, 7, 8)  # the trunk's width and τ, not the observation
+  with pytest.raises(ValueError, match="trunk: a level whose procedures observe different entries"):
+    PHPLevel(2, 5, (4,), hidden=(8,), observes=((0,), None), trunk=4, rngs=nnx.Rngs(0))
+  with pytest.raises(ValueError, match="trunk"):
+    PHPLevel(2, 5, (4,), hidden=(8,), trunk=0, rngs=nnx.Rngs(0))
+
+
+def test_a_hierarchy_with_trunks_saves_loads_and_acts_the_same(tmp_path):
+  from php_jax.training import checkpoint
+  task = tasks.get("addition")
+  hierarchy = PHPHierarchy(task.spec, hidden=(8,), trunk=5, rngs=nnx.Rngs(2))
+  checkpoint.save_hierarchy(str(tmp_path), "addition", hierarchy, (8,), [4, 4, 4])
+  assert checkpoint.trunk_width(hierarchy) == 5
+  _, loaded = checkpoint.load_policy(str(tmp_path))
+  assert checkpoint.trunk_width(loaded) == 5
+  obs = jax.random.normal(jax.random.key(0), (task.spec.obs_dim,))
+  for level in range(task.spec.num_levels):
+    for proc in range(task.spec.num_procs(level)):
+      args = (level, proc, 1, obs, jax.random.key(0))
+      np.testing.assert_array_equal(hierarchy.operation(*args), loaded.operation(*args))
+      assert bool(hierarchy.terminates(*args)) == bool(loaded.terminates(*args))

@@ -56,7 +56,14 @@ def save_hierarchy(workdir: str, task_name: str, hierarchy: PHPHierarchy, hidden
                              "tau_in_termination": [level.tau_in_termination for level in hierarchy.levels],
                              "tau_limit": [level.tau_limit for level in hierarchy.levels],
                              "allowed_ops": [level.allowed_ops for level in hierarchy.levels],
+                             **({"trunk": trunk_width(hierarchy)} if trunk_width(hierarchy) else {}),
                              **({"capacity": list(capacity)} if capacity else {})})
+
+
+def trunk_width(hierarchy: PHPHierarchy) -> int | None:
+  """The width of the hierarchy's per-level trunks (`model.Trunk`), None where it has none."""
+  trunk = hierarchy.levels[0].trunk
+  return None if trunk is None else trunk.layer.out_features
 
 
 def save_flat_lstm(workdir: str, task_name: str, policy: FlatLSTMPolicy, spec: HierarchySpec) -> None:
@@ -159,10 +166,13 @@ def load_policy(workdir: str) -> tuple[str, PHPHierarchy | FlatLSTMPolicy]:
       raise CheckpointError(f"{arch_path}: tau_in_termination has {len(tau_in_termination)} entries; {task_name} "
                             f"has {spec.num_levels} levels")
     allowed_ops = _saved_allowed_ops(arch_path, architecture, spec)
+    trunk = architecture.get("trunk")
+    if not (trunk is None or (isinstance(trunk, int) and not isinstance(trunk, bool) and 1 <= trunk <= MAX_SIZE)):
+      raise CheckpointError(f"{arch_path}: \"trunk\" must be an integer in 1..{MAX_SIZE}; got {str(trunk)[:80]}")
 
     def build():
       return PHPHierarchy(spec, hidden=hidden, tau_in_termination=tau_in_termination, tau_limit=tau_limit,
-                          allowed_ops=allowed_ops, rngs=nnx.Rngs(0))
+                          allowed_ops=allowed_ops, trunk=trunk, rngs=nnx.Rngs(0))
   model = nnx.eval_shape(build)  # its shapes only: every parameter comes from the file (and no state but them)
   nnx.update(model, restore_named(nnx.state(model, nnx.Param), named, model_path))
   return task_name, model

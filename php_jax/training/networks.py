@@ -12,7 +12,8 @@ from php_jax.training.config import TrainConfig
 def make_hierarchy(spec: HierarchySpec, config: TrainConfig, graph: tuple | None = None) -> PHPHierarchy:
   """A freshly initialised hierarchy; graph: its call graph (`call_graph`), None: every call allowed."""
   return PHPHierarchy(spec, hidden=config.hidden, tau_in_termination=config.tau_in_termination,
-                      tau_limit=config.tau_limit, allowed_ops=graph, rngs=nnx.Rngs(config.network_seed))
+                      tau_limit=config.tau_limit, allowed_ops=graph, trunk=config.trunk,
+                      rngs=nnx.Rngs(config.network_seed))
 
 
 def make_root(spec: HierarchySpec, level: int, config: TrainConfig) -> nnx.Module | None:

@@ -53,8 +53,9 @@ def lattice_inputs(model: LevelModel, view: views.LevelView, capacity: int, used
   """
   observations, actions, length = view.observations, view.actions, view.length
   tau = jnp.arange(capacity, dtype=jnp.float32)
-  log_op = model.php.log_op(observations[:-1], tau, actions)
-  z = model.php.termination_logits(observations[1:], tau)
+  features = model.php.encode(observations)  # once per observation, for every procedure and counter
+  log_op = model.php.log_op(features[:-1], tau, actions)
+  z = model.php.termination_logits(features[1:], tau)
   log_stop, log_cont = jax.nn.log_sigmoid(z), jax.nn.log_sigmoid(-z)
   if used_capacity is not None:
     log_op = jnp.where(tau < used_capacity, log_op, -jnp.inf)
@@ -97,14 +98,15 @@ def stack_inputs(hierarchy: PHPHierarchy, capacity: tuple[int, ...], observation
   log_call, log_stop, log_cont = [], [], []
   for level, php in enumerate(hierarchy.levels):
     tau = jnp.arange(capacity[level], dtype=jnp.float32)
+    features = php.encode(observations)  # once per observation, for every procedure and counter
     if level < depth - 1:
       penalty = call_penalty[level + 1] if call_penalty else 0.0
-      log_call.append(php.op_log_probs(observations[:-1], tau)[0] - penalty)
-    z = php.termination_logits(observations[1:], tau)
+      log_call.append(php.op_log_probs(features[:-1], tau)[0] - penalty)
+    else:
+      log_act = php.log_op(features[:-1], tau, actions)
+    z = php.termination_logits(features[1:], tau)
     log_stop.append(jax.nn.log_sigmoid(z))
     log_cont.append(jax.nn.log_sigmoid(-z))
-  tau = jnp.arange(capacity[-1], dtype=jnp.float32)
-  log_act = hierarchy.levels[-1].log_op(observations[:-1], tau, actions)
   return stack_lattice.StackInputs(tuple(log_call), log_act, tuple(log_stop), tuple(log_cont), length)
 
 
