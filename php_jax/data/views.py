@@ -54,11 +54,45 @@ def select(view: LevelView, mask: np.ndarray) -> LevelView:
 
 
 def length_groups(lengths: np.ndarray, num_buckets: int) -> list[tuple[np.ndarray, int]]:
-  """The indices of lengths [B] in ascending order of length, split into up to num_buckets groups of (nearly)
-  equal counts: (indices, longest length) per group. Trimmed to their longest, the groups' batches hold far
-  fewer padding steps than one batch padded to the longest."""
+  """The indices of lengths [B] in ascending order of length, split into min(num_buckets, B) groups, each
+  padded to its longest: (indices, longest length) per group. The split points leave the fewest padding steps
+  in all (exactly: dynamic programming over the distinct lengths, then, where there are fewer distinct lengths
+  than groups, the largest groups halved, which pads no more)."""
   order = np.argsort(lengths, kind="stable")
-  return [(group, int(lengths[group].max())) for group in np.array_split(order, min(num_buckets, len(order)))]
+  values, counts = np.unique(np.asarray(lengths)[order], return_counts=True)
+  starts = np.concatenate([[0], np.cumsum(counts)])
+  ends = _fewest_padded_ends(values, counts, min(num_buckets, len(values)))
+  groups = [order[starts[first]:starts[last + 1]] for first, last in zip([0, *(e + 1 for e in ends[:-1])], ends)]
+  while len(groups) < min(num_buckets, len(order)):
+    largest = max(range(len(groups)), key=lambda g: len(groups[g]))
+    groups[largest:largest + 1] = np.array_split(groups[largest], 2)
+  return [(group, int(np.asarray(lengths)[group].max())) for group in groups]
+
+
+def _fewest_padded_ends(values: np.ndarray, counts: np.ndarray, groups: int) -> list[int]:
+  """The last distinct-length index of each of `groups` contiguous groups of the sorted distinct lengths
+  `values` (each held `counts` times) that minimise Σ group size × its longest length."""
+  n = len(values)
+  total = np.concatenate([[0], np.cumsum(counts)])
+  best = np.full((groups + 1, n + 1), np.inf)  # best[g, j]: the first j distinct lengths in g groups
+  choice = np.zeros((groups + 1, n + 1), int)
+  best[0, 0] = 0.0
+  for g in range(1, groups + 1):
+    for j in range(g, n + 1):  # group g holds distinct lengths i..j-1, padded to values[j-1]
+      costs = best[g - 1, :j] + (total[j] - total[:j]) * values[j - 1]
+      choice[g, j] = int(np.argmin(costs))
+      best[g, j] = costs[choice[g, j]]
+  ends, j = [], n
+  for g in range(groups, 0, -1):
+    ends.append(j - 1)
+    j = choice[g, j]
+  return ends[::-1]
+
+
+def padding_fraction(buckets: list[Batch]) -> float:
+  """The share of the steps computed over buckets (each bucket's rows × its width) that are padding."""
+  computed = sum(int(np.shape(b.actions)[0]) * int(np.shape(b.actions)[1]) for b in buckets)
+  return 1.0 - sum(int(np.sum(b.length)) for b in buckets) / computed if computed else 0.0
 
 
 def length_buckets(batch: Batch, num_buckets: int) -> list[Batch]:

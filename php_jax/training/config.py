@@ -56,6 +56,10 @@ class TrainConfig:
                                  "learning rate; 0: plain Adam.", "float")
   hidden: tuple[int, ...] = _setting((64, 64), "Hidden layer sizes of every operation and termination network.",
                                      "ints")
+  trunk: int | None = _setting(
+      None, "Width of each level's shared encoding of the observation (a ReLU layer its procedures' networks "
+      "read, computed once per observation for all of them: cheaper where observations are large); unset: "
+      "none, each network reads the observation.", "int")
   root: str = _setting("lstm", "Network standing in, below the root level, for the levels above while they are "
                        "untrained: the paper's LSTM, or an MLP on each observation.", "str", ROOTS, True)
   root_hidden: int = _setting(64, "Hidden units of that stand-in root network.", "int", levelwise_only=True)
@@ -87,7 +91,9 @@ class TrainConfig:
   eval_every: int = _setting(100, "Iterations between logged losses, checkpoints and validated snapshots.", "int")
   snapshot: str = _setting("latest", "Which of the equally best-validated snapshots is kept.", "str",
                            fitting.SNAPSHOT_RULES)
-  length_buckets: int = _setting(4, "Demonstrations are batched by length into this many buckets.", "int")
+  length_buckets: int = _setting(4, "Demonstrations (level-wise: views) are batched by length into this many "
+                                 "buckets, each padded to its longest, split where they leave the fewest padding "
+                                 "steps (a run logs the padded share).", "int")
   batch_size: int | None = _setting(
       None, "Demonstrations (level-wise: views) per Adam update, drawn afresh at each from every length bucket "
       "in proportion (minibatch Expectation–Gradient: each update's E-step is exact for its demonstrations); "
@@ -156,8 +162,9 @@ class TrainConfig:
     for name in ("iterations", "strong_warmup", "seed", "split_iterations", "split_hint_iterations"):
       if not (_is_int(getattr(self, name)) and getattr(self, name) >= 0):
         raise ConfigError(name, f"must be a non-negative integer; got {getattr(self, name)!r}")
-    if self.batch_size is not None and not (_is_int(self.batch_size) and self.batch_size >= 1):
-      raise ConfigError("batch_size", f"must be a positive integer; got {self.batch_size!r}")
+    for name in ("batch_size", "trunk"):
+      if getattr(self, name) is not None and not (_is_int(getattr(self, name)) and getattr(self, name) >= 1):
+        raise ConfigError(name, f"must be a positive integer; got {getattr(self, name)!r}")
     if self.init_seed is not None and not (_is_int(self.init_seed) and 0 <= self.init_seed):
       raise ConfigError("init_seed", f"must be a non-negative integer; got {self.init_seed!r}")
     for name in ("seed", "init_seed"):

@@ -86,7 +86,8 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: TrainConfig,
     resume = restore_progress(checkpoint_path, saved, hierarchy) if saved[0]["progress"] else None
     report = saved[0]["report"] or None
   if resume is None and report is None:
-    counted_log({"training": "joint", "capacity": list(capacity)})
+    padding = views.padding_fraction(views.length_buckets(demos, config.length_buckets))
+    counted_log({"training": "joint", "capacity": list(capacity), "padding": round(padding, 4)})
 
   def save(progress: fitting.Progress | None, report: dict | None = None) -> None:
     if checkpoint_path:

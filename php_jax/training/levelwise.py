@@ -220,7 +220,9 @@ def _train_levels(spec: HierarchySpec, demos: list[Demonstration], configs: list
                 for state, model in zip(saved, models)] if in_progress else None
       if resume is None:
         for s, (view, capacity) in enumerate(zip(level_views, fit.capacities)):
-          logs[s]({"level": level, "capacity": capacity, "view_length": int(view.length.max())})
+          padding = views.padding_fraction(views.length_buckets(view, configs[s].length_buckets))
+          logs[s]({"level": level, "capacity": capacity, "view_length": int(view.length.max()),
+                   "padding": round(padding, 4)})
       on_eval = ((lambda iteration, losses: [v(h) for v, h in zip(validate, hierarchies)])
                  if level == 0 and validate else None)
       hooks = fitting.Hooks(on_eval, lambda s, row, level=level: logs[s]({"level": level, **row}),
