@@ -2,12 +2,13 @@ r"""Fits a PHP hierarchy to your own demonstrations: no environment code needed.
 
   python -m experiments.fit --demos=TRAIN.jsonl --hierarchy=H.json --workdir=DIR [--validation=VAL.jsonl]
 
-Reads the hierarchy file and the demonstrations (JSON lines; annotated ones carry their call stack, fully or
-partly), trains every level from the lowest up to the root (level 0), and
-keeps the root level's snapshot that replays the most held-out demonstrations (--validation, or else
---validation_fraction of TRAIN, held out at random by --seed). A demonstration is replayed when the learned
-hierarchy's argmax policy, run on its recorded observations, takes every recorded action and returns from
-its root after the last. Writes the model (`experiments.decode --policy=DIR` reads it) and results.json with
+Reads the hierarchy file and the demonstrations (JSON lines or a binary set; annotated ones carry their call
+stack, fully or partly) and trains the hierarchy as the recipe chooses from them: where they leave the
+training mode or the segmentation open, each candidate is trained and the one most likely on the held-out
+demonstrations (--validation, or else --validation_fraction of TRAIN, held out at random by --seed) is kept.
+Each training keeps the snapshot that replays the most held-out demonstrations. A demonstration is replayed
+when the learned hierarchy's argmax policy, run on its recorded observations, takes every recorded action and
+returns from its root after the last. Writes the model (`experiments.decode --policy=DIR` reads it) and results.json with
 the held-out replay rate. Rerun the same command to resume an interrupted run.
 
 The file formats (demonstrations, the hierarchy file) and what fit chooses: docs/own-demonstrations.md;

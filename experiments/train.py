@@ -4,8 +4,9 @@ r"""Trains a PHP hierarchy (or the flat LSTM baseline) on any task from its supe
   python -m experiments.train --task=NAME --workdir=DIR --num_strong=N --seeds=1,2,3,4,5
 
 Builds the task's training set for --seed (num_strong of its demonstrations annotated with the whole call
-stack, the rest actions only), trains every level from the lowest (the one taking elementary actions) up to
-the root (level 0), saves the model (`experiments.evaluate --policy=WORKDIR` runs it) and writes
+stack, the rest actions only), trains the hierarchy as the recipe chooses (where the task and the flags
+leave the training mode or the segmentation open, each candidate, keeping the one most likely on the
+validation problems' demonstrations), saves the model (`experiments.evaluate --policy=WORKDIR` runs it) and writes
 results.json with the accuracy on fresh test problems (seeds disjoint from training and validation). Rerun
 the same command to resume an interrupted run. Flags left unset take the task's defaults.
 
