@@ -87,11 +87,11 @@ class TrainingProgress:
     if "test" in row:
       self._finish(row)
       return
+    if self.first is None:
+      self.first = candidate
     if candidate is not None and (row.get("phase") == "testing" or "warning" in row and candidate != self.first):
       return  # a candidate's judging; warnings about the data, once
     self.candidate = candidate
-    if self.first is None:
-      self.first = candidate
     if row.get("phase") == "testing":
       self.progress.add_task("testing", total=None, status="")
       return
@@ -147,8 +147,9 @@ class TrainingProgress:
 
   def _judged(self, row: dict) -> None:
     """A candidate's held-out score, or which candidate was kept."""
-    score = row.get(selection.SCORE)
-    judged = (f"{row.get(selection.EXPLAINED)} held-out demonstrations explained, log-likelihood per step "
+    scores = row.get("test", row)  # a candidate's test results are its score
+    score = scores.get(selection.SCORE)
+    judged = (f"{scores.get(selection.EXPLAINED)} held-out demonstrations explained, log-likelihood per step "
               + ("–" if score is None else f"{score:.4g}"))
     if "chosen" in row:
       self.console.print(f"kept candidate {row['chosen']} ({judged})")

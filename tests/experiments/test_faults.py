@@ -81,8 +81,10 @@ def _run_record(workdir: pathlib.Path) -> dict:
   results = json.loads((workdir / "results.json").read_text())
   for key in ("wall_seconds", "commit"):
     del results[key]
-  for entry in results.get("levels", {}).values():
-    del entry["seconds"]
+  for entry in [*results.get("levels", {}).values(), results.get("joint", {})]:
+    entry.pop("seconds", None)
+  for score in results.get("recipe", {}).get("scores", []):
+    del score["wall_seconds"]
   rows = [json.loads(line) for line in (workdir / run.METRICS_FILE).read_text().splitlines()]
   return {"model": saved_model(workdir), "results": results,
           "metrics": [{k: v for k, v in row.items() if k != "seconds"} for row in rows]}

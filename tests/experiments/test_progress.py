@@ -88,3 +88,26 @@ def test_time_left_is_shown_only_where_the_total_is_known():
   level, testing = text.strip().splitlines()[-2:]  # the last frame drawn: the level's row, then testing's
   assert "100/200" in level and level.rstrip().endswith("left"), text
   assert "0:00:00" in testing and "left" not in testing, text
+
+
+def test_candidates_show_each_its_own_lines_its_score_and_the_one_kept():
+  config = TrainConfig(iterations=40)
+  text = _display(config, 3, [
+      {"candidate": "levelwise", "warning": "an operation may be locked out"},
+      {"candidate": "levelwise", "level": 2, "capacity": 4, "view_length": 9, "seconds": 1.0},
+      {"candidate": "levelwise", "level": 2, "iteration": 40, "loss": 0.5, "seconds": 2.0},
+      {"candidate": "levelwise", "phase": "testing"},
+      {"candidate": "levelwise", "test": {"held_out_explained": 6, "held_out_log_likelihood_per_step": -0.125},
+       "wall_seconds": 9.0},
+      {"candidate": "joint", "warning": "an operation may be locked out"},
+      {"candidate": "joint", "training": "joint", "capacity": [6, 8, 8], "seconds": 0.0},
+      {"candidate": "joint", "iteration": 20, "loss": 0.1, "seconds": 1.0},
+      {"candidate": "joint", "test": {"held_out_explained": 6, "held_out_log_likelihood_per_step": -0.003},
+       "wall_seconds": 12.0},
+      {"chosen": "joint", "held_out_explained": 6, "held_out_log_likelihood_per_step": -0.003},
+      {"phase": "testing"},
+      {"test": {"held_out_replayed": 1.0}, "wall_seconds": 23.0}])
+  assert "levelwise: level 2 (1 of 3)" in text and "joint: every level at once" in text and "20/40" in text
+  assert "candidate levelwise: 6 held-out demonstrations explained, log-likelihood per step -0.125" in text
+  assert "kept candidate joint (6 held-out demonstrations explained, log-likelihood per step -0.003)" in text
+  assert text.count("an operation may be locked out") == 1 and "23 s in all" in text
