@@ -75,7 +75,7 @@ class TrainingProgress:
     self.progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                              TextColumn("{task.fields[status]}"), TimeElapsedColumn(), TimeLeftColumn(),
                              console=self.console)
-    self.tasks, self.seed, self.candidate, self.first = {}, None, None, None
+    self.tasks, self.seed, self.candidate, self.warned = {}, None, None, set()
     self.progress.start()
     self.starting = self.progress.add_task("building the data and compiling", total=None, status="")
 
@@ -87,10 +87,9 @@ class TrainingProgress:
     if "test" in row:
       self._finish(row)
       return
-    if self.first is None:
-      self.first = candidate
-    if candidate is not None and (row.get("phase") == "testing" or "warning" in row and candidate != self.first):
-      return  # a candidate's judging; warnings about the data, once
+    if candidate is not None and (row.get("phase") == "testing" or row.get("warning") in self.warned):
+      return  # a candidate's judging; a warning another candidate gave
+    self.warned.add(row.get("warning"))
     self.candidate = candidate
     if row.get("phase") == "testing":
       self.progress.add_task("testing", total=None, status="")
