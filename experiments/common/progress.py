@@ -87,9 +87,10 @@ class TrainingProgress:
     if "test" in row:
       self._finish(row)
       return
-    if candidate is not None and (row.get("phase") == "testing" or row.get("warning") in self.warned):
+    if candidate is not None and (row.get("phase") == "testing" or "warning" in row and row["warning"] in self.warned):
       return  # a candidate's judging; a warning another candidate gave
-    self.warned.add(row.get("warning"))
+    if "warning" in row:
+      self.warned.add(row["warning"])
     self.candidate = candidate
     if row.get("phase") == "testing":
       self.progress.add_task("testing", total=None, status="")
