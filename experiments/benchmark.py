@@ -7,6 +7,7 @@ r"""Benchmarks as commands: ratios against baselines measured in the same proces
   python -m experiments.benchmark scaling --task=NAME --hidden=32  # one EG step on 1 vs all devices; seeds vmapped
   python -m experiments.benchmark act --policy=RUN --env=ENV --num_envs=64  # a policy in a Gymnasium env vs the env
   python -m experiments.benchmark demo_files --num_demos=300  # the binary demonstration format vs JSON lines
+  python -m experiments.benchmark fast_path --num_demos=1000  # one EG update on BabyAI-sized data, each speed-up
 
 estep times values + marginals for B demonstrations of T steps (vmapped, jitted) at the paper's sizes and beyond,
 checks that the three agree on log P(ξ), and prints lattice cells (B·T·K·C) per second and ratios.
@@ -31,7 +32,7 @@ from absl import app, flags
 from flax import nnx
 
 import php_jax
-from php_jax import executor, sharding
+from php_jax import executor, fitting, sharding
 from php_jax.data import demo_files, shards, views
 from php_jax.demos import Demonstration
 from php_jax.envs import datasets, tasks
@@ -55,11 +56,12 @@ _ROOT = flags.DEFINE_enum("root", "lstm", ["lstm", "mlp"], "train_step, scaling:
 _NUM_STRONG = flags.DEFINE_integer("num_strong", 3, "train_step, scaling: annotated demonstrations of the training "
                                    "set.")
 _NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "scaling: demonstrations of the training set (default: the "
-                                  "task's); demo_files: synthetic demonstrations (default: 300).")
+                                  "task's); demo_files, fast_path: synthetic demonstrations (default: 300).")
 _POLICY = flags.DEFINE_string("policy", None, "act: a workdir of experiments.fit.")
 _ENV = flags.DEFINE_string("env", None, "act: the Gymnasium environment (what experiments.act --env takes).")
 _NUM_ENVS = flags.DEFINE_integer("num_envs", 64, "act: copies of the environment stepped together.")
 _EPISODES = flags.DEFINE_integer("episodes", 1000, "act: episodes timed.")
+_BATCH = flags.DEFINE_integer("batch_size", 32, "fast_path: demonstrations per minibatch update.")
 _SEEDS = flags.DEFINE_integer("seeds", 5, "scaling: parameter sets whose gradients are taken as one vmapped program "
                               "and one after another.")
 
@@ -388,6 +390,46 @@ def babyai_like_demos(num: int, seed: int = 0) -> Demonstration:
                        np.arange(num) % 2 == 0)
 
 
+def bench_fast_path():
+  """One EG update's time at the lowest level of BABYAI_LIKE data, today's path against each part of the fast
+  one and all together: length buckets split where they pad least (instead of equal counts), a trunk per
+  level (--trunk), minibatches (--batch_size). Prints ms per update, the ratio to the baseline, and each
+  bucketing's padded share of the steps computed."""
+  demos = babyai_like_demos(_NUM_DEMOS.value or 300)
+  view = views.lowest_view(demos, BABYAI_LIKE.num_levels)
+  level, hidden = BABYAI_LIKE.num_levels - 1, tuple(int(h) for h in _HIDDEN.value)
+  equal_counts = [type(view)(*(np.asarray(x)[group][:, :int(np.asarray(view.length)[group].max())
+                                                      + (name == "observations")] if np.ndim(x) >= 2
+                               else np.asarray(x)[group] for name, x in zip(view._fields, view)))
+                  for group in np.array_split(np.argsort(view.length, kind="stable"), 4)]
+  fewest = views.length_buckets(view, 4)
+  variants = [("today: equal-count buckets, no trunk, every view", equal_counts, None, None),
+              ("buckets that pad least", fewest, None, None),
+              ("+ trunk 64", fewest, 64, None),
+              (f"+ batch_size {_BATCH.value}", fewest, None, _BATCH.value),
+              (f"all: trunk 64, batch_size {_BATCH.value}", fewest, 64, _BATCH.value)]
+  print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}); {len(demos.length)} BabyAI-sized "
+        f"demonstrations, level {level}: hidden {hidden}; padded share of the steps computed: equal counts "
+        f"{views.padding_fraction(equal_counts):.3f}, fewest padded {views.padding_fraction(fewest):.3f}")
+  rows, first = [], None
+  for name, parts, trunk, batch in variants:
+    config = TrainConfig(hidden=hidden, root="mlp", trunk=trunk, batch_size=batch,
+                         strong_weight=balanced_strong_weight(demos.strong))
+    model = levelwise.level_model(BABYAI_LIKE, networks.make_hierarchy(BABYAI_LIKE, config), level, config)
+    buckets = [views.device_view(b) for b in parts]
+    capacity = levelwise.level_capacity(view, level, config)
+    loss = fitting.minibatched(lambda m, b: objective.level_loss(m, b, capacity, config.strong_weight), batch,
+                               0) if batch else fitting.IterationLoss(
+        lambda m, iteration, b: objective.level_loss(m, b, capacity, config.strong_weight))
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    grad = jax.jit(jax.value_and_grad(lambda p, i: loss.fn(nnx.merge(graphdef, p, rest), i, buckets)))
+    seconds = _median_seconds(grad, params, jnp.int32(0))
+    first = first or seconds
+    rows.append({"what": name, "ms": seconds * 1e3, "speedup": first / seconds})
+    print(f"{name:>44}: {seconds * 1e3:8.1f} ms per update  ({first / seconds:.1f}× today's)")
+  return rows
+
+
 def _size(path: str) -> int:
   return sum(os.path.getsize(os.path.join(path, n)) for n in os.listdir(path)) if os.path.isdir(path) else (
       os.path.getsize(path))
@@ -435,7 +477,7 @@ def _task():
 def main(argv):
   commands = {"estep": bench_estep, "estep_grad": bench_estep_grad, "rollout": bench_rollout,
               "train_step": bench_train_step, "scaling": bench_scaling, "act": bench_act,
-              "demo_files": bench_demo_files}
+              "demo_files": bench_demo_files, "fast_path": bench_fast_path}
   if len(argv) != 2 or argv[1] not in commands:
     raise app.UsageError(f"usage: python -m experiments.benchmark {{{'|'.join(commands)}}} [--flags]")
   rows = commands[argv[1]]()
