@@ -8,29 +8,18 @@ import pytest
 from flax import nnx
 
 from experiments.common import run_report
-from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.envs import datasets, tasks
 from php_jax.hierarchy import HierarchySpec
 from php_jax.training import checkpoint, recipe, selection
 from php_jax.training.config import TrainConfig
 from php_jax.training.run import Experiment, WorkdirError
+from tests.training.test_segmentation import _demos  # actions-only demonstrations of one factor
 
 NANOCRAFT = tasks.get("nanocraft")
 
 
 def _names(chosen):
   return [c.name for c in chosen.candidates]
-
-
-def _actions_only(*action_rows):
-  """Demonstrations of one action factor (values < 10), none annotated."""
-  width = max(map(len, action_rows))
-  actions = np.zeros((len(action_rows), width, 1), np.int32)
-  for b, row in enumerate(action_rows):
-    actions[b, :len(row), 0] = row
-  stacks = np.full((len(action_rows), width, 3), UNKNOWN, np.int32)
-  return Demonstration(np.zeros((len(action_rows), width + 1, 2), np.float32), actions, stacks, stacks.copy(),
-                       np.array([len(r) for r in action_rows]), np.zeros(len(action_rows), bool))
 
 
 SPEC = HierarchySpec(name="toy", levels=(("root",), ("a", "b"), ("c", "d")), action_sizes=(10,), obs_dim=2)
@@ -60,7 +49,7 @@ def test_with_annotation_both_modes_are_tried_each_with_its_call_graph():
     ([[1, 1, 9, 2, 9], [1, 9, 2, 9]], ["loops", "successors", "unsegmented"]),  # both, 2 always followed by 9
     ([[1, 2, 1, 3, 2, 3, 1]], ["unsegmented"])])                        # no loop, no single successor
 def test_without_annotation_each_segmentation_that_applies_and_none_are_tried(rows, names):
-  demos = _actions_only(*rows)
+  demos = _demos(*rows)
   chosen = recipe.choose(SPEC, demos, TrainConfig(), frozenset())
   assert _names(chosen) == names
   assert all(c.settings["training"] == "joint" for c in chosen.candidates)
@@ -68,7 +57,7 @@ def test_without_annotation_each_segmentation_that_applies_and_none_are_tried(ro
 
 
 def test_a_segmentation_asked_for_or_a_declared_call_graph_leaves_one_candidate():
-  demos = _actions_only([1, 1, 9, 2, 2, 9])
+  demos = _demos([1, 1, 9, 2, 2, 9])
   assert _names(recipe.choose(SPEC, demos, TrainConfig(segment_rule="successors"), {"segment_rule"})) == ["joint"]
   assert _names(recipe.choose(SPEC, demos, TrainConfig(segment_iterations=0), {"segment_iterations"})) == ["joint"]
   declared = dataclasses.replace(SPEC, allowed_ops=(((True, False),), ((True, False), (False, True)),
