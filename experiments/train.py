@@ -80,8 +80,6 @@ def run(task_name: str) -> dict:
   except ValueError as e:
     raise config_flags.UsageError(f"--task: {e}") from None
   defaults = task.defaults
-  config = config_flags.config_from_flags(defaults.overrides())
-  config_flags.check_levels(task.spec, config)
   num_demos = defaults.num_demos if _NUM_DEMOS.value is None else _NUM_DEMOS.value
   if defaults.num_demos_fixed and num_demos != defaults.num_demos:
     raise config_flags.UsageError(f"--num_demos: {task.name}'s training set has {defaults.num_demos} "
@@ -98,6 +96,9 @@ def run(task_name: str) -> dict:
   if num_test < 1 or any(n < 1 for n in lengths):
     raise config_flags.UsageError(f"--num_test and --test_lengths must be positive; got {num_test}, {list(lengths)}")
   annotated = _annotated(num_demos)
+  overrides = defaults.overrides(bool(NUM_STRONG.value if annotated is None else annotated))
+  config = config_flags.config_from_flags(overrides)
+  config_flags.check_levels(task.spec, config)
   if NUM_VALIDATION.value < 1:
     raise config_flags.UsageError(f"--num_validation must be a positive integer; got {NUM_VALIDATION.value}")
   workdir, overwrite, wait = training.WORKDIR.value, training.OVERWRITE.value, training.WAIT.value
@@ -108,7 +109,7 @@ def run(task_name: str) -> dict:
       if flat:
         results = train_and_evaluate(experiment, config, workdir, overwrite, flat, wait, echo)
       else:
-        results = training.train_php(experiment, config, config_flags.given_settings(defaults.overrides()), echo)
+        results = training.train_php(experiment, config, config_flags.given_settings(overrides), echo)
     training.write_report(workdir, experiment.demos)
     return results
   seeds = _seeds(config)

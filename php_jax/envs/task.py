@@ -49,7 +49,8 @@ class TrainingDefaults:
     num_test: test problems per test set.
     iterations: Adam iterations per level.
     learning_rate: Adam's learning rate.
-    training: "levelwise" (one level at a time, the paper's) or "joint" (every level at once).
+    training: where some demonstration is annotated, "levelwise" (one level at a time, the paper's) or "joint"
+      (every level at once); without annotation a run trains jointly, the one mode that learns then.
     call_graph: which operations each procedure may take ("all", "calls" or "operations").
     segment_rule: the segmentation a joint run without annotation starts from ("loops" or "successors").
   """
@@ -67,10 +68,11 @@ class TrainingDefaults:
   call_graph: str | None = None
   segment_rule: str | None = None
 
-  def overrides(self) -> dict[str, Any]:
-    """{TrainConfig field: value} of the settings this task sets."""
+  def overrides(self, annotated: bool = True) -> dict[str, Any]:
+    """{TrainConfig field: value} of the settings this task sets for a training set with (or, annotated
+    False, without) annotated demonstrations."""
     names = ("hidden", "tau_in_termination", "tau_limit", "min_capacity", "iterations", "learning_rate",
-             "training", "call_graph", "segment_rule")
+             "call_graph", "segment_rule") + (("training",) if annotated else ())
     return {name: getattr(self, name) for name in names if getattr(self, name) is not None}
 
 

@@ -121,3 +121,15 @@ def test_the_candidate_most_likely_on_held_out_demonstrations_is_kept_and_become
   with pytest.raises(WorkdirError, match="other demonstrations"):
     selection.train_and_choose(_experiment(datasets.training_demos(NANOCRAFT, 2, 6, 6)), config, chosen,
                                str(tmp_path))
+
+
+def test_a_tasks_mode_applies_where_some_demonstration_is_annotated():
+  """Addition states level-wise training (it is measured, and joint costs 8×), for annotated training sets
+  only: without annotation its mode is joint and the segmentation is contested."""
+  addition = tasks.get("addition")
+  assert addition.defaults.overrides(True)["training"] == "levelwise"
+  assert "training" not in addition.defaults.overrides(False)
+  for num_strong, names in ((3, ["levelwise"]), (0, ["successors", "unsegmented"])):
+    demos = datasets.training_demos(addition, 1, 160, num_strong)
+    overrides = addition.defaults.overrides(num_strong > 0)
+    assert _names(recipe.choose(addition.spec, demos, TrainConfig(**overrides), set(overrides))) == names
