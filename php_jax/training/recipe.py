@@ -78,9 +78,8 @@ def choose(spec: HierarchySpec, demos: Demonstration, config: TrainConfig, given
     candidates, reasons = _discovery_candidates(spec, demos, config, given, mode)
   if restarts > 1:
     first = config.network_seed
-    candidates = [Candidate(c.name if r == 0 else f"{c.name}-restart{r}",
-                            {**c.settings, "init_seed": first + r * RESTART_SEED_STRIDE})
-                  for c in candidates for r in range(restarts)]
+    candidates = [Candidate(f"{c.name}-restart{r}", {**c.settings, "init_seed": first + r * RESTART_SEED_STRIDE})
+                  if r else c for c in candidates for r in range(restarts)]  # restart 0: a run without restarts
     reasons.append(f"each is trained from {restarts} initialisations")
   if len(candidates) > 1:
     reasons.append("the candidate most likely on the held-out demonstrations is kept")
