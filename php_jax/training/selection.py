@@ -117,7 +117,8 @@ def _adopt(run_dir: str, workdir: str, task_name: str, results: dict) -> None:
 
 def _finished(workdir: str, experiment: Experiment, config: TrainConfig, recipe: Recipe) -> dict | None:
   """The results.json of a choice that finished in workdir with these settings, recipe and experiment; None
-  if none finished there. Raises WorkdirError if one finished with others."""
+  if none finished there, or one chose among other candidates (whose runs are reused where their settings
+  are these). Raises WorkdirError if one finished with other settings or data."""
   plan = recipe.as_json()
   path = os.path.join(workdir, RESULTS_FILE)
   if not all(os.path.exists(os.path.join(workdir, name))
@@ -136,10 +137,8 @@ def _finished(workdir: str, experiment: Experiment, config: TrainConfig, recipe:
                        "workdir, or --overwrite to train again")
   expected = json.loads(json.dumps({"task": experiment.name, **experiment.extra}))
   differ = [f"{k}: {results.get(k)!r} there, {v!r} here" for k, v in expected.items() if results.get(k) != v]
-  saved_plan = {k: recipe_entry.get(k) for k in plan}
-  if saved_plan != json.loads(json.dumps(plan)):
-    differ.append(f"the recipe's candidates: {[c['name'] for c in recipe_entry.get('candidates') or []]} there, "
-                  f"{[c['name'] for c in plan['candidates']]} here")
+  if {k: recipe_entry.get(k) for k in plan} != json.loads(json.dumps(plan)):
+    return None  # other candidates (more restarts, say): each candidate's own run checks its settings
   chosen = [c for c in recipe.candidates if c.name == recipe_entry.get("chosen")]
   if chosen and not differ:
     asked = json.loads(json.dumps(dataclasses.asdict(resolved(chosen[0].config(config), experiment.demos,

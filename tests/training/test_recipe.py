@@ -121,6 +121,14 @@ def test_the_candidate_most_likely_on_held_out_demonstrations_is_kept_and_become
   with pytest.raises(WorkdirError, match="other demonstrations"):
     selection.train_and_choose(_experiment(datasets.training_demos(NANOCRAFT, 2, 6, 6)), config, chosen,
                                str(tmp_path))
+  # one more candidate (as a higher --restarts adds): the finished ones are reused, the new one trained
+  more = recipe.Recipe(chosen.candidates + (recipe.Candidate("more", {"training": "joint", "iterations": 2}),),
+                       ("by hand",))
+  rows.clear()
+  results = selection.train_and_choose(_experiment(demos), config, more, str(tmp_path), echo=rows.append)
+  assert {r["candidate"] for r in rows if r.get("finished_before")} == {"trained", "untrained"}
+  assert any(r.get("candidate") == "more" and "iteration" in r for r in rows)
+  assert results["recipe"]["chosen"] == "trained" and len(results["recipe"]["scores"]) == 3
 
 
 def test_a_tasks_mode_applies_where_some_demonstration_is_annotated():
