@@ -236,6 +236,9 @@ def check_levels(spec: HierarchySpec, config: TrainConfig) -> None:
     values = getattr(config, name)
     if values is not None and len(values) != spec.num_levels:
       raise ConfigError(name, f"needs one value per level, root first ({spec.num_levels}); got {list(values)}")
+  if config.trunk is not None and spec.observes is not None:
+    raise ConfigError("trunk", "the hierarchy gives its procedures different observation entries (\"observes\"), "
+                      "which one shared encoding cannot respect: drop one or the other")
   if config.call_penalty is not None and (len(config.call_penalty) != spec.num_levels or config.call_penalty[0]):
     raise ConfigError("call_penalty", f"needs one value per level, root first, the root's 0 (it has no stand-in "
                       f"root); got {list(config.call_penalty)} for {spec.num_levels} levels")

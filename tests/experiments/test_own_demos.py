@@ -252,6 +252,9 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
       GOOD, {"observations": [[0.0], [1.0]], "actions": [[3]], "stack": [[[0, 0], [0, 0], None]]},
       {"observations": [[0.0], [1.0], [2.0]], "actions": [[0], [3]],
        "stack": [[[0, 0], [1, 0], [0, 0]], [[0, 0], [1, 1], [3, 0]]]}]))
+  observing = tmp_path / "observing.json"  # the warehouse's hierarchy, each procedure seeing its own entries
+  observing.write_text(json.dumps({**json.loads((WAREHOUSE / "warehouse.json").read_text()), "observes": [
+      {"fulfil": [0, 1]}, {"fetch": [0, 1], "deliver": [0, 3]}, {"go_left": [0], "go_right": [0, 1]}]}))
   fitted = tmp_path / "fitted"  # what segmentation reads first of a fit run's workdir
   fitted.mkdir()
   (fitted / "results.json").write_text(json.dumps({"task": "warehouse", "model": "php", "hierarchy": hierarchy,
@@ -282,10 +285,18 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
        "flag --budget=0: 0 is not a positive integer"),
       (("experiments.train", "--task=nanocraft", f"--workdir={tmp_path / 'w6'}", f"--annotate={bad}"),
        f"--annotate: {bad}:1: each line needs an \"index\" in 0..63"),
+      (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={hierarchy}",
+        f"--workdir={tmp_path / 'w7'}", "--restarts=0"), "flag --restarts=0: 0 is not a positive integer"),
+      (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={hierarchy}",
+        f"--workdir={tmp_path / 'w8'}", "--batch_size=0"), "--batch_size: must be a positive integer; got 0"),
+      (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={observing}",
+        f"--workdir={tmp_path / 'w9'}", "--trunk=8"), "--trunk: the hierarchy gives its procedures different"),
+      (("experiments.train", "--task=nanocraft", f"--workdir={tmp_path / 'w10'}", "--seeds=1,2",
+        "--training=levelwise", "--restarts=2"), "--seeds and --restarts: give one of them"),
   ]
   # Run at the same time, each with its own workdir.
   processes.assert_refused(cases)
-  assert not any((tmp_path / f"w{i}").exists() for i in range(1, 7)) and not (tmp_path / "o.jsonl").exists()
+  assert not any((tmp_path / f"w{i}").exists() for i in range(1, 11)) and not (tmp_path / "o.jsonl").exists()
   assert not (tmp_path / "o.txt").exists()
 
 
