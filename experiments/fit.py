@@ -8,8 +8,8 @@ training mode or the segmentation open, each candidate is trained and the one mo
 demonstrations (--validation, or else --validation_fraction of TRAIN, held out at random by --seed) is kept.
 Each training keeps the snapshot that replays the most held-out demonstrations. A demonstration is replayed
 when the learned hierarchy's argmax policy, run on its recorded observations, takes every recorded action and
-returns from its root after the last. Writes the model (`experiments.decode --policy=DIR` reads it) and results.json with
-the held-out replay rate. Rerun the same command to resume an interrupted run.
+returns from its root after the last. Writes the model (`experiments.decode --policy=DIR` reads it) and
+results.json with the held-out replay rate. Rerun the same command to resume an interrupted run.
 
 The file formats (demonstrations, the hierarchy file) and what fit chooses: docs/own-demonstrations.md;
 every training flag: docs/training.md.

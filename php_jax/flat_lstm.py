@@ -103,8 +103,9 @@ def rollout_batch(policy: FlatLSTMPolicy, env, states, max_steps: int) -> execut
 
 def train(policy: FlatLSTMPolicy, demos: Demonstration, schedule: fitting.Schedule,
           hooks: fitting.Hooks = fitting.Hooks()) -> dict:
-  """Behaviour cloning: Adam on −mean log p(demonstration) (schedule.batch_size: of a minibatch) (`fitting.fit`: the snapshot with the
-  best hooks.on_eval score is kept, else the final one). Updates `policy` in place. Returns a report."""
+  """Behaviour cloning: Adam on −mean log p(demonstration) over every demonstration, or with
+  schedule.batch_size a minibatch (`fitting.fit`: the snapshot with the best hooks.on_eval score is kept,
+  else the final one). Updates `policy` in place. Returns a report."""
   data = [(jnp.asarray(demos.observations), jnp.asarray(demos.actions), jnp.asarray(demos.length))]
 
   def loss(model, buckets):
