@@ -69,13 +69,13 @@ def choose(spec: HierarchySpec, demos: Demonstration, config: TrainConfig, given
   mode = _fixed_mode(config, given, num_strong > 0)
   if num_strong:
     modes = [mode] if mode else ["levelwise", "joint"]
-    candidates = [Candidate(m, _mode_settings(m, config, given)) for m in modes]
+    candidates = [Candidate(m, _mode_settings(m, given)) for m in modes]
     reasons = [f"{num_strong} of {num} demonstrations are annotated: "
                + (f"{mode} training, as asked" if mode else
                   "level-wise training (the paper's) and joint training with the call graph the annotation shows "
                   "are both tried")]
   else:
-    candidates, reasons = _discovery_candidates(spec, demos, config, given, mode)
+    candidates, reasons = _discovery_candidates(spec, demos, given, mode)
   if restarts > 1:
     first = config.network_seed
     candidates = [Candidate(f"{c.name}-restart{r}", {**c.settings, "init_seed": first + r * RESTART_SEED_STRIDE})
@@ -99,14 +99,14 @@ def _fixed_mode(config: TrainConfig, given, annotated: bool) -> str | None:
   return None if annotated else "joint"
 
 
-def _mode_settings(mode: str, config: TrainConfig, given) -> dict:
+def _mode_settings(mode: str, given) -> dict:
   settings = {"training": mode}
   if "call_graph" not in given:
     settings["call_graph"] = MODE_CALL_GRAPH[mode]
   return settings
 
 
-def _discovery_candidates(spec: HierarchySpec, demos: Demonstration, config: TrainConfig, given,
+def _discovery_candidates(spec: HierarchySpec, demos: Demonstration, given,
                           mode: str) -> tuple[list[Candidate], list[str]]:
   """The candidates without annotation: where the segmentation starts from."""
   reason = f"no demonstration is annotated: {mode} training"
