@@ -81,4 +81,3 @@ def train_php(experiment: run.Experiment, config, given, echo) -> dict:
   whose settings named in `given` were asked for; returns its results.json."""
   chosen = recipe.choose(experiment.spec, experiment.demos, config, given, RESTARTS.value)
   return selection.train_and_choose(experiment, config, chosen, WORKDIR.value, OVERWRITE.value, WAIT.value, echo)
-
