@@ -175,8 +175,28 @@ def annotation_gaps(experiment: Experiment, config: TrainConfig, echo: Callable[
 
 def _finished(workdir: str, experiment: Experiment, config: TrainConfig, flat_lstm_hidden: int | None) -> dict | None:
   """The results.json of a run that finished in workdir with these settings; None if no run finished there
-  (or its results.json cannot be read: the run then resumes and writes it again). Raises WorkdirError (or
-  CheckpointError, for other demonstrations) naming the settings that differ if it was made with others."""
+  (`read_finished`). Raises WorkdirError (or CheckpointError, for other demonstrations) naming the settings
+  that differ if it was made with others."""
+  results = read_finished(workdir)
+  if results is None:
+    return None
+  model = "flat_lstm" if flat_lstm_hidden else "php"
+  differ = other_settings(results, {"task": experiment.name, "model": model, **experiment.extra}, config)
+  if flat_lstm_hidden and (results.get("flat_lstm") or {}).get("hidden") != flat_lstm_hidden:
+    differ.append(f"--lstm_hidden: {(results.get('flat_lstm') or {}).get('hidden')!r} there, {flat_lstm_hidden} here")
+  if differ:
+    raise made_otherwise(workdir, differ)
+  saved = resume.read_training(os.path.join(workdir, checkpoint.TRAINING_DIR))
+  if saved is not None and model == "php":  # the demonstrations' digest: another data file, say
+    resume.check_resumable(os.path.join(workdir, checkpoint.TRAINING_DIR), saved[0].get("settings", {}),
+                          resume.run_settings(experiment.spec, experiment.demos, config))
+  return results
+
+
+def read_finished(workdir: str) -> dict | None:
+  """workdir's results.json where a run finished there (with its model), a JSON object holding its "config"
+  and "test" results; None where none did, or where results.json cannot be read (the run then resumes and
+  writes it again)."""
   paths = [os.path.join(workdir, name) for name in (RESULTS_FILE, checkpoint.ARCHITECTURE_FILE, checkpoint.MODEL_DIR)]
   if not all(map(os.path.exists, paths)):
     return None
@@ -187,23 +207,27 @@ def _finished(workdir: str, experiment: Experiment, config: TrainConfig, flat_ls
     return None
   if not isinstance(results, dict) or not isinstance(results.get("config"), dict) or "test" not in results:
     return None
-  model = "flat_lstm" if flat_lstm_hidden else "php"
-  expected = json.loads(json.dumps({"task": experiment.name, "model": model, **experiment.extra}))
-  differ = [f"{k}: {results.get(k)!r} there, {v!r} here" for k, v in expected.items() if results.get(k) != v]
-  saved_config = resume.saved_config(results["config"])
-  config_json = json.loads(json.dumps(dataclasses.asdict(config)))
-  differ += [f"--{k}: {saved_config.get(k)!r} there, {v!r} here" for k, v in config_json.items()
-             if saved_config.get(k) != v and not (k == "strong_weight" and differ)]  # it follows num_strong
-  if flat_lstm_hidden and (results.get("flat_lstm") or {}).get("hidden") != flat_lstm_hidden:
-    differ.append(f"--lstm_hidden: {(results.get('flat_lstm') or {}).get('hidden')!r} there, {flat_lstm_hidden} here")
-  if differ:
-    raise WorkdirError(f"{workdir} holds a finished run made with other settings ({'; '.join(differ)}); use a "
-                       "fresh workdir, or --overwrite to train again")
-  saved = resume.read_training(os.path.join(workdir, checkpoint.TRAINING_DIR))
-  if saved is not None and model == "php":  # the demonstrations' digest: another data file, say
-    resume.check_resumable(os.path.join(workdir, checkpoint.TRAINING_DIR), saved[0].get("settings", {}),
-                          resume.run_settings(experiment.spec, experiment.demos, config))
   return results
+
+
+def other_settings(results: dict, expected: dict, config: TrainConfig | None) -> list[str]:
+  """What a finished run's results.json records otherwise than this run asks, each "name: there, here": its
+  entries named in expected, and (config given) its settings; a strong weight differs with the data, so it is
+  named only where nothing else differs."""
+  expected = json.loads(json.dumps(expected))
+  differ = [f"{k}: {results.get(k)!r} there, {v!r} here" for k, v in expected.items() if results.get(k) != v]
+  if config is not None:
+    saved_config = resume.saved_config(results["config"])
+    config_json = json.loads(json.dumps(dataclasses.asdict(config)))
+    differ += [f"--{k}: {saved_config.get(k)!r} there, {v!r} here" for k, v in config_json.items()
+               if saved_config.get(k) != v and not (k == "strong_weight" and differ)]
+  return differ
+
+
+def made_otherwise(workdir: str, differ: list[str]) -> WorkdirError:
+  """The refusal of a workdir whose finished run was made with other settings (`other_settings`)."""
+  return WorkdirError(f"{workdir} holds a finished run made with other settings ({'; '.join(differ)}); use a "
+                      "fresh workdir, or --overwrite to train again")
 
 
 LOCK_FILE = ".lock"

@@ -26,7 +26,8 @@ from php_jax.training import checkpoint, objective, provenance, resume, storage
 from php_jax.training.config import TrainConfig, resolved
 from php_jax.training.recipe import Recipe
 from php_jax.training.run import (METRICS_FILE, RESULTS_FILE, RUN_FILES, Experiment, WorkdirError, clear_workdir,
-                                  print_row, train_and_evaluate, workdir_lock)
+                                  made_otherwise, other_settings, print_row, read_finished, train_and_evaluate,
+                                  workdir_lock)
 
 CANDIDATES_DIR = "candidates"
 SCORE = "held_out_log_likelihood_per_step"
@@ -86,8 +87,7 @@ def train_and_choose(experiment: Experiment, config: TrainConfig, recipe: Recipe
     start = time.time()
     chosen, results = max(tried, key=lambda pair: rank(pair[1]["test"]))
     echo({"chosen": chosen.name, **results["test"]})
-    _adopt(os.path.join(workdir, CANDIDATES_DIR, chosen.name), workdir, experiment.name, results)
-    _, model = checkpoint.load_policy(workdir)
+    model = _adopt(os.path.join(workdir, CANDIDATES_DIR, chosen.name), workdir, experiment.name, results)
     echo({"phase": "testing"})
     summary = {k: v for k, v in results.items() if k not in ("test", "wall_seconds", "commit", "versions",
                                                                "candidate")}
@@ -104,8 +104,8 @@ def train_and_choose(experiment: Experiment, config: TrainConfig, recipe: Recipe
     return json.loads(text)  # as a rerun reads it
 
 
-def _adopt(run_dir: str, workdir: str, task_name: str, results: dict) -> None:
-  """The chosen candidate's model and metrics.jsonl, written again in workdir."""
+def _adopt(run_dir: str, workdir: str, task_name: str, results: dict) -> PHPHierarchy:
+  """The chosen candidate's model and metrics.jsonl, written again in workdir; returns the model."""
   for name in (checkpoint.ARCHITECTURE_FILE, checkpoint.MODEL_DIR):
     storage.remove_saved(os.path.join(workdir, name))
   _, model = checkpoint.load_policy(run_dir)
@@ -113,41 +113,28 @@ def _adopt(run_dir: str, workdir: str, task_name: str, results: dict) -> None:
                             list(checkpoint.saved_capacity(run_dir)))
   with open(os.path.join(run_dir, METRICS_FILE), "rb") as f:
     files.write_atomically(os.path.join(workdir, METRICS_FILE), f.read())
+  return model
 
 
 def _finished(workdir: str, experiment: Experiment, config: TrainConfig, recipe: Recipe) -> dict | None:
   """The results.json of a choice that finished in workdir with these settings, recipe and experiment; None
   if none finished there, or one chose among other candidates (whose runs are reused where their settings
   are these). Raises WorkdirError if one finished with other settings or data."""
-  plan = recipe.as_json()
-  path = os.path.join(workdir, RESULTS_FILE)
-  if not all(os.path.exists(os.path.join(workdir, name))
-             for name in (RESULTS_FILE, checkpoint.ARCHITECTURE_FILE, checkpoint.MODEL_DIR)):
+  results = read_finished(workdir)
+  if results is None:
     return None
-  try:
-    with open(path, encoding="utf-8") as f:
-      results = json.load(f)
-  except (OSError, ValueError):
-    return None
-  recipe_entry = results.get("recipe") if isinstance(results, dict) else None
-  if not isinstance(results, dict) or "test" not in results:
-    return None
+  recipe_entry = results.get("recipe")
   if not isinstance(recipe_entry, dict):
     raise WorkdirError(f"{workdir} holds a finished run that chose no recipe (an older php_jax's); use a fresh "
                        "workdir, or --overwrite to train again")
-  expected = json.loads(json.dumps({"task": experiment.name, **experiment.extra}))
-  differ = [f"{k}: {results.get(k)!r} there, {v!r} here" for k, v in expected.items() if results.get(k) != v]
+  plan = recipe.as_json()
   if {k: recipe_entry.get(k) for k in plan} != json.loads(json.dumps(plan)):
     return None  # other candidates (more restarts, say): each candidate's own run checks its settings
   chosen = [c for c in recipe.candidates if c.name == recipe_entry.get("chosen")]
-  if chosen and not differ:
-    asked = json.loads(json.dumps(dataclasses.asdict(resolved(chosen[0].config(config), experiment.demos,
-                                                              experiment.spec))))
-    saved = resume.saved_config(results.get("config") or {})
-    differ += [f"--{k}: {saved.get(k)!r} there, {v!r} here" for k, v in asked.items() if saved.get(k) != v]
+  asked = resolved(chosen[0].config(config), experiment.demos, experiment.spec) if chosen else None
+  differ = other_settings(results, {"task": experiment.name, **experiment.extra}, asked)
   if differ:
-    raise WorkdirError(f"{workdir} holds a finished run made with other settings ({'; '.join(differ)}); use a "
-                       "fresh workdir, or --overwrite to train again")
+    raise made_otherwise(workdir, differ)
   if recipe_entry.get("demonstrations") != _digest(experiment):
     raise WorkdirError(f"{workdir} holds a finished run made with other demonstrations; use a fresh workdir, or "
                        "--overwrite to train again")
