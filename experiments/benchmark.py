@@ -398,10 +398,7 @@ def bench_fast_path():
   demos = babyai_like_demos(_NUM_DEMOS.value or 300)
   view = views.lowest_view(demos, BABYAI_LIKE.num_levels)
   level, hidden = BABYAI_LIKE.num_levels - 1, tuple(int(h) for h in _HIDDEN.value)
-  equal_counts = [type(view)(*(np.asarray(x)[group][:, :int(np.asarray(view.length)[group].max())
-                                                      + (name == "observations")] if np.ndim(x) >= 2
-                               else np.asarray(x)[group] for name, x in zip(view._fields, view)))
-                  for group in np.array_split(np.argsort(view.length, kind="stable"), 4)]
+  equal_counts = views.grouped(view, np.array_split(np.argsort(view.length, kind="stable"), 4))
   fewest = views.length_buckets(view, 4)
   variants = [("today: equal-count buckets, no trunk, every view", equal_counts, None, None),
               ("buckets that pad least", fewest, None, None),

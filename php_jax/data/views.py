@@ -96,10 +96,16 @@ def padding_fraction(buckets: list[Batch]) -> float:
 
 
 def length_buckets(batch: Batch, num_buckets: int) -> list[Batch]:
-  """batch (LevelView or Demonstration [B, ...]) in `length_groups`, each group trimmed to its longest: its
-  step arrays ([B, T, ...]) to that many steps, its observations to one more."""
+  """batch (LevelView or Demonstration [B, ...]) in `length_groups` (`grouped`)."""
+  return grouped(batch, [group for group, _ in length_groups(np.asarray(batch.length), num_buckets)])
+
+
+def grouped(batch: Batch, groups: list[np.ndarray]) -> list[Batch]:
+  """batch's rows in groups (index arrays), each group trimmed to its longest: its step arrays ([B, T, ...]) to
+  that many steps, its observations to one more."""
   buckets = []
-  for group, width in length_groups(np.asarray(batch.length), num_buckets):
+  for group in groups:
+    width = int(np.asarray(batch.length)[group].max())
     buckets.append(type(batch)(*(_trim(np.asarray(x)[group], width + (name == "observations"))
                                  for name, x in zip(batch._fields, batch))))
   return buckets
