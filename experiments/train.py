@@ -60,12 +60,9 @@ _NUM_TEST = flags.DEFINE_integer("num_test", None, "Test problems per test set. 
 def _task_defaults(name: str, default) -> str:
   """A setting's default as --help shows it: TrainConfig's (or the recipe's), and the registered tasks that
   override it."""
-  overrides = {task.name: task.defaults.overrides()[name] for task in tasks.TASKS.values()
-               if name in task.defaults.overrides()}
-  text = config_flags.default_text(default, overrides)
-  if name in recipe.DEFAULT_TEXT:
-    text = recipe.DEFAULT_TEXT[name] + (text[text.index(" ("):] if overrides else "")
-  return text
+  return config_flags.default_text(recipe.DEFAULT_TEXT.get(name, default),
+                                   {task.name: task.defaults.overrides()[name] for task in tasks.TASKS.values()
+                                    if name in task.defaults.overrides()})
 
 
 config_flags.define_config_flags(_task_defaults)

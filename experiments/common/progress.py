@@ -110,16 +110,15 @@ class TrainingProgress:
       self._phase(row.get("level", "joint"))
     elif "split_rounds" in row:
       self.tasks[(self.candidate, "split")] = self.progress.add_task("split search", total=row["split_rounds"],
-                                                   status="round 1 training its candidates")
+                                                                     status="round 1 training its candidates")
     elif "split_search" in row:
-      entry = row["split_search"]
-      if (self.candidate, "split") not in self.tasks:  # resumed in the search: its number of rounds was logged before
-        self.tasks[(self.candidate, "split")] = self.progress.add_task("split search", total=None, status="")
+      entry, split = row["split_search"], (self.candidate, "split")
+      if split not in self.tasks:  # resumed in the search: its number of rounds was logged before
+        self.tasks[split] = self.progress.add_task("split search", total=None, status="")
       score = entry["log_likelihood_per_step"]
       judged = ("no stack fits a validation demonstration" if score is None
                 else f"log-likelihood per step {score:.4g}")
-      self.progress.update(self.tasks[(self.candidate, "split")], completed=entry["round"] + 1,
-                           status=f"kept: {entry['kept']} ({judged})")
+      self.progress.update(self.tasks[split], completed=entry["round"] + 1, status=f"kept: {entry['kept']} ({judged})")
     elif "iteration" in row:
       phase = row.get("level", "joint" if self.num_levels else "flat")
       task = self.tasks.get((self.candidate, phase)) or self._phase(phase)

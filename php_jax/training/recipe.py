@@ -1,5 +1,6 @@
 """The recipe: how a run trains, read from the demonstrations where they decide it, and where they do not, a
-list of candidates of which the one most likely on held-out demonstrations is kept (`run.train_and_choose`).
+list of candidates of which the one most likely on held-out demonstrations is kept
+(`selection.train_and_choose`).
 
 What the demonstrations decide (`config.resolved`, for every candidate): the strong weight, the counter
 capacities (the longest annotated call), annealing and the segmentation's length without annotation. What
