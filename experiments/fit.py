@@ -16,13 +16,15 @@ every training flag: docs/training.md.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from absl import app, flags
 
 from experiments.common import cli, config_flags, progress, training
 from php_jax.data import demo_files
 from php_jax.demos import Demonstration
-from php_jax.envs import replay
+from php_jax.envs import gym, replay
 from php_jax.training import call_graph, recipe
 from php_jax.training.run import Experiment, train_and_evaluate
 
@@ -31,6 +33,10 @@ _HIERARCHY = flags.DEFINE_string("hierarchy", None, "Hierarchy file (JSON): proc
                                  "first, and the action factor sizes.")
 _VALIDATION = flags.DEFINE_string("validation", None, "Held-out demonstrations for choosing the snapshot. "
                                   "Default: --validation_fraction of --demos.")
+_ENV = flags.DEFINE_string("env", None, "The Gymnasium environment the demonstrations were recorded in (record's "
+                           "--env): the networks' encoders are chosen from its observation space (categories, "
+                           "images, words), unless the hierarchy file gives \"observation\". Default: none, the "
+                           "observations are read as numbers (or as the hierarchy file's \"observation\" says).")
 _VALIDATION_FRACTION = flags.DEFINE_float("validation_fraction", 0.1, "Share of --demos held out when "
                                           "--validation is not given (at least one demonstration).")
 DEFAULT_CAPACITY = 8
@@ -82,9 +88,14 @@ def run() -> dict:
   except demo_files.DemoFileError as e:
     raise config_flags.UsageError(str(e)) from None
   try:
+    if _ENV.value and hierarchy.spec.observation is None:
+      hierarchy = dataclasses.replace(hierarchy, spec=dataclasses.replace(
+          hierarchy.spec, observation=gym.observation_fields(gym.env_maker(_ENV.value)().observation_space)))
     demos, spec = demo_files.read_demonstrations(_DEMOS.value, hierarchy.spec)
-  except demo_files.DemoFileError as e:
+  except (demo_files.DemoFileError, gym.GymError) as e:
     raise config_flags.UsageError(str(e)) from None
+  except ValueError as e:  # the environment's fields beside the hierarchy file's "observes"
+    raise config_flags.UsageError(f"--env={_ENV.value}: {e}") from None
   overrides = fit_overrides(hierarchy, bool(np.any(demos.strong)))
   config = config_flags.config_from_flags(overrides)
   config_flags.check_levels(hierarchy.spec, config)

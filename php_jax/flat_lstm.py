@@ -15,17 +15,23 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from php_jax import executor, fitting
+from php_jax import encoders, executor, fitting
 from php_jax.demos import Demonstration
 
 
 class FlatLSTMPolicy(nnx.Module):
-  """An LSTM over (o_t, one-hot a_{t−1}) with a factorized action head and a stop logit."""
+  """An LSTM over (o_t, one-hot a_{t−1}) with a factorized action head and a stop logit. With structured
+  observation fields (`encoders.structured`) it reads o_t through the same encoder a PHP level would
+  (`encoders.Encoder`, encoders.DEFAULT_WIDTH wide), so that a comparison separates what the hierarchy brings
+  from what the encoder brings."""
 
-  def __init__(self, obs_dim: int, action_sizes: tuple[int, ...], hidden: int = 128, *, rngs: nnx.Rngs):
+  def __init__(self, obs_dim: int, action_sizes: tuple[int, ...], hidden: int = 128,
+               fields: tuple[encoders.Field, ...] | None = None, *, rngs: nnx.Rngs):
     self.action_sizes = tuple(action_sizes)
     self.hidden = hidden
-    self.cell = nnx.LSTMCell(obs_dim + sum(action_sizes), hidden, rngs=rngs)
+    self.encoder = encoders.Encoder(fields, encoders.DEFAULT_WIDTH, rngs=rngs) if encoders.structured(fields) else None
+    features = obs_dim if self.encoder is None else self.encoder.width
+    self.cell = nnx.LSTMCell(features + sum(action_sizes), hidden, rngs=rngs)
     self.head = nnx.Linear(hidden, sum(action_sizes) + 1, rngs=rngs)
 
   def initial_carry(self, dtype=jnp.float32):
@@ -35,6 +41,7 @@ class FlatLSTMPolicy(nnx.Module):
   def step(self, carry, obs: jax.Array, prev_action: jax.Array):
     """obs [D], prev_action [F] int (−1 before the first action) → (carry, [log-probs per factor], stop logit)."""
     previous = [jax.nn.one_hot(prev_action[f], n) for f, n in enumerate(self.action_sizes)]
+    obs = obs if self.encoder is None else self.encoder(obs[None])[0]
     carry, h = self.cell(carry, jnp.concatenate([obs, *previous]))
     out = self.head(h)
     splits = np.cumsum(self.action_sizes)[:-1]

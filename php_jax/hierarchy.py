@@ -8,6 +8,8 @@ from typing import Protocol
 import jax
 import numpy as np
 
+from php_jax import encoders
+
 
 def check_size(name: str, value, least: int = 1) -> int:
   """value as an int; refuses, naming it, one that is not an integer ≥ least (bool and float are not, a NumPy
@@ -33,10 +35,13 @@ class HierarchySpec:
     observes: which observation entries each procedure's networks see (a hierarchy file's "observes", state
       abstraction as in MAXQ): per level, root first, None or per procedure None (every entry) or a sorted
       tuple of entry indices; None: every entry, at every level.
+    observation: what the observation's numbers are (`php_jax.encoders` fields, in order), which the levels'
+      shared encoders read; None: numbers, each network reads them as they are.
   Raises:
     ValueError naming the field: no levels, a level without procedures, a root level of more than one,
     no action factors or one of size < 1, a negative obs_dim (0: not known yet), or observes of another
-    shape or naming an entry outside 0..obs_dim−1 (once obs_dim is known).
+    shape or naming an entry outside 0..obs_dim−1 (once obs_dim is known), or observation fields whose sizes
+    do not add up to obs_dim (once it is known).
   """
   name: str
   levels: tuple[tuple[str, ...], ...]
@@ -44,6 +49,7 @@ class HierarchySpec:
   obs_dim: int
   allowed_ops: tuple | None = None
   observes: tuple | None = None
+  observation: tuple | None = None
 
   def __post_init__(self):
     if not (isinstance(self.levels, tuple) and self.levels
@@ -59,6 +65,12 @@ class HierarchySpec:
     check_size("obs_dim", self.obs_dim, 0)
     if self.observes is not None:
       check_observes(self.observes, self.levels, self.obs_dim)
+    if self.observes is not None and encoders.structured(self.observation):
+      raise ValueError("observes: procedures that see different observation entries cannot share the encoder "
+                       "that the observation's fields call for; drop \"observes\" or the fields")
+    if self.observation is not None and self.obs_dim and encoders.size(self.observation) != self.obs_dim:
+      raise ValueError(f"observation: its fields take {encoders.size(self.observation)} numbers where "
+                       f"observations have {self.obs_dim}")
 
   @property
   def num_levels(self) -> int:

@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
+from php_jax import encoders
 from php_jax.hierarchy import HierarchySpec, check_observes, check_size
 
 
@@ -67,23 +68,12 @@ class ProcedureMLPs(nnx.Module):
     return out.reshape(num_procs, -1, num_obs, num_taus)
 
 
-class Trunk(nnx.Module):
-  """One level's encoding of the observation, shared by its K procedures' networks and computed once per
-  observation: a ReLU layer. [N, obs_dim] → [N, width]."""
-
-  def __init__(self, obs_dim: int, width: int, *, rngs: nnx.Rngs):
-    self.layer = nnx.Linear(obs_dim, width, rngs=rngs)
-
-  def __call__(self, obs: jax.Array) -> jax.Array:
-    return jax.nn.relu(self.layer(obs))
-
-
 class PHPLevel(nnx.Module):
   """The K procedures of one level: operation η_h^τ(·|o) and termination ψ_h^τ(·|o) networks.
 
   The networks read the level's features of each observation (`encode`): the observation itself, or with a
-  trunk its shared encoding, so that an observation's first layer is computed once for the level's K
-  procedures and their counters rather than once per procedure.
+  trunk its shared encoding (`encoders.Encoder`), computed once for the level's K procedures and their
+  counters rather than once per procedure.
 
   Attributes:
     op_sizes: factor sizes of the operation (callees of the next level, or the elementary action factors).
@@ -96,17 +86,20 @@ class PHPLevel(nnx.Module):
       any.
     observes: per procedure, None or the observation entries (indices) both its networks see
       (`HierarchySpec.observes`); None: every entry for every procedure.
-    trunk: the width of the level's shared encoding (`Trunk`); None: the networks read the observation.
+    trunk: the width of the level's shared encoding (`encoders.Encoder`); None: the networks read the
+      observation.
+    fields: what the observation's numbers are (`encoders`), for the encoder; None: numbers.
   Raises ValueError naming the argument: num_procs < 1, obs_dim < 0, no op_sizes or one < 1, a hidden size
   < 1, tau_limit < 0, allowed_ops of another shape, observes not one entry per procedure or naming an
-  entry outside 0..obs_dim−1, a trunk < 1 or beside observes (a shared encoding sees every entry).
+  entry outside 0..obs_dim−1, a trunk < 1 or beside observes (a shared encoding sees every entry), fields
+  without a trunk or of another size than obs_dim.
   """
 
   def __init__(self, num_procs: int, obs_dim: int, op_sizes: tuple[int, ...], hidden=(64, 64),
                tau_in_termination: bool = True, tau_limit: int | None = None,
                allowed_ops: tuple[tuple[bool, ...], ...] | None = None,
-               observes: tuple[tuple[int, ...] | None, ...] | None = None, trunk: int | None = None, *,
-               rngs: nnx.Rngs):
+               observes: tuple[tuple[int, ...] | None, ...] | None = None, trunk: int | None = None,
+               fields: tuple[encoders.Field, ...] | None = None, *, rngs: nnx.Rngs):
     check_size("num_procs", num_procs)
     check_size("obs_dim", obs_dim, 0)
     if not _check_sizes("op_sizes", op_sizes):
@@ -131,9 +124,12 @@ class PHPLevel(nnx.Module):
       if observes is not None:
         raise ValueError("trunk: a level whose procedures observe different entries (observes) cannot share "
                          "an encoding of the observation; give one or the other")
+    if fields is not None and (trunk is None or encoders.size(fields) != obs_dim):
+      raise ValueError(f"fields need a trunk (the encoder that reads them) and must take obs_dim = {obs_dim} "
+                       f"numbers; got trunk {trunk}, fields of {encoders.size(fields)}")
     mask = None if observes is None else tuple(
         tuple(entries is None or d in entries for d in range(obs_dim)) for entries in observes)
-    self.trunk = None if trunk is None else Trunk(obs_dim, trunk, rngs=rngs)
+    self.trunk = None if trunk is None else encoders.Encoder(fields or (encoders.Real(obs_dim),), trunk, rngs=rngs)
     features = obs_dim if trunk is None else trunk
     self.operation = ProcedureMLPs(num_procs, features, tuple(hidden), sum(op_sizes), observes=mask, rngs=rngs)
     self.termination = ProcedureMLPs(num_procs, features, tuple(hidden), 1, observes=mask, rngs=rngs)
@@ -222,8 +218,9 @@ class PHPHierarchy(nnx.Module):
                tau_limit=None, allowed_ops=None, trunk: int | None = None, *, rngs: nnx.Rngs):
     """tau_in_termination, tau_limit, allowed_ops: per level, root first (PHPLevel); None: τ everywhere,
     unlimited, every operation allowed. Each procedure's networks see the observation entries spec.observes
-    gives it (every entry where it gives none); trunk: each level's shared encoding width (PHPLevel), None:
-    none."""
+    gives it (every entry where it gives none); trunk: each level's shared encoding width (PHPLevel), which
+    reads spec.observation's fields where it gives them; None: none, or where those fields are structured
+    (`encoders.structured`: categories, images, words) encoders.DEFAULT_WIDTH wide."""
     if not isinstance(spec, HierarchySpec):
       raise ValueError(f"spec must be a HierarchySpec; got {spec!r}")
     tau_in_termination = tau_in_termination or (True,) * spec.num_levels
@@ -236,9 +233,11 @@ class PHPHierarchy(nnx.Module):
     self.spec = spec
     self.sample = sample
     observes = spec.observes or (None,) * spec.num_levels
+    if trunk is None and encoders.structured(spec.observation):
+      trunk = encoders.DEFAULT_WIDTH
     self.levels = nnx.List([
         PHPLevel(spec.num_procs(i), spec.obs_dim, spec.op_sizes(i), hidden, tau_in_termination[i], tau_limit[i],
-                 allowed_ops[i], observes[i], trunk, rngs=rngs)
+                 allowed_ops[i], observes[i], trunk, spec.observation if trunk else None, rngs=rngs)
         for i in range(spec.num_levels)])
 
   def operation(self, level, proc, tau, obs, key):

@@ -39,6 +39,7 @@ import os
 
 import numpy as np
 
+from php_jax import encoders
 from php_jax.data import json_lines, shards
 from php_jax.data.demo_checks import (DemoFileError, action_error, check_stack, counter_error, fitted_spec,
                                       observation_size_error)
@@ -46,7 +47,8 @@ from php_jax.data.files import write_atomically
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.hierarchy import HierarchySpec
 
-HIERARCHY_KEYS = ("levels", "action_sizes", "name", "capacity", "hidden", "calls", "observes", "action_names")
+HIERARCHY_KEYS = ("levels", "action_sizes", "name", "capacity", "hidden", "calls", "observes", "action_names",
+                  "observation")
 DEMONSTRATION_KEYS = ("observations", "actions", "stack")
 MAX_COUNT = 64
 MAX_SIZE = 4096
@@ -125,6 +127,8 @@ def _hierarchy(obj, default_name: str) -> Hierarchy:
     spec = dataclasses.replace(spec, allowed_ops=_declared_calls(obj["calls"], spec))
   if obj.get("observes") is not None:
     spec = dataclasses.replace(spec, observes=_declared_observes(obj["observes"], spec))
+  if obj.get("observation") is not None:
+    spec = dataclasses.replace(spec, observation=encoders.from_json(obj["observation"]))
   names = obj.get("action_names")
   if names is not None and not (isinstance(names, list) and len(names) == len(sizes) and all(
       isinstance(factor, list) and len(factor) == size and all(isinstance(n, str) and n for n in factor)

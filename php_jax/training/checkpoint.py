@@ -11,6 +11,7 @@ import os
 import jax
 from flax import nnx
 
+from php_jax import encoders
 from php_jax.data.files import WRITING, write_atomically
 from php_jax.envs import tasks
 from php_jax.flat_lstm import FlatLSTMPolicy
@@ -44,7 +45,8 @@ def _spec_json(spec: HierarchySpec) -> dict:
       for level in spec.observes]
   return {"name": spec.name, "levels": [list(level) for level in spec.levels],
           "action_sizes": list(spec.action_sizes), "obs_dim": spec.obs_dim,
-          **({"observes": observes} if observes is not None else {})}
+          **({"observes": observes} if observes is not None else {}),
+          **({"observation": encoders.to_json(spec.observation)} if spec.observation is not None else {})}
 
 
 def save_hierarchy(workdir: str, task_name: str, hierarchy: PHPHierarchy, hidden,
@@ -61,9 +63,9 @@ def save_hierarchy(workdir: str, task_name: str, hierarchy: PHPHierarchy, hidden
 
 
 def trunk_width(hierarchy: PHPHierarchy) -> int | None:
-  """The width of the hierarchy's per-level trunks (`model.Trunk`), None where it has none."""
+  """The width of the hierarchy's per-level trunks (`encoders.Encoder`), None where it has none."""
   trunk = hierarchy.levels[0].trunk
-  return None if trunk is None else trunk.layer.out_features
+  return None if trunk is None else trunk.width
 
 
 def save_flat_lstm(workdir: str, task_name: str, policy: FlatLSTMPolicy, spec: HierarchySpec) -> None:
@@ -82,8 +84,12 @@ def _saved_spec(path: str, architecture: dict) -> HierarchySpec:
     if observes is not None:
       observes = tuple(None if level is None else tuple(None if entries is None else tuple(entries)
                                                         for entries in level) for level in observes)
+    observation = spec.get("observation")
+    if observation is not None:
+      observation = encoders.from_json(observation, "\"observation\"")
     saved = HierarchySpec(str(spec["name"]), tuple(tuple(map(str, level)) for level in spec["levels"]),
-                          tuple(int(n) for n in spec["action_sizes"]), int(spec["obs_dim"]), observes=observes)
+                          tuple(int(n) for n in spec["action_sizes"]), int(spec["obs_dim"]), observes=observes,
+                          observation=observation)
   except (AttributeError, TypeError, KeyError, ValueError):
     raise CheckpointError(f"{path}: malformed hierarchy spec {str(spec)[:200]}") from None
   sizes = (saved.obs_dim, *saved.action_sizes, *map(len, saved.levels))
@@ -159,7 +165,7 @@ def load_policy(workdir: str) -> tuple[str, PHPHierarchy | FlatLSTMPolicy]:
   spec = _saved_spec(arch_path, architecture)
   if kind == "flat_lstm":
     def build():
-      return FlatLSTMPolicy(spec.obs_dim, spec.action_sizes, hidden, rngs=nnx.Rngs(0))
+      return FlatLSTMPolicy(spec.obs_dim, spec.action_sizes, hidden, spec.observation, rngs=nnx.Rngs(0))
   else:
     tau_in_termination, tau_limit = tau
     if len(tau_in_termination) != spec.num_levels:

@@ -382,7 +382,8 @@ def _train_flat_lstm(experiment: Experiment, config: TrainConfig, hidden: int, l
   """The baseline on the same demonstrations' elementary actions (annotations unused), same iterations,
   learning rate, seed and snapshot rule."""
   spec = experiment.spec
-  policy = flat_lstm.FlatLSTMPolicy(spec.obs_dim, spec.action_sizes, hidden, rngs=nnx.Rngs(config.network_seed))
+  policy = flat_lstm.FlatLSTMPolicy(spec.obs_dim, spec.action_sizes, hidden, spec.observation,
+                                    rngs=nnx.Rngs(config.network_seed))
   schedule = config.schedule()
   report = flat_lstm.train(policy, experiment.demos, schedule,
                            fitting.Hooks(lambda iteration, loss: experiment.validate(policy), log))

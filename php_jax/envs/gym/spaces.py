@@ -1,12 +1,20 @@
 """Gymnasium spaces as php_jax's arrays: observations as float32 vectors (`gymnasium.spaces.flatten`: Discrete
-one-hot, Box, MultiDiscrete and MultiBinary, and Dict and Tuple of these), actions as factors (a `Discrete`
-action space is one factor, a `MultiDiscrete` one a factor per entry). Any other space is refused with a
-`GymError` naming it."""
+one-hot, Box, MultiDiscrete and MultiBinary, and Dict and Tuple of these; a text, such as MiniGrid's mission,
+as TEXT_WORDS word ids), with the fields that say what each number is (`observation_fields`, for the networks'
+encoders); actions as factors (a `Discrete` action space is one factor, a `MultiDiscrete` one a factor per
+entry). Any other space is refused with a `GymError` naming it."""
 from __future__ import annotations
+
+import re
+import zlib
 
 import gymnasium
 import numpy as np
 from gymnasium import spaces
+
+from php_jax import encoders
+
+TEXT_WORDS, TEXT_VOCAB = 32, 4096  # a text's words (at most), and the ids they are hashed to (0 pads)
 
 
 class GymError(ValueError):
@@ -20,15 +28,61 @@ def check_observation_space(space: spaces.Space, where: str = "observation space
   elif isinstance(space, spaces.Tuple):
     for i, sub in enumerate(space.spaces):
       check_observation_space(sub, f"{where}[{i}]")
-  elif not isinstance(space, (spaces.Discrete, spaces.Box, spaces.MultiDiscrete, spaces.MultiBinary)):
+  elif not (_is_text(space) or isinstance(space, (spaces.Discrete, spaces.Box, spaces.MultiDiscrete,
+                                                   spaces.MultiBinary))):
     raise GymError(f"the {where} {space} cannot be flattened to a vector (php_jax takes Discrete, Box, "
-                   "MultiDiscrete, MultiBinary, and Dict and Tuple of these)")
+                   "MultiDiscrete, MultiBinary, Text, and Dict and Tuple of these)")
+
+
+def _is_text(space: spaces.Space) -> bool:
+  """Text, or MiniGrid's MissionSpace and its subclasses (spaces of strings that are not Text)."""
+  return isinstance(space, spaces.Text) or any(c.__name__ == "MissionSpace" for c in type(space).__mro__)
+
+
+def _has_text(space: spaces.Space) -> bool:
+  if isinstance(space, spaces.Dict):
+    return any(map(_has_text, space.spaces.values()))
+  if isinstance(space, spaces.Tuple):
+    return any(map(_has_text, space.spaces))
+  return _is_text(space)
+
+
+def observation_fields(space: spaces.Space) -> tuple[encoders.Field, ...]:
+  """What each number of the space's flattened observations is, in order (`php_jax.encoders`): Discrete →
+  one unordered category, MultiDiscrete → an ordered category per entry (a row, a column; a hierarchy file's
+  "observation" says otherwise), a Box of three axes with integer values → an image of codes 0..high, any
+  other Box or a MultiBinary → numbers, a text → words."""
+  check_observation_space(space)
+  if isinstance(space, spaces.Dict):
+    return tuple(f for sub in space.spaces.values() for f in observation_fields(sub))
+  if isinstance(space, spaces.Tuple):
+    return tuple(f for sub in space.spaces for f in observation_fields(sub))
+  if _is_text(space):
+    return (encoders.Tokens(TEXT_WORDS, TEXT_VOCAB),)
+  if isinstance(space, spaces.Discrete):
+    return (encoders.Categorical(int(space.n)),)
+  if isinstance(space, spaces.MultiDiscrete):
+    return tuple(encoders.Categorical(int(n), True) for n in np.ravel(space.nvec))
+  if (isinstance(space, spaces.Box) and len(space.shape) == 3 and np.issubdtype(space.dtype, np.integer)
+      and np.all(space.low >= 0) and np.all(space.high < 65536)):
+    highs = np.asarray(space.high).reshape(-1, space.shape[2]).max(axis=0)
+    return (encoders.Image(tuple(map(int, space.shape)), tuple(int(h) + 1 for h in highs)),)
+  return (encoders.Real(int(spaces.flatdim(space))),)
 
 
 def observation_size(space: spaces.Space) -> int:
   """The length of the space's observations as vectors."""
-  check_observation_space(space)
-  return int(spaces.flatdim(space))
+  return encoders.size(observation_fields(space))
+
+
+def words(text: str, where: str = "text") -> np.ndarray:
+  """A text as TEXT_WORDS word ids, float32: each word (lower case, letters and digits) hashed to
+  1..TEXT_VOCAB−1, then zeros. GymError for a text of more words."""
+  found = re.findall(r"[a-z0-9]+", text.lower())
+  if len(found) > TEXT_WORDS:
+    raise GymError(f"{where} has {len(found)} words; php_jax reads at most {TEXT_WORDS}: {text[:80]!r}")
+  ids = [1 + zlib.crc32(w.encode()) % (TEXT_VOCAB - 1) for w in found]
+  return np.asarray(ids + [0] * (TEXT_WORDS - len(ids)), np.float32)
 
 
 def _check_observation(space: spaces.Space, observation, where: str = "observation") -> None:
@@ -45,6 +99,10 @@ def _check_observation(space: spaces.Space, observation, where: str = "observati
       raise GymError(f"{where} must be a tuple of {len(space.spaces)} values; got {observation!r}")
     for i, (sub, value) in enumerate(zip(space.spaces, observation)):
       _check_observation(sub, value, f"{where}[{i}]")
+  elif _is_text(space):
+    if not isinstance(observation, str):
+      raise GymError(f"{where} must be a string; got {observation!r}")
+    words(observation, where)
   elif isinstance(space, spaces.Box):
     if np.shape(observation) != space.shape:
       raise GymError(f"{where} must have the shape {space.shape} of {space}; got shape {np.shape(observation)}")
@@ -56,6 +114,16 @@ def flatten_observation(space: spaces.Space, observation) -> np.ndarray:
   """An observation of space as a float32 vector [observation_size(space)]. Raises GymError for an observation
   the space does not hold (Box values outside its bounds are taken)."""
   _check_observation(space, observation)
+  return _flatten(space, observation)
+
+
+def _flatten(space: spaces.Space, observation) -> np.ndarray:
+  if isinstance(space, spaces.Dict) and _has_text(space):
+    return np.concatenate([_flatten(sub, observation[key]) for key, sub in space.spaces.items()])
+  if isinstance(space, spaces.Tuple) and _has_text(space):
+    return np.concatenate([_flatten(sub, value) for sub, value in zip(space.spaces, observation)])
+  if _is_text(space):
+    return words(observation)
   return np.asarray(spaces.flatten(space, observation), np.float32)
 
 

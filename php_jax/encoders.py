@@ -1,0 +1,198 @@
+"""How the networks see an observation: its fields, and the encoder a level's procedures share.
+
+An observation is a vector of numbers (the demonstration files' form); its fields say what the numbers are, in
+order, so that the shared encoder can treat each as what it is:
+- `Categorical(n, ordered)`: a one-hot block of n entries (a Discrete value, one MultiDiscrete entry), seen
+  through a learned embedding, with its ordinal value (index / (n − 1)) where the values are ordered (a row,
+  a column);
+- `Real(n)`: n numbers taken as they are (a Box of measurements, a MultiBinary);
+- `Image(shape, codes)`: an H × W × C grid of integer codes, row-major (MiniGrid's cells are (object, colour,
+  state) codes), each channel's code embedded, summed per cell, then two 3 × 3 convolutions;
+- `Tokens(length, vocab)`: a text as word ids in 1..vocab−1 (0 pads), each position's word embedded.
+Between every two categorical fields of one size the encoder adds whether they are equal (and, both ordered,
+which is less), and where there are at most MAX_PAIRED categorical fields, the product of every two fields'
+embeddings: a decision that hangs on two factors together (the taxi's row and the passenger's landmark) is
+then learned from the pairs the demonstrations show, not only from the exact combinations of every factor.
+
+The JSON form (a hierarchy file's "observation", model.json): a list of objects, `{"categorical": 5,
+"ordered": true}`, `{"real": 3}`, `{"image": [7, 7, 3], "codes": [11, 6, 3]}`, `{"tokens": 32, "vocab": 4096}`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+DEFAULT_WIDTH = 64  # the encoder's width where the fields call for one and none is given
+EMBED = 8  # embedding width of every categorical field, image code and word
+MAX_PAIRED = 16  # categorical fields beyond which their pairwise products are left out (their number grows as n²)
+MAX_FIELD = 1 << 20  # the largest size a field may claim (a hierarchy file's or model.json's)
+
+
+@dataclasses.dataclass(frozen=True)
+class Categorical:
+  size: int
+  ordered: bool = False
+
+  @property
+  def entries(self) -> int:
+    return self.size
+
+
+@dataclasses.dataclass(frozen=True)
+class Real:
+  size: int
+
+  @property
+  def entries(self) -> int:
+    return self.size
+
+
+@dataclasses.dataclass(frozen=True)
+class Image:
+  shape: tuple[int, int, int]
+  codes: tuple[int, ...]
+
+  @property
+  def entries(self) -> int:
+    return int(np.prod(self.shape))
+
+
+@dataclasses.dataclass(frozen=True)
+class Tokens:
+  length: int
+  vocab: int
+
+  @property
+  def entries(self) -> int:
+    return self.length
+
+
+Field = Categorical | Real | Image | Tokens
+
+
+def size(fields: tuple[Field, ...]) -> int:
+  """How many numbers an observation of these fields has."""
+  return sum(field.entries for field in fields)
+
+
+def structured(fields: tuple[Field, ...] | None) -> bool:
+  """Whether the fields say more than "numbers" (any field but Real): then the levels get an encoder."""
+  return bool(fields) and any(not isinstance(field, Real) for field in fields)
+
+
+def _positive(value, where: str, most: int = MAX_FIELD) -> int:
+  if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= most:
+    raise ValueError(f"{where} must be an integer in 1..{most}; got {str(value)[:80]}")
+  return value
+
+
+def from_json(value, where: str = '"observation"') -> tuple[Field, ...]:
+  """Fields from their JSON form (the module's docstring); ValueError naming the field that is malformed."""
+  if not (isinstance(value, list) and value):
+    raise ValueError(f"{where} must be a non-empty list of fields; got {str(value)[:80]}")
+  fields = []
+  for i, obj in enumerate(value):
+    at = f"{where}[{i}]"
+    kinds = [k for k in ("categorical", "real", "image", "tokens") if isinstance(obj, dict) and k in obj]
+    allowed = {"categorical": {"categorical", "ordered"}, "real": {"real"}, "image": {"image", "codes"},
+               "tokens": {"tokens", "vocab"}}
+    if len(kinds) != 1 or set(obj) - allowed[kinds[0]]:
+      raise ValueError(f"{at} must be one of {{\"categorical\": n, \"ordered\": bool}}, {{\"real\": n}}, "
+                       f"{{\"image\": [H, W, C], \"codes\": [...]}}, {{\"tokens\": n, \"vocab\": n}}; got {str(obj)[:80]}")
+    kind = kinds[0]
+    if kind == "categorical":
+      ordered = obj.get("ordered", False)
+      if not isinstance(ordered, bool):
+        raise ValueError(f"{at}: \"ordered\" must be true or false; got {str(ordered)[:80]}")
+      fields.append(Categorical(_positive(obj[kind], at), ordered))
+    elif kind == "real":
+      fields.append(Real(_positive(obj[kind], at)))
+    elif kind == "image":
+      shape, codes = obj[kind], obj.get("codes")
+      if not (isinstance(shape, list) and len(shape) == 3):
+        raise ValueError(f"{at}: \"image\" must be [height, width, channels]; got {str(shape)[:80]}")
+      shape = tuple(_positive(n, f"{at}: \"image\"", 4096) for n in shape)
+      if not (isinstance(codes, list) and len(codes) == shape[2]):
+        raise ValueError(f"{at}: \"codes\" must give, per channel ({shape[2]}), how many codes it takes; got "
+                         f"{str(codes)[:80]}")
+      fields.append(Image(shape, tuple(_positive(n, f"{at}: \"codes\"", 65536) for n in codes)))
+    else:
+      fields.append(Tokens(_positive(obj[kind], at, 4096), _positive(obj.get("vocab"), f"{at}: \"vocab\"", 65536)))
+  return tuple(fields)
+
+
+def to_json(fields: tuple[Field, ...]) -> list[dict]:
+  """The inverse of from_json."""
+  out = []
+  for field in fields:
+    if isinstance(field, Categorical):
+      out.append({"categorical": field.size, **({"ordered": True} if field.ordered else {})})
+    elif isinstance(field, Real):
+      out.append({"real": field.size})
+    elif isinstance(field, Image):
+      out.append({"image": list(field.shape), "codes": list(field.codes)})
+    else:
+      out.append({"tokens": field.length, "vocab": field.vocab})
+  return out
+
+
+class Encoder(nnx.Module):
+  """One level's encoding of the observation, shared by its procedures' networks and computed once per
+  observation: each field seen as what it is (the module's docstring), then a ReLU layer. [N, D] → [N, width].
+  With fields of numbers only, that layer alone."""
+
+  def __init__(self, fields: tuple[Field, ...], width: int, *, rngs: nnx.Rngs):
+    self.fields = tuple(fields)
+    self.width = width
+    self.embeddings = nnx.List([
+        nnx.Linear(f.size, EMBED, use_bias=False, rngs=rngs) if isinstance(f, Categorical)
+        else nnx.List([nnx.Embed(n, EMBED, rngs=rngs) for n in f.codes]) if isinstance(f, Image)
+        else nnx.Embed(f.vocab, EMBED, rngs=rngs) if isinstance(f, Tokens) else None
+        for f in self.fields])
+    self.convolutions = nnx.List([
+        nnx.List([nnx.Conv(EMBED, 16, (3, 3), rngs=rngs), nnx.Conv(16, 32, (3, 3), rngs=rngs)])
+        if isinstance(f, Image) else None for f in self.fields])
+    features = self.features(jnp.zeros((1, size(self.fields)))).shape[-1]
+    self.layer = nnx.Linear(features, width, rngs=rngs)
+
+  def __call__(self, obs: jax.Array) -> jax.Array:
+    return jax.nn.relu(self.layer(self.features(obs)))
+
+  def features(self, obs: jax.Array) -> jax.Array:
+    """[N, D] → [N, F]: every field's features, then the pairs' comparisons and products."""
+    parts, categorical, start = [], [], 0
+    for field, embedding, convolution in zip(self.fields, self.embeddings, self.convolutions):
+      x = obs[:, start:start + field.entries]
+      start += field.entries
+      if isinstance(field, Real):
+        parts.append(x)
+      elif isinstance(field, Categorical):
+        value = x @ jnp.arange(field.size, dtype=x.dtype)
+        embedded = embedding(x)
+        parts.append(embedded)
+        if field.ordered and field.size > 1:
+          parts.append(value[:, None] / (field.size - 1))
+        categorical.append((field, x, value, embedded))
+      elif isinstance(field, Image):
+        codes = jnp.round(x).astype(jnp.int32).reshape(-1, *field.shape)
+        cells = sum(embed(jnp.clip(codes[..., c], 0, n - 1)) for c, (embed, n) in
+                    enumerate(zip(embedding, field.codes)))
+        for conv in convolution:
+          cells = jax.nn.relu(conv(cells))
+        parts.append(cells.reshape(cells.shape[0], -1))
+      else:
+        words = jnp.clip(jnp.round(x).astype(jnp.int32), 0, field.vocab - 1)
+        parts.append((embedding(words) * (words > 0)[..., None]).reshape(words.shape[0], -1))
+    for (a, xa, va, ea), (b, xb, vb, eb) in itertools.combinations(categorical, 2):
+      if a.size == b.size:
+        parts.append(jnp.sum(xa * xb, axis=1, keepdims=True))
+        if a.ordered and b.ordered:
+          parts.append(jnp.stack([va < vb, va > vb], axis=1).astype(obs.dtype))
+      if len(categorical) <= MAX_PAIRED:
+        parts.append(ea * eb)
+    return jnp.concatenate(parts, axis=1)
