@@ -22,6 +22,7 @@ import numpy as np
 from absl import app, flags
 
 from experiments.common import cli, config_flags, progress, training
+from php_jax import encoders
 from php_jax.data import demo_files
 from php_jax.demos import Demonstration
 from php_jax.envs import gym, replay
@@ -41,6 +42,7 @@ _VALIDATION_FRACTION = flags.DEFINE_float("validation_fraction", 0.1, "Share of 
                                           "--validation is not given (at least one demonstration).")
 DEFAULT_CAPACITY = 8
 _FIT_DEFAULTS = {"hidden": '64, or the hierarchy file\'s "hidden"', "tau_in_termination": "1 at every level",
+                 "memory": "gru where the observation holds an image, else none",
                  "min_capacity": f'{DEFAULT_CAPACITY} below the root where some demonstration is annotated, or the '
                                  'hierarchy file\'s "capacity"'}
 config_flags.define_config_flags(lambda name, default: _FIT_DEFAULTS.get(name) or recipe.DEFAULT_TEXT.get(name)
@@ -54,9 +56,12 @@ def fit_overrides(hierarchy: demo_files.Hierarchy, annotated: bool) -> dict:
   ψ sees τ at every level, and below the root a counter capacity of at least the file's "capacity" (default
   8 where some demonstration is annotated), more where an annotated call is longer: weak demonstrations may
   hold longer calls than the few annotated ones. With nothing annotated and no "capacity", no least capacity:
-  a level is 8 counters wide, or as wide as the segmentation's longest call where it annotates it."""
+  a level is 8 counters wide, or as wide as the segmentation's longest call where it annotates it. Where the
+  observation holds an image (a view, which seldom shows everything), a memory of the episode (gru)."""
   depth = hierarchy.spec.num_levels
   overrides = {"hidden": hierarchy.hidden or (64,), "tau_in_termination": (True,) * depth}
+  if any(isinstance(field, encoders.Image) for field in hierarchy.spec.observation or ()):
+    overrides["memory"] = "gru"
   if annotated or hierarchy.capacity:
     least = hierarchy.capacity or (None,) * depth
     overrides["min_capacity"] = (0,) + tuple(DEFAULT_CAPACITY if c is None else c for c in least[1:])

@@ -196,3 +196,35 @@ class Encoder(nnx.Module):
       if len(categorical) <= MAX_PAIRED:
         parts.append(ea * eb)
     return jnp.concatenate(parts, axis=1)
+
+
+class History(nnx.Module):
+  """A GRU over what was observed, for a level's procedures to remember: at step t it reads the level's
+  encoding of o_t and the action a_{t−1} (one-hot per factor; zeros before the first), so its state depends on
+  o_0..o_t and a_0..a_{t−1} alone, never on the call stack, and the E-step stays exact."""
+
+  def __init__(self, features: int, action_sizes: tuple[int, ...], width: int, *, rngs: nnx.Rngs):
+    self.action_sizes = tuple(action_sizes)
+    self.width = width
+    self.cell = nnx.GRUCell(features + sum(self.action_sizes), width, rngs=rngs)
+
+  def initial(self, dtype=jnp.float32) -> jax.Array:
+    """The state before the first observation: [width] zeros."""
+    return jnp.zeros(self.width, dtype)
+
+  def step(self, state: jax.Array, encoded: jax.Array, previous: jax.Array) -> jax.Array:
+    """The state after reading one step: state [width], encoded [features], previous [F] int (−1: none)."""
+    actions = [jax.nn.one_hot(previous[f], n, dtype=encoded.dtype) for f, n in enumerate(self.action_sizes)]
+    state, _ = self.cell(state, jnp.concatenate([encoded, *actions]))
+    return state
+
+  def __call__(self, encoded: jax.Array, actions: jax.Array) -> jax.Array:
+    """The state after each step of a demonstration: encoded [T+1, features], actions [T, F] → [T+1, width]."""
+    previous = jnp.concatenate([jnp.full((1, actions.shape[1]), -1, actions.dtype), actions])
+
+    def body(state, inputs):
+      state = self.step(state, *inputs)
+      return state, state
+
+    _, states = jax.lax.scan(body, self.initial(encoded.dtype), (encoded, previous))
+    return states

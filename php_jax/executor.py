@@ -4,6 +4,10 @@ The stack holds one frame (procedure, τ) per level: levels are layered, so at e
 stack is full depth d. Start: push (root, 0) and descend on o_0. After each action, on the new observation,
 frames whose ψ says stop are popped from the top down; if the root pops the episode ends; otherwise the first
 frame that does not stop increments τ and selects its next operation, and descent continues.
+
+A policy that remembers what it observed (a learned hierarchy with a memory: `initial_memory`, `remember`,
+`recall`) has its memory carried beside the stack: updated on each new observation with the action that led
+to it, and every decision asked of the policy bound to it.
 """
 from __future__ import annotations
 
@@ -53,11 +57,28 @@ def _descend(policy: Policy, depth: int, procs, taus, start, obs, key):
 
 
 class _Machine(NamedTuple):
-  """One problem's machine between steps: environment state, stack [d] procedures and counters, PRNG key."""
+  """One problem's machine between steps: environment state, stack [d] procedures and counters, PRNG key, and
+  the policy's memory (() for a policy without one)."""
   state: Any
   procs: jax.Array
   taus: jax.Array
   key: jax.Array
+  memory: Any = ()
+
+
+def initial_memory(policy) -> Any:
+  """A policy's memory before an episode (`PHPHierarchy.initial_memory`); () for one that keeps none."""
+  return policy.initial_memory() if hasattr(policy, "remember") else ()
+
+
+def remembered(policy, memory, obs: jax.Array, previous: jax.Array) -> Any:
+  """The policy's memory after observing obs [D], reached by the action previous [F] (−1 at the start)."""
+  return policy.remember(memory, obs, previous) if hasattr(policy, "remember") else memory
+
+
+def recalled(policy, memory) -> Policy:
+  """The policy whose decisions read this memory (the policy itself where it keeps none)."""
+  return policy.recall(memory) if hasattr(policy, "recall") else policy
 
 
 def start_stack(policy: Policy, spec: HierarchySpec, obs: jax.Array, key: jax.Array):
@@ -88,8 +109,10 @@ def next_stack(policy: Policy, spec: HierarchySpec, procs, taus, obs, key):
 def _start(policy: Policy, spec: HierarchySpec, env, state, key) -> _Machine:
   """Pushes (root, 0) and descends on o_0."""
   key, descend_key = jax.random.split(key)
-  procs, taus = start_stack(policy, spec, env.observe(state), descend_key)
-  return _Machine(state, procs, taus, key)
+  obs = env.observe(state)
+  memory = remembered(policy, initial_memory(policy), obs, jnp.full(len(spec.action_sizes), -1, jnp.int32))
+  procs, taus = start_stack(recalled(policy, memory), spec, obs, descend_key)
+  return _Machine(state, procs, taus, key, memory)
 
 
 def _advance(policy: Policy, spec: HierarchySpec, env, machine: _Machine):
@@ -97,13 +120,14 @@ def _advance(policy: Policy, spec: HierarchySpec, env, machine: _Machine):
 
   Returns (machine, (new observation, action, stack procedures, stack counters), root returned).
   """
-  state, procs, taus, key = machine
+  state, procs, taus, key, memory = machine
   key, act_key, stack_key = jax.random.split(key, 3)
-  action = elementary_action(policy, spec, procs, taus, env.observe(state), act_key)
+  action = elementary_action(recalled(policy, memory), spec, procs, taus, env.observe(state), act_key)
   state = env.step(state, action)
   obs = env.observe(state)
-  new_procs, new_taus, returned = next_stack(policy, spec, procs, taus, obs, stack_key)
-  return _Machine(state, new_procs, new_taus, key), (obs, action, procs, taus), returned
+  memory = remembered(policy, memory, obs, action)
+  new_procs, new_taus, returned = next_stack(recalled(policy, memory), spec, procs, taus, obs, stack_key)
+  return _Machine(state, new_procs, new_taus, key, memory), (obs, action, procs, taus), returned
 
 
 def rollout_batch(policy: Policy, spec: HierarchySpec, env, states, keys, max_steps: int,

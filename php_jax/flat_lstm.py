@@ -27,6 +27,7 @@ class FlatLSTMPolicy(nnx.Module):
 
   def __init__(self, obs_dim: int, action_sizes: tuple[int, ...], hidden: int = 128,
                fields: tuple[encoders.Field, ...] | None = None, *, rngs: nnx.Rngs):
+    self.obs_dim = obs_dim
     self.action_sizes = tuple(action_sizes)
     self.hidden = hidden
     self.encoder = encoders.Encoder(fields, encoders.DEFAULT_WIDTH, rngs=rngs) if encoders.structured(fields) else None

@@ -4,6 +4,8 @@ levels above; a whole hierarchy of PHP levels that the executor runs as a Policy
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -89,6 +91,8 @@ class PHPLevel(nnx.Module):
     trunk: the width of the level's shared encoding (`encoders.Encoder`); None: the networks read the
       observation.
     fields: what the observation's numbers are (`encoders`), for the encoder; None: numbers.
+    history: the level's memory of what was observed (`encoders.History`, reading the level's encoding), whose
+      state every network reads beside the encoding; None: none.
   Raises ValueError naming the argument: num_procs < 1, obs_dim < 0, no op_sizes or one < 1, a hidden size
   < 1, tau_limit < 0, allowed_ops of another shape, observes not one entry per procedure or naming an
   entry outside 0..obs_dim−1, a trunk < 1 or beside observes (a shared encoding sees every entry), fields
@@ -99,7 +103,8 @@ class PHPLevel(nnx.Module):
                tau_in_termination: bool = True, tau_limit: int | None = None,
                allowed_ops: tuple[tuple[bool, ...], ...] | None = None,
                observes: tuple[tuple[int, ...] | None, ...] | None = None, trunk: int | None = None,
-               fields: tuple[encoders.Field, ...] | None = None, *, rngs: nnx.Rngs):
+               fields: tuple[encoders.Field, ...] | None = None, history: encoders.History | None = None, *,
+               rngs: nnx.Rngs):
     check_size("num_procs", num_procs)
     check_size("obs_dim", obs_dim, 0)
     if not _check_sizes("op_sizes", op_sizes):
@@ -130,14 +135,34 @@ class PHPLevel(nnx.Module):
     mask = None if observes is None else tuple(
         tuple(entries is None or d in entries for d in range(obs_dim)) for entries in observes)
     self.trunk = None if trunk is None else encoders.Encoder(fields or (encoders.Real(obs_dim),), trunk, rngs=rngs)
-    features = obs_dim if trunk is None else trunk
+    self.history = history
+    features = (obs_dim if trunk is None else trunk) + (0 if history is None else history.width)
     self.operation = ProcedureMLPs(num_procs, features, tuple(hidden), sum(op_sizes), observes=mask, rngs=rngs)
     self.termination = ProcedureMLPs(num_procs, features, tuple(hidden), 1, observes=mask, rngs=rngs)
 
   def encode(self, obs: jax.Array) -> jax.Array:
-    """The level's features of observations [N, obs_dim]: [N, obs_dim] (no trunk) or [N, trunk]; every other
-    method takes these."""
+    """The level's encoding of observations [N, obs_dim]: [N, obs_dim] (no trunk) or [N, trunk]. Without a
+    history these are the features every other method takes."""
     return obs if self.trunk is None else self.trunk(obs)
+
+  def features(self, observations: jax.Array, actions: jax.Array) -> jax.Array:
+    """The features of a demonstration's steps, which every other method takes: observations [T+1, obs_dim],
+    actions [T, F] → [T+1, ·], the encoding and, with a history, its state after each step."""
+    encoded = self.encode(observations)
+    if self.history is None:
+      return encoded
+    return jnp.concatenate([encoded, self.history(encoded, actions)], axis=1)
+
+  def step_features(self, obs: jax.Array, state: jax.Array | None) -> jax.Array:
+    """The features of one observation [obs_dim] → [1, ·], with the history's state after it where the
+    level has one."""
+    encoded = self.encode(obs[None])
+    if self.history is None:
+      return encoded
+    if state is None:
+      raise ValueError("a level with a history reads observations with its state: act through "
+                       "PHPHierarchy.recall(memory)")
+    return jnp.concatenate([encoded, state[None]], axis=1)
 
   def op_log_probs(self, obs: jax.Array, tau: jax.Array) -> list[jax.Array]:
     """Per factor f: [N, K, M, op_sizes[f]] log-probabilities (the factorized action head). obs: features
@@ -215,12 +240,15 @@ class PHPHierarchy(nnx.Module):
   """A whole hierarchy of PHP levels; a Policy for the executor (argmax, or sampling when `sample`)."""
 
   def __init__(self, spec: HierarchySpec, hidden=(64, 64), tau_in_termination=None, sample: bool = False,
-               tau_limit=None, allowed_ops=None, trunk: int | None = None, *, rngs: nnx.Rngs):
+               tau_limit=None, allowed_ops=None, trunk: int | None = None, memory: int | None = None, *,
+               rngs: nnx.Rngs):
     """tau_in_termination, tau_limit, allowed_ops: per level, root first (PHPLevel); None: τ everywhere,
     unlimited, every operation allowed. Each procedure's networks see the observation entries spec.observes
     gives it (every entry where it gives none); trunk: each level's shared encoding width (PHPLevel), which
     reads spec.observation's fields where it gives them; None: none, or where those fields are structured
-    (`encoders.structured`: categories, images, words) encoders.DEFAULT_WIDTH wide."""
+    (`encoders.structured`: categories, images, words) encoders.DEFAULT_WIDTH wide; memory: the width of
+    each level's history of what was observed (`encoders.History`), None: none. With a memory the executor
+    carries its state (`initial_memory`, `remember`) and asks the hierarchy bound to it (`recall`)."""
     if not isinstance(spec, HierarchySpec):
       raise ValueError(f"spec must be a HierarchySpec; got {spec!r}")
     tau_in_termination = tau_in_termination or (True,) * spec.num_levels
@@ -235,23 +263,67 @@ class PHPHierarchy(nnx.Module):
     observes = spec.observes or (None,) * spec.num_levels
     if trunk is None and encoders.structured(spec.observation):
       trunk = encoders.DEFAULT_WIDTH
+    if memory is not None:
+      check_size("memory", memory)
+    self.memory = memory
+
+    def history():
+      return None if memory is None else encoders.History(trunk or spec.obs_dim, spec.action_sizes, memory, rngs=rngs)
+
     self.levels = nnx.List([
         PHPLevel(spec.num_procs(i), spec.obs_dim, spec.op_sizes(i), hidden, tau_in_termination[i], tau_limit[i],
-                 allowed_ops[i], observes[i], trunk, spec.observation if trunk else None, rngs=rngs)
+                 allowed_ops[i], observes[i], trunk, spec.observation if trunk else None, history(), rngs=rngs)
         for i in range(spec.num_levels)])
 
-  def operation(self, level, proc, tau, obs, key):
+  def initial_memory(self) -> tuple:
+    """The memory before an episode's first observation: per level its history's state ([memory] zeros);
+    () without a memory."""
+    return () if self.memory is None else tuple(level.history.initial() for level in self.levels)
+
+  def remember(self, memory: tuple, obs: jax.Array, previous: jax.Array) -> tuple:
+    """The memory after observing obs [obs_dim], reached by the action previous [F] (−1 at the start)."""
+    if self.memory is None:
+      return memory
+    return tuple(level.history.step(state, level.encode(obs[None])[0], previous)
+                 for level, state in zip(self.levels, memory))
+
+  def recall(self, memory: tuple) -> "Recalled":
+    """The hierarchy's statements (a Policy) as they read obs with this memory (`remember`'s)."""
+    return Recalled(self, memory)
+
+  def operation(self, level, proc, tau, obs, key, memory: tuple = ()):
     tau = jnp.asarray(tau, jnp.float32)[None]
     php = self.levels[level]
-    factors = [lp[0, proc, 0] for lp in php.op_log_probs(php.encode(obs[None]), tau)]
+    factors = [lp[0, proc, 0] for lp in php.op_log_probs(php.step_features(obs, _state(memory, level)), tau)]
     if self.sample:
       keys = jax.random.split(key, len(factors))
       return jnp.stack([jax.random.categorical(k, lp) for k, lp in zip(keys, factors)]).astype(jnp.int32)
     return jnp.stack([jnp.argmax(lp) for lp in factors]).astype(jnp.int32)
 
-  def terminates(self, level, proc, tau, obs, key):
+  def terminates(self, level, proc, tau, obs, key, memory: tuple = ()):
     php = self.levels[level]
-    logit = php.termination_logits(php.encode(obs[None]), jnp.asarray(tau, jnp.float32)[None])[0, proc, 0]
+    features = php.step_features(obs, _state(memory, level))
+    logit = php.termination_logits(features, jnp.asarray(tau, jnp.float32)[None])[0, proc, 0]
     if self.sample:
       return jax.random.bernoulli(key, jax.nn.sigmoid(logit))
     return logit > 0
+
+
+def _state(memory: tuple, level: int) -> jax.Array | None:
+  return memory[level] if memory else None
+
+
+class Recalled(NamedTuple):
+  """A hierarchy with a memory, bound to the memory of one moment: the Policy the executor asks."""
+  hierarchy: PHPHierarchy
+  memory: tuple
+
+  @property
+  def spec(self) -> HierarchySpec:
+    return self.hierarchy.spec
+
+  def operation(self, level, proc, tau, obs, key):
+    return self.hierarchy.operation(level, proc, tau, obs, key, self.memory)
+
+  def terminates(self, level, proc, tau, obs, key):
+    return self.hierarchy.terminates(level, proc, tau, obs, key, self.memory)

@@ -59,6 +59,7 @@ def save_hierarchy(workdir: str, task_name: str, hierarchy: PHPHierarchy, hidden
                              "tau_limit": [level.tau_limit for level in hierarchy.levels],
                              "allowed_ops": [level.allowed_ops for level in hierarchy.levels],
                              **({"trunk": trunk_width(hierarchy)} if trunk_width(hierarchy) else {}),
+                             **({"memory": hierarchy.memory} if hierarchy.memory else {}),
                              **({"capacity": list(capacity)} if capacity else {})})
 
 
@@ -172,13 +173,14 @@ def load_policy(workdir: str) -> tuple[str, PHPHierarchy | FlatLSTMPolicy]:
       raise CheckpointError(f"{arch_path}: tau_in_termination has {len(tau_in_termination)} entries; {task_name} "
                             f"has {spec.num_levels} levels")
     allowed_ops = _saved_allowed_ops(arch_path, architecture, spec)
-    trunk = architecture.get("trunk")
-    if not (trunk is None or (isinstance(trunk, int) and not isinstance(trunk, bool) and 1 <= trunk <= MAX_SIZE)):
-      raise CheckpointError(f"{arch_path}: \"trunk\" must be an integer in 1..{MAX_SIZE}; got {str(trunk)[:80]}")
+    trunk, memory = architecture.get("trunk"), architecture.get("memory")
+    for key, width in (("trunk", trunk), ("memory", memory)):
+      if not (width is None or (isinstance(width, int) and not isinstance(width, bool) and 1 <= width <= MAX_SIZE)):
+        raise CheckpointError(f"{arch_path}: \"{key}\" must be an integer in 1..{MAX_SIZE}; got {str(width)[:80]}")
 
     def build():
       return PHPHierarchy(spec, hidden=hidden, tau_in_termination=tau_in_termination, tau_limit=tau_limit,
-                          allowed_ops=allowed_ops, trunk=trunk, rngs=nnx.Rngs(0))
+                          allowed_ops=allowed_ops, trunk=trunk, memory=memory, rngs=nnx.Rngs(0))
   model = nnx.eval_shape(build)  # its shapes only: every parameter comes from the file (and no state but them)
   nnx.update(model, restore_named(nnx.state(model, nnx.Param), named, model_path))
   return task_name, model

@@ -43,6 +43,7 @@ def _setting(default: Any, help: str, kind: str, choices: tuple[str, ...] = (), 
 
 
 MAX_SEED = 2**31 - 1
+MEMORIES = ("none", "gru")
 WEAK_ONLY_ANNEALING = 1.5  # the start temperature of joint runs without annotation (RESULTS.md, NanoCraft weak only)
 DISCOVERY_SPLIT_ROUNDS = 2  # split-search rounds of joint runs without annotation segmented by loops
 
@@ -60,6 +61,12 @@ class TrainConfig:
       None, "Width of each level's shared encoding of the observation (a ReLU layer its procedures' networks "
       "read, computed once per observation for all of them: cheaper where observations are large); unset: "
       "none, each network reads the observation.", "int")
+  memory: str = _setting(
+      "none", "Each level's memory of the episode: gru, a GRU over the observations and actions so far, whose "
+      "state every network of the level reads beside the observation (inference stays exact: the state "
+      "depends on what was observed, never on the call stack; joint training only, and each update runs a "
+      "sequential pass over every demonstration); none: the networks see the current observation alone.",
+      "str", MEMORIES, joint_off=("none",))
   root: str = _setting("lstm", "Network standing in, below the root level, for the levels above while they are "
                        "untrained: the paper's LSTM, or an MLP on each observation.", "str", ROOTS, True)
   root_hidden: int = _setting(64, "Hidden units of that stand-in root network.", "int", levelwise_only=True)
@@ -165,6 +172,9 @@ class TrainConfig:
     for name in ("batch_size", "trunk"):
       if getattr(self, name) is not None and not (_is_int(getattr(self, name)) and getattr(self, name) >= 1):
         raise ConfigError(name, f"must be a positive integer; got {getattr(self, name)!r}")
+    if self.memory != "none" and self.training == "levelwise":
+      raise ConfigError("memory", f"{self.memory} needs joint training (its history reads every elementary step, "
+                        "which a level's view leaves out); --training=levelwise was given")
     if self.init_seed is not None and not (_is_int(self.init_seed) and 0 <= self.init_seed):
       raise ConfigError("init_seed", f"must be a non-negative integer; got {self.init_seed!r}")
     for name in ("seed", "init_seed"):

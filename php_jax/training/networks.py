@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from flax import nnx
 
+from php_jax import encoders
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy, RootLSTM, RootMLP
 from php_jax.training.config import TrainConfig
@@ -13,6 +14,7 @@ def make_hierarchy(spec: HierarchySpec, config: TrainConfig, graph: tuple | None
   """A freshly initialised hierarchy; graph: its call graph (`call_graph`), None: every call allowed."""
   return PHPHierarchy(spec, hidden=config.hidden, tau_in_termination=config.tau_in_termination,
                       tau_limit=config.tau_limit, allowed_ops=graph, trunk=config.trunk,
+                      memory=encoders.DEFAULT_WIDTH if config.memory == "gru" else None,
                       rngs=nnx.Rngs(config.network_seed))
 
 

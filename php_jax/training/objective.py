@@ -52,6 +52,9 @@ def lattice_inputs(model: LevelModel, view: views.LevelView, capacity: int, used
   of different capacities trained as one program, `levelwise.train_seeds`).
   """
   observations, actions, length = view.observations, view.actions, view.length
+  if model.php.history is not None:
+    raise ValueError("a level with a memory is trained jointly: its history reads every elementary step, which "
+                     "a level's view of the steps leaves out")
   tau = jnp.arange(capacity, dtype=jnp.float32)
   features = model.php.encode(observations)  # once per observation, for every procedure and counter
   log_op = model.php.log_op(features[:-1], tau, actions)
@@ -98,7 +101,7 @@ def stack_inputs(hierarchy: PHPHierarchy, capacity: tuple[int, ...], observation
   log_call, log_stop, log_cont = [], [], []
   for level, php in enumerate(hierarchy.levels):
     tau = jnp.arange(capacity[level], dtype=jnp.float32)
-    features = php.encode(observations)  # once per observation, for every procedure and counter
+    features = php.features(observations, actions)  # once per step, for every procedure and counter
     if level < depth - 1:
       penalty = call_penalty[level + 1] if call_penalty else 0.0
       log_call.append(php.op_log_probs(features[:-1], tau)[0] - penalty)

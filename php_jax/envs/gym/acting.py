@@ -22,9 +22,13 @@ from php_jax.model import PHPHierarchy
 
 
 class _Stack(NamedTuple):
-  """A hierarchy's memory per environment copy: the stack's procedures and counters [M, d]."""
+  """A hierarchy's memory per environment copy: the stack's procedures and counters [M, d], what the
+  hierarchy remembers of the episode (`PHPHierarchy.remember`; () without a memory) and the last action
+  [M, F]."""
   procedures: jax.Array
   counters: jax.Array
+  remembered: tuple
+  previous: jax.Array
 
 
 class _Carry(NamedTuple):
@@ -37,16 +41,21 @@ def _hierarchy_decisions(policy: PHPHierarchy, memory: _Stack, obs, fresh, keys)
   """Per copy: a fresh episode's first stack, or the stack after the last action; and the next action."""
   spec = policy.spec
 
-  def one(procs, taus, o, is_fresh, key):
+  def one(procs, taus, remembered, previous, o, is_fresh, key):
     stack_key, act_key = jax.random.split(key)
-    started = executor.start_stack(policy, spec, o, stack_key)
-    after = executor.next_stack(policy, spec, procs, taus, o, stack_key)
+    remembered = jax.tree.map(lambda m, m0: jnp.where(is_fresh, m0, m), remembered, policy.initial_memory())
+    remembered = policy.remember(remembered, o, jnp.where(is_fresh, -1, previous))
+    recalled = policy.recall(remembered)
+    started = executor.start_stack(recalled, spec, o, stack_key)
+    after = executor.next_stack(recalled, spec, procs, taus, o, stack_key)
     procs, taus = (jnp.where(is_fresh, s, a) for s, a in zip(started, after[:2]))
     returned = ~is_fresh & after[2]
-    return procs, taus, executor.elementary_action(policy, spec, procs, taus, o, act_key), returned
+    action = executor.elementary_action(recalled, spec, procs, taus, o, act_key)
+    return procs, taus, remembered, action, returned
 
-  procs, taus, actions, returned = jax.vmap(one)(memory.procedures, memory.counters, obs, fresh, keys)
-  return _Stack(procs, taus), actions, returned
+  procs, taus, remembered, actions, returned = jax.vmap(one)(
+      memory.procedures, memory.counters, memory.remembered, memory.previous, obs, fresh, keys)
+  return _Stack(procs, taus, remembered, actions), actions, returned
 
 
 def _lstm_decisions(policy: FlatLSTMPolicy, memory: _Carry, obs, fresh):
@@ -82,13 +91,14 @@ def policy_sizes(policy: PHPHierarchy | FlatLSTMPolicy) -> tuple[int, tuple[int,
   """(observation size, action factor sizes) a learned policy was trained with."""
   if isinstance(policy, PHPHierarchy):
     return policy.spec.obs_dim, policy.spec.action_sizes
-  return policy.cell.in_features - sum(policy.action_sizes), policy.action_sizes
+  return policy.obs_dim, policy.action_sizes
 
 
 def _initial_memory(policy, num: int):
   if isinstance(policy, PHPHierarchy):
     zeros = jnp.zeros((num, policy.spec.num_levels), jnp.int32)
-    return _Stack(zeros, zeros)
+    remembered = jax.tree.map(lambda x: jnp.zeros((num,) + x.shape, x.dtype), policy.initial_memory())
+    return _Stack(zeros, zeros, remembered, jnp.full((num, len(policy.spec.action_sizes)), -1, jnp.int32))
   carry = jax.tree.map(lambda x: jnp.zeros((num,) + x.shape, x.dtype), policy.initial_carry())
   return _Carry(carry, jnp.full((num, len(policy.action_sizes)), -1, jnp.int32))
 
