@@ -109,7 +109,9 @@ def check_observes(observes, levels: tuple[tuple[str, ...], ...], obs_dim: int) 
 
 
 class Policy(Protocol):
-  """A hierarchy's statements. level is a static int; proc, tau are [] int32; obs is [obs_dim]."""
+  """A hierarchy's statements. level is a static int; proc, tau are [] int32; obs is [obs_dim]. A policy that
+  remembers the episode (a learned hierarchy with a memory) also has initial_memory(), remember(memory, obs,
+  previous_action) and recall(memory), the Policy that decides with it (`executor`)."""
 
   def operation(self, level: int, proc: jax.Array, tau: jax.Array, obs: jax.Array,
                 key: jax.Array) -> jax.Array:
