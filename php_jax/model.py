@@ -1,5 +1,6 @@
 """PHP networks in Flax NNX (paper §4.1.2): per procedure an operation MLP and a termination MLP over the
-observation concatenated with τ as a real number; root networks (MLP or LSTM) standing in for untrained
+observation (or its encoding shared by the level, and the level's memory of the episode: `encoders`)
+concatenated with τ as a real number; root networks (MLP or LSTM) standing in for untrained
 levels above; a whole hierarchy of PHP levels that the executor runs as a Policy.
 """
 from __future__ import annotations
@@ -73,9 +74,9 @@ class ProcedureMLPs(nnx.Module):
 class PHPLevel(nnx.Module):
   """The K procedures of one level: operation η_h^τ(·|o) and termination ψ_h^τ(·|o) networks.
 
-  The networks read the level's features of each observation (`encode`): the observation itself, or with a
+  The networks read the level's features of each step (`features`): the observation itself, or with a
   trunk its shared encoding (`encoders.Encoder`), computed once for the level's K procedures and their
-  counters rather than once per procedure.
+  counters rather than once per procedure; with a history, beside it the history's state after the step.
 
   Attributes:
     op_sizes: factor sizes of the operation (callees of the next level, or the elementary action factors).
@@ -166,13 +167,13 @@ class PHPLevel(nnx.Module):
 
   def op_log_probs(self, obs: jax.Array, tau: jax.Array) -> list[jax.Array]:
     """Per factor f: [N, K, M, op_sizes[f]] log-probabilities (the factorized action head). obs: features
-    [N, ·] (`encode`)."""
+    [N, ·] (`features`)."""
     logits = jnp.transpose(self._operation_logits(obs, tau), (2, 0, 3, 1))
     splits = np.cumsum(self.op_sizes)[:-1]
     return [jax.nn.log_softmax(part, axis=-1) for part in jnp.split(logits, splits, axis=-1)]
 
   def log_op(self, obs: jax.Array, tau: jax.Array, ops: jax.Array) -> jax.Array:
-    """log η_h^τ(ops_n | obs_n) for every procedure and counter. obs [N, ·] features (`encode`), tau [M], ops
+    """log η_h^τ(ops_n | obs_n) for every procedure and counter. obs [N, ·] features (`features`), tau [M], ops
     [N, F] → [N, K, M]."""
     logits = self._operation_logits(obs, tau)                             # [K, Σ op_sizes, N, M]
     total, start = 0.0, 0
@@ -185,7 +186,7 @@ class PHPLevel(nnx.Module):
     return jnp.transpose(total, (1, 0, 2))
 
   def termination_logits(self, obs: jax.Array, tau: jax.Array) -> jax.Array:
-    """logit of ψ_h^τ(1 | obs). obs [N, ·] features (`encode`), tau [M] → [N, K, M]; log ψ(1) = log σ(z),
+    """logit of ψ_h^τ(1 | obs). obs [N, ·] features (`features`), tau [M] → [N, K, M]; log ψ(1) = log σ(z),
     log ψ(0) = log σ(−z)."""
     tau = self._limited(tau) if self.tau_in_termination else jnp.zeros_like(tau)
     return jnp.transpose(self.termination(obs, tau)[:, 0], (1, 0, 2))
