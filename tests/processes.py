@@ -9,6 +9,8 @@ import subprocess
 import sys
 from typing import Sequence
 
+from php_jax.envs import gym
+
 
 def run_all(commands: Sequence[Sequence[str]], **kwargs) -> list[subprocess.CompletedProcess]:
   """subprocess.run(command, **kwargs) for each of commands, as many at a time as there are CPUs: the
@@ -25,6 +27,18 @@ def assert_refused(cases: Sequence[tuple[Sequence[str], str]], timeout: float = 
   for (args, message), proc in zip(cases, procs):
     assert proc.returncode == 2 and message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, (
         args, proc.stderr)
+
+
+def fit_recorded(folder, hierarchy: dict, lines: list[dict], *flags: str):
+  """Writes hierarchy and `gym.record`'s lines into folder (a pathlib.Path) and runs `experiments.fit` on them
+  with flags, its workdir folder/run (without a report); asserts it succeeded and returns the workdir."""
+  (folder / "hierarchy.json").write_text(json.dumps(hierarchy))
+  gym.write_demonstrations(str(folder / "demos.jsonl"), lines)
+  proc = subprocess.run([sys.executable, "-m", "experiments.fit", f"--demos={folder / 'demos.jsonl'}",
+                         f"--hierarchy={folder / 'hierarchy.json'}", f"--workdir={folder / 'run'}", "--noreport",
+                         *flags], capture_output=True, text=True, timeout=600)
+  assert proc.returncode == 0, proc.stderr
+  return folder / "run"
 
 
 RECORD_REFUSALS = "PHP_JAX_RECORD_REFUSALS"  # a file: every refusal a test's command gives is appended to it

@@ -4,8 +4,6 @@ only as an image and a text, learned end to end through record, fit --env and ac
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import gymnasium
 import jax.numpy as jnp
@@ -20,6 +18,7 @@ from php_jax.envs import gym
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy
 from php_jax.training import checkpoint
+from tests import processes
 
 FIELDS_JSON = [{"categorical": 5, "ordered": True}, {"categorical": 5, "ordered": True}, {"categorical": 5},
                {"categorical": 4}, {"real": 2}, {"image": [3, 4, 2], "codes": [4, 3]}, {"tokens": 4, "vocab": 50}]
@@ -198,15 +197,9 @@ class SeenCorridorExpert:
 
 
 def test_an_environment_seen_as_an_image_and_words_is_learned_end_to_end(tmp_path):
-  hierarchy, demos, run = tmp_path / "corridor.json", tmp_path / "demos.jsonl", tmp_path / "run"
-  hierarchy.write_text(json.dumps(HIERARCHY))
   lines = gym.record(make_seen_corridor(), SeenCorridorExpert(None), episodes=24, seed=0, annotate=4)
-  gym.write_demonstrations(str(demos), lines)
-  proc = subprocess.run(
-      [sys.executable, "-m", "experiments.fit", f"--demos={demos}", f"--hierarchy={hierarchy}", f"--workdir={run}",
-       "--env=tests.test_encoders:make_seen_corridor", "--iterations=150", "--eval_every=50", "--hidden=16",
-       "--learning_rate=0.01", "--noreport"], capture_output=True, text=True)
-  assert proc.returncode == 0, proc.stderr
+  run = processes.fit_recorded(tmp_path, HIERARCHY, lines, "--env=tests.test_encoders:make_seen_corridor",
+                               "--iterations=150", "--eval_every=50", "--hidden=16", "--learning_rate=0.01")
   architecture = json.loads((run / checkpoint.ARCHITECTURE_FILE).read_text())
   assert architecture["spec"]["observation"] == [{"image": [1, LENGTH, 1], "codes": [2]},
                                                  {"tokens": 32, "vocab": 4096}]

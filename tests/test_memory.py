@@ -5,8 +5,6 @@ that cannot be solved without remembering is learned end to end."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import gymnasium
 import jax
@@ -22,6 +20,7 @@ from php_jax.inference import stack_lattice
 from php_jax.model import PHPHierarchy
 from php_jax.training import checkpoint, objective
 from php_jax.training.config import ConfigError, TrainConfig
+from tests import processes
 from tests.inference import lattice_brute_force as bf
 
 SPEC = HierarchySpec("memory", (("root",), ("a", "b"), ("c", "d")), (2, 3), 4)
@@ -160,16 +159,10 @@ class ThereAndBackExpert:
 
 @pytest.mark.parametrize("memory, solves", [("gru", True), ("none", False)])
 def test_an_environment_that_needs_remembering_is_learned_with_a_memory_alone(tmp_path, memory, solves):
-  hierarchy, demos, run = tmp_path / "h.json", tmp_path / "demos.jsonl", tmp_path / "run"
-  hierarchy.write_text(json.dumps(HIERARCHY))
   lines = gym.record(make_there_and_back(), ThereAndBackExpert(None), episodes=30, seed=0, annotate=6)
-  gym.write_demonstrations(str(demos), lines)
-  proc = subprocess.run(
-      [sys.executable, "-m", "experiments.fit", f"--demos={demos}", f"--hierarchy={hierarchy}", f"--workdir={run}",
-       "--env=tests.test_memory:make_there_and_back", f"--memory={memory}", "--training=joint",
-       "--iterations=300", "--eval_every=50", "--hidden=32", "--learning_rate=0.01", "--noreport"],
-      capture_output=True, text=True)
-  assert proc.returncode == 0, proc.stderr
+  run = processes.fit_recorded(tmp_path, HIERARCHY, lines, "--env=tests.test_memory:make_there_and_back",
+                               f"--memory={memory}", "--training=joint", "--iterations=300", "--eval_every=50",
+                               "--hidden=32", "--learning_rate=0.01")
   _, policy = checkpoint.load_policy(str(run))
   assert policy.memory == (64 if memory == "gru" else None)
   episodes = gym.act(policy, gym.vector_env(make_there_and_back, 5), 25, seed=100)
