@@ -63,7 +63,7 @@ class _Machine(NamedTuple):
   procs: jax.Array
   taus: jax.Array
   key: jax.Array
-  memory: Any = ()
+  memory: Any
 
 
 def initial_memory(policy) -> Any:
