@@ -7,7 +7,9 @@ order, so that the shared encoder can treat each as what it is:
   a column);
 - `Real(n)`: n numbers taken as they are (a Box of measurements, a MultiBinary);
 - `Image(shape, codes)`: an H × W × C grid of integer codes, row-major (MiniGrid's cells are (object, colour,
-  state) codes), each channel's code embedded, summed per cell, then two 3 × 3 convolutions;
+  state) codes), each channel's code embedded, summed per cell, then two 3 × 3 convolutions, whose channels
+  the observation's words (if it has any) scale and shift (FiLM, as BabyAI's models do: which cell matters
+  hangs on the mission);
 - `Tokens(length, vocab)`: a text as word ids in 1..vocab−1 (0 pads), each position's word embedded.
 Between every two categorical fields of one size the encoder adds whether they are equal (and, both ordered,
 which is less), and where there are at most MAX_PAIRED categorical fields, the product of every two fields'
@@ -28,6 +30,7 @@ import numpy as np
 from flax import nnx
 
 DEFAULT_WIDTH = 64  # the encoder's width where the fields call for one and none is given
+CHANNELS = (16, 32)  # the image convolutions' channels
 EMBED = 8  # embedding width of every categorical field, image code and word
 MAX_PAIRED = 16  # categorical fields beyond which their pairwise products are left out (their number grows as n²)
 MAX_FIELD = 1 << 20  # the largest size a field may claim (a hierarchy file's or model.json's)
@@ -155,8 +158,13 @@ class Encoder(nnx.Module):
         else nnx.Embed(f.vocab, EMBED, rngs=rngs) if isinstance(f, Tokens) else None
         for f in self.fields])
     self.convolutions = nnx.List([
-        nnx.List([nnx.Conv(EMBED, 16, (3, 3), rngs=rngs), nnx.Conv(16, 32, (3, 3), rngs=rngs)])
+        nnx.List([nnx.Conv(EMBED, n, (3, 3), rngs=rngs) for n in CHANNELS[:1]]
+                 + [nnx.Conv(a, b, (3, 3), rngs=rngs) for a, b in zip(CHANNELS[:-1], CHANNELS[1:])])
         if isinstance(f, Image) else None for f in self.fields])
+    text = sum(f.length * EMBED for f in self.fields if isinstance(f, Tokens))
+    self.films = nnx.List([
+        nnx.List([nnx.Linear(text, 2 * n, kernel_init=nnx.initializers.zeros, rngs=rngs) for n in CHANNELS])
+        if isinstance(f, Image) and text else None for f in self.fields])
     features = self.features(jnp.zeros((1, size(self.fields)))).shape[-1]
     self.layer = nnx.Linear(features, width, rngs=rngs)
 
@@ -165,10 +173,14 @@ class Encoder(nnx.Module):
 
   def features(self, obs: jax.Array) -> jax.Array:
     """[N, D] → [N, F]: every field's features, then the pairs' comparisons and products."""
-    parts, categorical, start = [], [], 0
-    for field, embedding, convolution in zip(self.fields, self.embeddings, self.convolutions):
+    starts = np.cumsum([0] + [f.entries for f in self.fields])
+    words = [self._words(field, embedding, obs[:, a:b]) for field, embedding, a, b
+             in zip(self.fields, self.embeddings, starts[:-1], starts[1:]) if isinstance(field, Tokens)]
+    text = jnp.concatenate(words, axis=1) if words else None
+    parts, categorical = [], []
+    for field, embedding, convolution, film, start in zip(self.fields, self.embeddings, self.convolutions,
+                                                          self.films, starts):
       x = obs[:, start:start + field.entries]
-      start += field.entries
       if isinstance(field, Real):
         parts.append(x)
       elif isinstance(field, Categorical):
@@ -182,12 +194,15 @@ class Encoder(nnx.Module):
         codes = jnp.round(x).astype(jnp.int32).reshape(-1, *field.shape)
         cells = sum(embed(jnp.clip(codes[..., c], 0, n - 1)) for c, (embed, n) in
                     enumerate(zip(embedding, field.codes)))
-        for conv in convolution:
-          cells = jax.nn.relu(conv(cells))
+        for layer, conv in enumerate(convolution):
+          cells = conv(cells)
+          if film is not None:  # the text scales and shifts each channel (FiLM), as BabyAI's models do
+            scale, shift = jnp.split(film[layer](text)[:, None, None, :], 2, axis=-1)
+            cells = cells * (1 + scale) + shift
+          cells = jax.nn.relu(cells)
         parts.append(cells.reshape(cells.shape[0], -1))
       else:
-        words = jnp.clip(jnp.round(x).astype(jnp.int32), 0, field.vocab - 1)
-        parts.append((embedding(words) * (words > 0)[..., None]).reshape(words.shape[0], -1))
+        parts.append(self._words(field, embedding, x))
     for (a, xa, va, ea), (b, xb, vb, eb) in itertools.combinations(categorical, 2):
       if a.size == b.size:
         parts.append(jnp.sum(xa * xb, axis=1, keepdims=True))
@@ -196,6 +211,12 @@ class Encoder(nnx.Module):
       if len(categorical) <= MAX_PAIRED:
         parts.append(ea * eb)
     return jnp.concatenate(parts, axis=1)
+
+  @staticmethod
+  def _words(field: Tokens, embedding: nnx.Embed, x: jax.Array) -> jax.Array:
+    """[N, length] word ids → [N, length · EMBED]: each position's word embedded, zeros where it pads."""
+    words = jnp.clip(jnp.round(x).astype(jnp.int32), 0, field.vocab - 1)
+    return (embedding(words) * (words > 0)[..., None]).reshape(words.shape[0], -1)
 
 
 class History(nnx.Module):
