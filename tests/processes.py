@@ -32,6 +32,7 @@ def assert_refused(cases: Sequence[tuple[Sequence[str], str]], timeout: float = 
 def fit_recorded(folder, hierarchy: dict, lines: list[dict], *flags: str):
   """Writes hierarchy and `gym.record`'s lines into folder (a pathlib.Path) and runs `experiments.fit` on them
   with flags, its workdir folder/run (without a report); asserts it succeeded and returns the workdir."""
+  folder.mkdir(parents=True, exist_ok=True)
   (folder / "hierarchy.json").write_text(json.dumps(hierarchy))
   gym.write_demonstrations(str(folder / "demos.jsonl"), lines)
   proc = subprocess.run([sys.executable, "-m", "experiments.fit", f"--demos={folder / 'demos.jsonl'}",

@@ -204,5 +204,12 @@ def test_an_environment_seen_as_an_image_and_words_is_learned_end_to_end(tmp_pat
   assert architecture["spec"]["observation"] == [{"image": [1, LENGTH, 1], "codes": [2]},
                                                  {"tokens": 32, "vocab": 4096}]
   _, policy = checkpoint.load_policy(str(run))
+  assert policy.memory == encoders.DEFAULT_WIDTH  # fit's default where the observation holds an image
   episodes = gym.act(policy, gym.vector_env(make_seen_corridor, 4), 40, seed=100)
   assert all(e["success"] for e in episodes), episodes
+  # the flat LSTM reads the same encoder, and is its own memory
+  flat = processes.fit_recorded(tmp_path / "flat", HIERARCHY, lines, "--env=tests.test_encoders:make_seen_corridor",
+                                "--model=flat_lstm", "--iterations=20", "--eval_every=10")
+  _, lstm = checkpoint.load_policy(str(flat))
+  assert lstm.encoder.fields == encoders.from_json(architecture["spec"]["observation"])
+  assert len(gym.act(lstm, gym.vector_env(make_seen_corridor, 2), 2, seed=100)) == 2

@@ -273,7 +273,8 @@ def prepare(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> T
 def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, flat_lstm: bool = False) -> TrainConfig:
   """config with the settings that follow the demonstrations resolved where unset (as results.json and a
   checkpoint record them): the balanced strong weight (`balanced_strong_weight`); the training mode
-  (`training_mode`; levelwise for the flat LSTM, which has no levels); and for a PHP trained jointly on
+  (`training_mode`; levelwise for the flat LSTM, which has no levels, and no memory of a PHP level's: the
+  LSTM is its own); and for a PHP trained jointly on
   demonstrations none of which is annotated, WEAK_ONLY_ANNEALING (else 1: none) and, where spec declares no
   call graph (which says itself which procedure takes which operation) and config.segment_rule applies to
   their actions (`segmentation.read_rule`), the segmentation for half the iterations (else 0), and
@@ -281,6 +282,7 @@ def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, fla
   strong = np.asarray(demos.strong)
   strong_weight = balanced_strong_weight(strong) if config.strong_weight is None else config.strong_weight
   training = training_mode(config, bool(strong.any())) if not flat_lstm else config.training or "levelwise"
+  memory = "none" if flat_lstm else config.memory
   weak_only = not flat_lstm and training == "joint" and not strong.any()
   rule = (segmentation.read_rule(demos, config.segment_rule)
           if weak_only and not call_graph.restricts(spec.allowed_ops)
@@ -290,7 +292,7 @@ def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, fla
     return default if value is None else value
 
   return dataclasses.replace(
-      config, strong_weight=strong_weight, training=training,
+      config, strong_weight=strong_weight, training=training, memory=memory,
       anneal_temperature=unset_or(config.anneal_temperature, WEAK_ONLY_ANNEALING if weak_only else 1.0),
       segment_iterations=unset_or(config.segment_iterations, config.iterations // 2 if rule else 0),
       split_rounds=unset_or(config.split_rounds, DISCOVERY_SPLIT_ROUNDS if rule and rule.name == "loops" else 0))
