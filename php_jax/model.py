@@ -94,6 +94,8 @@ class PHPLevel(nnx.Module):
     fields: what the observation's numbers are (`encoders`), for the encoder; None: numbers.
     history: the level's memory of what was observed (`encoders.History`, reading the level's encoding), whose
       state every network reads beside the encoding; None: none.
+    end_given: a demonstration's end is the environment's, not a return of the level's frames: the lattice
+      takes their stop after the last action as given (probability 1) instead of learning it.
   Raises ValueError naming the argument: num_procs < 1, obs_dim < 0, no op_sizes or one < 1, a hidden size
   < 1, tau_limit < 0, allowed_ops of another shape, observes not one entry per procedure or naming an
   entry outside 0..obs_dim−1, a trunk < 1 or beside observes (a shared encoding sees every entry), fields
@@ -104,8 +106,8 @@ class PHPLevel(nnx.Module):
                tau_in_termination: bool = True, tau_limit: int | None = None,
                allowed_ops: tuple[tuple[bool, ...], ...] | None = None,
                observes: tuple[tuple[int, ...] | None, ...] | None = None, trunk: int | None = None,
-               fields: tuple[encoders.Field, ...] | None = None, history: encoders.History | None = None, *,
-               rngs: nnx.Rngs):
+               fields: tuple[encoders.Field, ...] | None = None, history: encoders.History | None = None,
+               end_given: bool = False, *, rngs: nnx.Rngs):
     check_size("num_procs", num_procs)
     check_size("obs_dim", obs_dim, 0)
     if not _check_sizes("op_sizes", op_sizes):
@@ -137,9 +139,19 @@ class PHPLevel(nnx.Module):
         tuple(entries is None or d in entries for d in range(obs_dim)) for entries in observes)
     self.trunk = None if trunk is None else encoders.Encoder(fields or (encoders.Real(obs_dim),), trunk, rngs=rngs)
     self.history = history
+    self.end_given = end_given
     features = (obs_dim if trunk is None else trunk) + (0 if history is None else history.width)
     self.operation = ProcedureMLPs(num_procs, features, tuple(hidden), sum(op_sizes), observes=mask, rngs=rngs)
     self.termination = ProcedureMLPs(num_procs, features, tuple(hidden), 1, observes=mask, rngs=rngs)
+
+  def stop_logits(self, features: jax.Array, tau: jax.Array, length: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """(log ψ(1), log ψ(0)) [T, K, M] after each of a demonstration's T operations, from the features after
+    them [T, ·]; with end_given, the stop after the last (length − 1) is certain."""
+    z = self.termination_logits(features, tau)
+    log_stop, log_cont = jax.nn.log_sigmoid(z), jax.nn.log_sigmoid(-z)
+    if self.end_given:  # (after the last operation every frame stops: the lattice never continues there)
+      log_stop = jnp.where((jnp.arange(z.shape[0]) == length - 1)[:, None, None], 0.0, log_stop)
+    return log_stop, log_cont
 
   def encode(self, obs: jax.Array) -> jax.Array:
     """The level's encoding of observations [N, obs_dim]: [N, obs_dim] (no trunk) or [N, trunk]. Without a
@@ -241,15 +253,17 @@ class PHPHierarchy(nnx.Module):
   """A whole hierarchy of PHP levels; a Policy for the executor (argmax, or sampling when `sample`)."""
 
   def __init__(self, spec: HierarchySpec, hidden=(64, 64), tau_in_termination=None, sample: bool = False,
-               tau_limit=None, allowed_ops=None, trunk: int | None = None, memory: int | None = None, *,
-               rngs: nnx.Rngs):
+               tau_limit=None, allowed_ops=None, trunk: int | None = None, memory: int | None = None,
+               end_given: bool = False, *, rngs: nnx.Rngs):
     """tau_in_termination, tau_limit, allowed_ops: per level, root first (PHPLevel); None: τ everywhere,
     unlimited, every operation allowed. Each procedure's networks see the observation entries spec.observes
     gives it (every entry where it gives none); trunk: each level's shared encoding width (PHPLevel), which
     reads spec.observation's fields where it gives them; None: none, or where those fields are structured
     (`encoders.structured`: categories, images, words) encoders.DEFAULT_WIDTH wide; memory: the width of
     each level's history of what was observed (`encoders.History`), None: none. With a memory the executor
-    carries its state (`initial_memory`, `remember`) and asks the hierarchy bound to it (`recall`)."""
+    carries its state (`initial_memory`, `remember`) and asks the hierarchy bound to it (`recall`); end_given:
+    its demonstrations end where their environment ended them, so the return after the last action is given,
+    not learned (PHPLevel), and a replayed demonstration need not end with the root returning (`replay`)."""
     if not isinstance(spec, HierarchySpec):
       raise ValueError(f"spec must be a HierarchySpec; got {spec!r}")
     tau_in_termination = tau_in_termination or (True,) * spec.num_levels
@@ -273,8 +287,10 @@ class PHPHierarchy(nnx.Module):
 
     self.levels = nnx.List([
         PHPLevel(spec.num_procs(i), spec.obs_dim, spec.op_sizes(i), hidden, tau_in_termination[i], tau_limit[i],
-                 allowed_ops[i], observes[i], trunk, spec.observation if trunk else None, history(), rngs=rngs)
+                 allowed_ops[i], observes[i], trunk, spec.observation if trunk else None, history(), end_given,
+                 rngs=rngs)
         for i in range(spec.num_levels)])
+    self.end_given = end_given
 
   def initial_memory(self) -> tuple:
     """The memory before an episode's first observation: per level its history's state ([memory] zeros);

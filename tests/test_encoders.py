@@ -203,6 +203,7 @@ def test_an_environment_seen_as_an_image_and_words_is_learned_end_to_end(tmp_pat
   architecture = json.loads((run / checkpoint.ARCHITECTURE_FILE).read_text())
   assert architecture["spec"]["observation"] == [{"image": [1, LENGTH, 1], "codes": [2]},
                                                  {"tokens": 32, "vocab": 4096}]
+  assert architecture["end_given"]  # recorded in an environment: it ends the episodes
   _, policy = checkpoint.load_policy(str(run))
   assert policy.memory == encoders.DEFAULT_WIDTH  # fit's default where the observation holds an image
   episodes = gym.act(policy, gym.vector_env(make_seen_corridor, 4), 40, seed=100)

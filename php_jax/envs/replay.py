@@ -1,5 +1,7 @@
 """Replaying demonstrations: does a hierarchy's argmax policy, run on a demonstration's recorded
-observations, take every recorded action and return from its root right after the last one?
+observations, take every recorded action and return from its root right after the last one? (For a hierarchy
+whose demonstrations end where their environment ended them, `end_given`, taking every recorded action is
+enough: the environment, not the root, ends such an episode.)
 
 The recorded demonstration is an environment (`Recording`) for the executor: its state is the demonstration
 and a step index; observe gives the recorded observation, and an action other than the recorded one (or any
@@ -60,9 +62,12 @@ def replay(policy, spec: HierarchySpec, batch: Demonstration, key: jax.Array | N
   keys = jax.random.split(jax.random.key(0) if key is None else key, num)
   rollout = evaluation.rollout(policy, spec, RECORDING, states, keys, int(batch.actions.shape[1]) + 1)
   steps, length = np.asarray(rollout.length), np.asarray(batch.length)
-  replayed = np.asarray(rollout.terminated) & (steps == length)
   # A failed step is the episode's last; a root returning early ends the episode at `steps` < length.
   first = np.where(np.asarray(rollout.valid), steps, steps - 1)
+  if getattr(policy, "end_given", False):  # an action after the last (first = length) is not the demonstration's
+    replayed = first >= length
+  else:
+    replayed = np.asarray(rollout.terminated) & (steps == length)
   return Replay(replayed, np.where(replayed, -1, first).astype(np.int32))
 
 

@@ -44,6 +44,7 @@ def _setting(default: Any, help: str, kind: str, choices: tuple[str, ...] = (), 
 
 MAX_SEED = 2**31 - 1
 MEMORIES = ("none", "gru")
+EPISODE_ENDS = ("root", "environment")
 WEAK_ONLY_ANNEALING = 1.5  # the start temperature of joint runs without annotation (RESULTS.md, NanoCraft weak only)
 DISCOVERY_SPLIT_ROUNDS = 2  # split-search rounds of joint runs without annotation segmented by loops
 
@@ -67,6 +68,11 @@ class TrainConfig:
       "depends on what was observed, never on the call stack; joint training only, and each update runs a "
       "sequential pass over every demonstration); none: the networks see the current observation alone.",
       "str", MEMORIES, joint_off=("none",))
+  episode_end: str = _setting(
+      "root", "How a demonstration ends. root: its root returns after the last action, and training teaches every "
+      "frame to stop there (the paper's programs, which end by returning); environment: its environment ended it "
+      "(a Gymnasium episode at its goal), so that return is given rather than learned, and a held-out "
+      "demonstration counts as replayed once every action is taken.", "str", EPISODE_ENDS)
   root: str = _setting("lstm", "Network standing in, below the root level, for the levels above while they are "
                        "untrained: the paper's LSTM, or an MLP on each observation.", "str", ROOTS, True)
   root_hidden: int = _setting(64, "Hidden units of that stand-in root network.", "int", levelwise_only=True)

@@ -51,8 +51,8 @@ def test_hierarchy_file_read_and_written(tmp_path):
   # process of its own: experiments.fit defines its flags on import.)
   check = (f"from experiments import fit; from php_jax.data import demo_files; read = demo_files.read_hierarchy; "
            f"given, plain = read({str(tmp_path / 'h.json')!r}), read({str(tmp_path / 'n.json')!r}); "
-           "print(fit.fit_overrides(given, False).get('min_capacity'), fit.fit_overrides(plain, True).get("
-           "'min_capacity'), fit.fit_overrides(plain, False).get('min_capacity'))")
+           "print(fit.fit_overrides(given, False, False).get('min_capacity'), fit.fit_overrides(plain, True, False).get("
+           "'min_capacity'), fit.fit_overrides(plain, False, False).get('min_capacity'))")
   proc = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True, timeout=300)
   assert proc.stdout.split("\n")[-2] == "(0, 4, 2) (0, 8, 8) None", proc.stderr
 
