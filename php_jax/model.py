@@ -144,7 +144,7 @@ class PHPLevel(nnx.Module):
     self.operation = ProcedureMLPs(num_procs, features, tuple(hidden), sum(op_sizes), observes=mask, rngs=rngs)
     self.termination = ProcedureMLPs(num_procs, features, tuple(hidden), 1, observes=mask, rngs=rngs)
 
-  def stop_logits(self, features: jax.Array, tau: jax.Array, length: jax.Array) -> tuple[jax.Array, jax.Array]:
+  def stop_log_probs(self, features: jax.Array, tau: jax.Array, length: jax.Array) -> tuple[jax.Array, jax.Array]:
     """(log ψ(1), log ψ(0)) [T, K, M] after each of a demonstration's T operations, from the features after
     them [T, ·]; with end_given, the stop after the last (length − 1) is certain."""
     z = self.termination_logits(features, tau)

@@ -58,7 +58,7 @@ def lattice_inputs(model: LevelModel, view: views.LevelView, capacity: int, used
   tau = jnp.arange(capacity, dtype=jnp.float32)
   features = model.php.encode(observations)  # once per observation, for every procedure and counter
   log_op = model.php.log_op(features[:-1], tau, actions)
-  log_stop, log_cont = model.php.stop_logits(features[1:], tau, length)
+  log_stop, log_cont = model.php.stop_log_probs(features[1:], tau, length)
   if used_capacity is not None:
     log_op = jnp.where(tau < used_capacity, log_op, -jnp.inf)
     log_cont = jnp.where(tau + 1 < used_capacity, log_cont, -jnp.inf)
@@ -106,7 +106,7 @@ def stack_inputs(hierarchy: PHPHierarchy, capacity: tuple[int, ...], observation
       log_call.append(php.op_log_probs(features[:-1], tau)[0] - penalty)
     else:
       log_act = php.log_op(features[:-1], tau, actions)
-    stop, cont = php.stop_logits(features[1:], tau, length)
+    stop, cont = php.stop_log_probs(features[1:], tau, length)
     log_stop.append(stop)
     log_cont.append(cont)
   return stack_lattice.StackInputs(tuple(log_call), log_act, tuple(log_stop), tuple(log_cont), length)
