@@ -293,10 +293,18 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
         f"--workdir={tmp_path / 'w9'}", "--trunk=8"), "--trunk: the hierarchy gives its procedures different"),
       (("experiments.train", "--task=nanocraft", f"--workdir={tmp_path / 'w10'}", "--seeds=1,2",
         "--training=levelwise", "--restarts=2"), "--seeds and --restarts: give one of them"),
+      (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={hierarchy}",
+        f"--workdir={tmp_path / 'w11'}", "--memory=gru", "--training=levelwise"),
+       "--memory: gru needs joint training"),
+      (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={hierarchy}",
+        f"--workdir={tmp_path / 'w12'}", "--env=NoSuchEnv-v0"), "unknown environment 'NoSuchEnv-v0'"),
+      (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={hierarchy}",
+        f"--workdir={tmp_path / 'w13'}", "--env=FrozenLake-v1"),
+       "the hierarchy does not fit these demonstrations: observation: its fields take 16 numbers"),
   ]
   # Run at the same time, each with its own workdir.
   processes.assert_refused(cases)
-  assert not any((tmp_path / f"w{i}").exists() for i in range(1, 11)) and not (tmp_path / "o.jsonl").exists()
+  assert not any((tmp_path / f"w{i}").exists() for i in range(1, 14)) and not (tmp_path / "o.jsonl").exists()
   assert not (tmp_path / "o.txt").exists()
 
 
