@@ -280,7 +280,6 @@ class PHPHierarchy(nnx.Module):
       trunk = encoders.DEFAULT_WIDTH
     if memory is not None:
       check_size("memory", memory)
-    self.memory = memory
 
     def history():
       return None if memory is None else encoders.History(trunk or spec.obs_dim, spec.action_sizes, memory, rngs=rngs)
@@ -290,7 +289,17 @@ class PHPHierarchy(nnx.Module):
                  allowed_ops[i], observes[i], trunk, spec.observation if trunk else None, history(), end_given,
                  rngs=rngs)
         for i in range(spec.num_levels)])
-    self.end_given = end_given
+
+  @property
+  def memory(self) -> int | None:
+    """The width of each level's history (`encoders.History`); None without a memory."""
+    history = self.levels[0].history
+    return None if history is None else history.width
+
+  @property
+  def end_given(self) -> bool:
+    """Whether its demonstrations' ends are their environment's (PHPLevel.end_given, the same at every level)."""
+    return self.levels[0].end_given
 
   def initial_memory(self) -> tuple:
     """The memory before an episode's first observation: per level its history's state ([memory] zeros);
@@ -334,10 +343,6 @@ class Recalled(NamedTuple):
   """A hierarchy with a memory, bound to the memory of one moment: the Policy the executor asks."""
   hierarchy: PHPHierarchy
   memory: tuple
-
-  @property
-  def spec(self) -> HierarchySpec:
-    return self.hierarchy.spec
 
   def operation(self, level, proc, tau, obs, key):
     return self.hierarchy.operation(level, proc, tau, obs, key, self.memory)

@@ -39,14 +39,6 @@ def _is_text(space: spaces.Space) -> bool:
   return isinstance(space, spaces.Text) or any(c.__name__ == "MissionSpace" for c in type(space).__mro__)
 
 
-def _has_text(space: spaces.Space) -> bool:
-  if isinstance(space, spaces.Dict):
-    return any(map(_has_text, space.spaces.values()))
-  if isinstance(space, spaces.Tuple):
-    return any(map(_has_text, space.spaces))
-  return _is_text(space)
-
-
 def observation_fields(space: spaces.Space) -> tuple[encoders.Field, ...]:
   """What each number of the space's flattened observations is, in order (`php_jax.encoders`): Discrete →
   one unordered category, MultiDiscrete → an ordered category per entry (a row, a column; a hierarchy file's
@@ -118,9 +110,10 @@ def flatten_observation(space: spaces.Space, observation) -> np.ndarray:
 
 
 def _flatten(space: spaces.Space, observation) -> np.ndarray:
-  if isinstance(space, spaces.Dict) and _has_text(space):
+  """As `gymnasium.spaces.flatten`, part by part (a Dict's in the order of its keys), a text as its words."""
+  if isinstance(space, spaces.Dict):
     return np.concatenate([_flatten(sub, observation[key]) for key, sub in space.spaces.items()])
-  if isinstance(space, spaces.Tuple) and _has_text(space):
+  if isinstance(space, spaces.Tuple):
     return np.concatenate([_flatten(sub, value) for sub, value in zip(space.spaces, observation)])
   if _is_text(space):
     return words(observation)
