@@ -36,7 +36,7 @@ class Schedule(NamedTuple):
   end, an evaluation (a validation score, a logged row, a save); `snapshot`, which of the equally
   best-validated snapshots is kept (SNAPSHOT_RULES); a save also whenever `save_seconds` have passed;
   `weight_decay`, AdamW's decoupled decay of every parameter (0: plain Adam); `batch_size`, demonstrations
-  per update (`minibatched`; None: all of them), drawn by `batch_seed`."""
+  per update (`minibatched`; None or 0: all of them), drawn by `batch_seed`."""
   iterations: int
   learning_rate: float
   eval_every: int
@@ -98,7 +98,7 @@ def minibatched(loss_fn: Callable[..., jax.Array] | IterationLoss, batch_size: i
 def _per_batch(loss_fn, schedule: Schedule, args: tuple, axis: int = 0):
   """loss_fn, or where schedule.batch_size is below the rows of args[0]'s buckets (along their leaves' axis
   `axis`), `minibatched`."""
-  if schedule.batch_size is None or not args:
+  if not schedule.batch_size or not args:
     return loss_fn
   rows = sum(jax.tree.leaves(bucket)[0].shape[axis] for bucket in args[0])
   return loss_fn if schedule.batch_size >= rows else minibatched(loss_fn, schedule.batch_size, schedule.batch_seed)
@@ -111,9 +111,9 @@ def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array] | IterationLoss, sc
   or, with schedule.batch_size, on a minibatch of args[0]'s buckets (`minibatched`). Updates `model` in
   place to the kept snapshot.
 
-  args (the data) follow the model into loss_fn: as constants of the compiled update without a mesh, as its
-  arguments with one (arrays split over `mesh`); then the parameters and optimizer state are replicated on
-  the mesh, and the model gets them back as arrays of the default device.
+  args (the data) follow the model into loss_fn: as constants of the compiled update for a full batch without
+  a mesh, else as its arguments (with a mesh, arrays split over it; then the parameters and optimizer state
+  are replicated on the mesh, and the model gets them back as arrays of the default device).
 
   At each evaluation (`Schedule`): hooks.on_eval(iteration, loss) may return a validation score (the
   snapshot with the highest score is kept, the latest or the earliest among equals as schedule.snapshot
@@ -124,10 +124,12 @@ def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array] | IterationLoss, sc
   optimizer = _optimizer(schedule)
   progress = resume if resume is not None else Progress(0, params, optimizer.init(params), params, None, None,
                                                         [])
-  step = _adam_step(graphdef, _per_batch(loss_fn, schedule, args), optimizer)
-  if mesh is None:  # the data as constants, folded into the program by XLA
+  per_batch = _per_batch(loss_fn, schedule, args)
+  step = _adam_step(graphdef, per_batch, optimizer)
+  if mesh is None and per_batch is loss_fn:  # the whole batch as constants, folded into the program by XLA
     update = jax.jit(lambda params, opt_state: step(params, opt_state, rest, args))
-  else:  # as arguments: a constant would sit whole on one device
+  else:  # as arguments: a constant would sit whole on one device, and a large set, of which each update
+    # reads a minibatch, would be copied into the program
     update = functools.partial(jax.jit(lambda params, opt_state, args: step(params, opt_state, rest, args)),
                                args=args)
   [progress] = _iterate(_Loop(update, [model], mesh, lambda tree, s: tree),

@@ -47,6 +47,8 @@ MEMORIES = ("none", "gru")
 EPISODE_ENDS = ("root", "environment")
 WEAK_ONLY_ANNEALING = 1.5  # the start temperature of joint runs without annotation (RESULTS.md, NanoCraft weak only)
 DISCOVERY_SPLIT_ROUNDS = 2  # split-search rounds of joint runs without annotation segmented by loops
+FULL_BATCH_MAX = 256  # the most demonstrations an unset batch size trains on whole at every update
+DEFAULT_BATCH_SIZE = 64  # an unset batch size above that (BUILD.md, "what an update costs")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -110,7 +112,8 @@ class TrainConfig:
   batch_size: int | None = _setting(
       None, "Demonstrations (level-wise: views) per Adam update, drawn afresh at each from every length bucket "
       "in proportion (minibatch Expectation–Gradient: each update's E-step is exact for its demonstrations); "
-      "unset: all of them.", "int")
+      f"0: all of them; unset: all of them up to {FULL_BATCH_MAX} demonstrations, {DEFAULT_BATCH_SIZE} above.",
+      "int")
   seed: int = _setting(0, "Seed for data, and for initialisation and decoding unless --init_seed is given.", "int")
   init_seed: int | None = _setting(
       None, "Seed for the networks' initialisation and decoding alone, so that restarts share one training set "
@@ -175,9 +178,10 @@ class TrainConfig:
     for name in ("iterations", "strong_warmup", "seed", "split_iterations", "split_hint_iterations"):
       if not (_is_int(getattr(self, name)) and getattr(self, name) >= 0):
         raise ConfigError(name, f"must be a non-negative integer; got {getattr(self, name)!r}")
-    for name in ("batch_size", "trunk"):
-      if getattr(self, name) is not None and not (_is_int(getattr(self, name)) and getattr(self, name) >= 1):
-        raise ConfigError(name, f"must be a positive integer; got {getattr(self, name)!r}")
+    if self.trunk is not None and not (_is_int(self.trunk) and self.trunk >= 1):
+      raise ConfigError("trunk", f"must be a positive integer; got {self.trunk!r}")
+    if self.batch_size is not None and not (_is_int(self.batch_size) and self.batch_size >= 0):
+      raise ConfigError("batch_size", f"must be a non-negative integer (0: all); got {self.batch_size!r}")
     if self.memory != "none" and self.training == "levelwise":
       raise ConfigError("memory", f"{self.memory} needs joint training (its history reads every elementary step, "
                         "which a level's view leaves out); --training=levelwise was given")
@@ -284,7 +288,8 @@ def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, fla
   demonstrations none of which is annotated, WEAK_ONLY_ANNEALING (else 1: none) and, where spec declares no
   call graph (which says itself which procedure takes which operation) and config.segment_rule applies to
   their actions (`segmentation.read_rule`), the segmentation for half the iterations (else 0), and
-  DISCOVERY_SPLIT_ROUNDS of the split search where that rule is "loops" (else 0)."""
+  DISCOVERY_SPLIT_ROUNDS of the split search where that rule is "loops" (else 0); the batch size
+  (`batch_size_for`)."""
   strong = np.asarray(demos.strong)
   strong_weight = balanced_strong_weight(strong) if config.strong_weight is None else config.strong_weight
   training = training_mode(config, bool(strong.any())) if not flat_lstm else config.training or "levelwise"
@@ -301,7 +306,16 @@ def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, fla
       config, strong_weight=strong_weight, training=training, memory=memory,
       anneal_temperature=unset_or(config.anneal_temperature, WEAK_ONLY_ANNEALING if weak_only else 1.0),
       segment_iterations=unset_or(config.segment_iterations, config.iterations // 2 if rule else 0),
-      split_rounds=unset_or(config.split_rounds, DISCOVERY_SPLIT_ROUNDS if rule and rule.name == "loops" else 0))
+      split_rounds=unset_or(config.split_rounds, DISCOVERY_SPLIT_ROUNDS if rule and rule.name == "loops" else 0),
+      batch_size=batch_size_for(config, len(strong)))
+
+
+def batch_size_for(config: TrainConfig, num_demos: int) -> int:
+  """config.batch_size, or where unset: 0 (all) for at most FULL_BATCH_MAX demonstrations, else
+  DEFAULT_BATCH_SIZE. A full-batch update's cost grows with the demonstrations, a minibatch's does not."""
+  if config.batch_size is not None:
+    return config.batch_size
+  return 0 if num_demos <= FULL_BATCH_MAX else DEFAULT_BATCH_SIZE
 
 
 def training_mode(config: TrainConfig, annotated: bool) -> str:

@@ -14,6 +14,7 @@ from php_jax import fitting
 from php_jax.data import views
 from php_jax.envs import datasets, tasks
 from php_jax.training import checkpoint, joint, levelwise, networks, objective
+from php_jax.training import config as config_module
 from php_jax.training.config import ConfigError, TrainConfig
 
 NANOCRAFT = tasks.get("nanocraft")
@@ -63,11 +64,21 @@ def test_a_batch_holding_every_demonstration_is_the_full_batch_fit():
   demos = datasets.training_demos(NANOCRAFT, 2, 6, 2)
   config = TrainConfig(iterations=6, learning_rate=1e-2, hidden=(8,), eval_every=3, training="joint", seed=2,
                        length_buckets=2)
-  full, _ = joint.train_joint(NANOCRAFT.spec, demos, config, log=lambda row: None)
-  batched, _ = joint.train_joint(NANOCRAFT.spec, demos, dataclasses.replace(config, batch_size=6),
-                                 log=lambda row: None)
-  for a, b in zip(jax.tree.leaves(nnx.state(full, nnx.Param)), jax.tree.leaves(nnx.state(batched, nnx.Param))):
-    np.testing.assert_array_equal(a, b)
+  full, _ = joint.train_joint(NANOCRAFT.spec, demos, dataclasses.replace(config, batch_size=0),
+                              log=lambda row: None)
+  for batch_size in (6, None):  # every one of them; unset, on so few
+    batched, _ = joint.train_joint(NANOCRAFT.spec, demos, dataclasses.replace(config, batch_size=batch_size),
+                                   log=lambda row: None)
+    for a, b in zip(jax.tree.leaves(nnx.state(full, nnx.Param)), jax.tree.leaves(nnx.state(batched, nnx.Param))):
+      np.testing.assert_array_equal(a, b)
+
+
+def test_an_unset_batch_size_is_every_demonstration_up_to_the_limit_and_the_default_minibatch_above():
+  assert config_module.batch_size_for(TrainConfig(), config_module.FULL_BATCH_MAX) == 0
+  assert config_module.batch_size_for(TrainConfig(), config_module.FULL_BATCH_MAX + 1) == \
+      config_module.DEFAULT_BATCH_SIZE
+  assert config_module.batch_size_for(TrainConfig(batch_size=0), 10**5) == 0
+  assert config_module.batch_size_for(TrainConfig(batch_size=5), 3) == 5
 
 
 def test_minibatch_training_learns_and_an_interrupted_fit_resumes_to_the_same_result(tmp_path):
@@ -106,6 +117,6 @@ def test_level_wise_training_on_minibatches_alone_and_as_seeds_draws_each_seeds_
                                rtol=1e-4)
 
 
-def test_a_batch_size_below_1_is_refused():
-  with pytest.raises(ConfigError, match="batch_size: must be a positive integer"):
-    TrainConfig(batch_size=0)
+def test_a_negative_batch_size_is_refused():
+  with pytest.raises(ConfigError, match="batch_size: must be a non-negative integer"):
+    TrainConfig(batch_size=-1)
