@@ -8,20 +8,26 @@ r"""Benchmarks as commands: ratios against baselines measured in the same proces
   python -m experiments.benchmark act --policy=RUN --env=ENV --num_envs=64  # a policy in a Gymnasium env vs the env
   python -m experiments.benchmark demo_files --num_demos=300  # the binary demonstration format vs JSON lines
   python -m experiments.benchmark fast_path --num_demos=1000  # one EG update on BabyAI-sized data, each speed-up
+  python -m experiments.benchmark many_demos --demos=F --hierarchy=H --copies=1,10,100  # fit's memory and speed
 
 estep times values + marginals for B demonstrations of T steps (vmapped, jitted) at the paper's sizes and beyond,
 checks that the three agree on log P(ξ), and prints lattice cells (B·T·K·C) per second and ratios.
 demo_files writes and reads N synthetic demonstrations of BabyAI's size as JSON lines and as a binary set
 (`php_jax.data.shards`), checks that both read to the same arrays, and prints the sizes and times and their
 ratios.
+many_demos runs experiments.fit, with its defaults, on 1, 10, 100... copies of a demonstration file, each in a
+process of its own: its peak memory, seconds per update, steps per second and wall time.
 """
 from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import itertools
 import json
 import os
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 
@@ -58,7 +64,13 @@ _NUM_STRONG = flags.DEFINE_integer("num_strong", 3, "train_step, scaling: annota
 _NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "scaling: demonstrations of the training set (default: the "
                                   "task's); demo_files, fast_path: synthetic demonstrations (default: 300).")
 _POLICY = flags.DEFINE_string("policy", None, "act: a workdir of experiments.fit.")
-_ENV = flags.DEFINE_string("env", None, "act: the Gymnasium environment (what experiments.act --env takes).")
+_ENV = flags.DEFINE_string("env", None, "act, many_demos: the Gymnasium environment (what experiments.act and "
+                           "experiments.fit --env take).")
+_DEMOS = flags.DEFINE_string("demos", None, "many_demos: the demonstrations to copy (what experiments.fit --demos "
+                             "takes).")
+_HIERARCHY = flags.DEFINE_string("hierarchy", None, "many_demos: their hierarchy file.")
+_COPIES = flags.DEFINE_list("copies", ["1", "10", "100"], "many_demos: copies of --demos each fit trains on.")
+_ITERATIONS = flags.DEFINE_integer("iterations", 300, "many_demos: each fit's --iterations.")
 _NUM_ENVS = flags.DEFINE_integer("num_envs", 64, "act: copies of the environment stepped together.")
 _EPISODES = flags.DEFINE_integer("episodes", 1000, "act: episodes timed.")
 _BATCH = flags.DEFINE_integer("batch_size", 32, "fast_path: demonstrations per minibatch update.")
@@ -459,6 +471,50 @@ def bench_demo_files():
   return rows
 
 
+def bench_many_demos():
+  """experiments.fit with its defaults and --iterations on each --copies count of copies of --demos (a binary
+  set written to a temporary folder), each in a process of its own: the process's peak resident memory, the
+  seconds per update and demonstration steps per second from its first evaluation to its last (the held-out
+  replays at each evaluation included), its wall time, and the ratios to the first fit's."""
+  if not (_DEMOS.value and _HIERARCHY.value):
+    raise app.UsageError("many_demos needs --demos and --hierarchy")
+  batch, _ = demo_files.read_demonstrations(_DEMOS.value, demo_files.read_hierarchy(_HIERARCHY.value).spec)
+  one, mean_length = list(shards.unpadded(batch, batch.strong)), float(np.mean(batch.length))
+  print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}); {len(one)} demonstrations of "
+        f"{_DEMOS.value} ({mean_length:.1f} steps on average), copied; fit --iterations={_ITERATIONS.value}")
+  rows = []
+  with tempfile.TemporaryDirectory() as folder:
+    for copies in (int(c) for c in _COPIES.value):
+      path, workdir = os.path.join(folder, f"copies{copies}{shards.SUFFIX}"), os.path.join(folder, f"fit{copies}")
+      shards.write_shards(path, itertools.chain.from_iterable(itertools.repeat(one, copies)))
+      command = [sys.executable, "-m", "experiments.fit", f"--demos={path}", f"--hierarchy={_HIERARCHY.value}",
+                 f"--workdir={workdir}", "--seed=1", f"--iterations={_ITERATIONS.value}",
+                 *([f"--env={_ENV.value}"] if _ENV.value else [])]
+      with open(os.path.join(folder, "fit.err"), "w") as err:
+        start = time.perf_counter()
+        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err)
+        _, status, usage = os.wait4(process.pid, 0)
+        process.returncode, wall = os.waitstatus_to_exitcode(status), time.perf_counter() - start
+      if process.returncode:
+        with open(err.name) as f:
+          raise RuntimeError(f"{' '.join(command)} ended with status {process.returncode}: {f.read()[-2000:]}")
+      with open(os.path.join(workdir, "results.json")) as f:
+        results = json.load(f)
+      with open(os.path.join(workdir, "metrics.jsonl")) as f:
+        timed = [row for row in map(json.loads, f) if "iteration" in row and "seconds" in row]
+      updates, seconds = timed[-1]["iteration"] - timed[0]["iteration"], timed[-1]["seconds"] - timed[0]["seconds"]
+      batch_size = results["config"]["batch_size"] or results["num_demos"]
+      row = {"demonstrations": len(one) * copies, "batch_size": batch_size, "peak_gb": usage.ru_maxrss / 2**20,
+             "s_per_update": seconds / updates, "steps_per_s": updates * batch_size * mean_length / seconds,
+             "wall_s": wall}
+      rows.append(row)
+      print(f"{row['demonstrations']:>9,} demonstrations (batch {batch_size}): peak memory {row['peak_gb']:5.2f} GB "
+            f"({row['peak_gb'] / rows[0]['peak_gb']:.2f}× the first), {row['s_per_update']:.3f} s per update "
+            f"({row['s_per_update'] / rows[0]['s_per_update']:.2f}×), {row['steps_per_s']:,.0f} steps/s, wall "
+            f"{wall:.0f} s")
+  return rows
+
+
 def _seconds(fn, *args) -> float:
   start = time.perf_counter()
   fn(*args)
@@ -474,7 +530,8 @@ def _task():
 def main(argv):
   commands = {"estep": bench_estep, "estep_grad": bench_estep_grad, "rollout": bench_rollout,
               "train_step": bench_train_step, "scaling": bench_scaling, "act": bench_act,
-              "demo_files": bench_demo_files, "fast_path": bench_fast_path}
+              "demo_files": bench_demo_files, "fast_path": bench_fast_path,
+              "many_demos": bench_many_demos}
   if len(argv) != 2 or argv[1] not in commands:
     raise app.UsageError(f"usage: python -m experiments.benchmark {{{'|'.join(commands)}}} [--flags]")
   rows = commands[argv[1]]()

@@ -111,7 +111,11 @@ def run() -> dict:
   config = config_flags.config_from_flags(overrides)
   config_flags.check_levels(hierarchy.spec, config)
   try:
-    in_file, numbers = demos, None
+    call_graph.resolve(config.call_graph, demos, spec)
+  except ValueError as e:  # demonstrations are numbered from 0 in the file's order
+    raise config_flags.UsageError(f"--demos={_DEMOS.value}: {e}") from None
+  try:
+    numbers = None
     if _VALIDATION.value:
       held_out, spec = demo_files.read_demonstrations(_VALIDATION.value, spec)
     else:
@@ -125,10 +129,6 @@ def run() -> dict:
       demos, held_out, numbers = split(demos, _VALIDATION_FRACTION.value, config.seed)
   except demo_files.DemoFileError as e:
     raise config_flags.UsageError(str(e)) from None
-  try:
-    call_graph.resolve(config.call_graph, in_file, spec)
-  except ValueError as e:  # demonstrations are numbered from 0 in the file's order
-    raise config_flags.UsageError(f"--demos={_DEMOS.value}: {e}") from None
 
   def rate(model) -> float:
     return replay.replayed_fraction(model, spec, held_out)

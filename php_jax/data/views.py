@@ -106,13 +106,14 @@ def grouped(batch: Batch, groups: list[np.ndarray]) -> list[Batch]:
   buckets = []
   for group in groups:
     width = int(np.asarray(batch.length)[group].max())
-    buckets.append(type(batch)(*(_trim(np.asarray(x)[group], width + (name == "observations"))
+    buckets.append(type(batch)(*(_rows(np.asarray(x), group, width + (name == "observations"))
                                  for name, x in zip(batch._fields, batch))))
   return buckets
 
 
-def _trim(x: np.ndarray, width: int) -> np.ndarray:
-  return x[:, :width] if x.ndim >= 2 else x
+def _rows(x: np.ndarray, rows: np.ndarray, width: int) -> np.ndarray:
+  """x's rows, their steps (axis 1, where x has one) trimmed to width: a copy of that much alone."""
+  return x[rows, :width] if x.ndim >= 2 else x[rows]
 
 
 def device_view(view: LevelView, mesh: Mesh | None = None) -> LevelView:
