@@ -478,6 +478,9 @@ def bench_many_demos():
   replays at each evaluation included), its wall time, and the ratios to the first fit's."""
   if not (_DEMOS.value and _HIERARCHY.value):
     raise app.UsageError("many_demos needs --demos and --hierarchy")
+  if _ITERATIONS.value < 2 * TrainConfig().eval_every:
+    raise app.UsageError(f"many_demos times from a fit's first evaluation to its last: --iterations must be at least "
+                         f"{2 * TrainConfig().eval_every}")
   batch, _ = demo_files.read_demonstrations(_DEMOS.value, demo_files.read_hierarchy(_HIERARCHY.value).spec)
   one, mean_length = list(shards.unpadded(batch, batch.strong)), float(np.mean(batch.length))
   print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}); {len(one)} demonstrations of "

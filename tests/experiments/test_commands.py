@@ -40,6 +40,20 @@ def test_benchmark_commands_run_and_cross_check(tmp_path):
   assert "networks only" in proc.stdout and "of the full loss" in proc.stdout
 
 
+@pytest.mark.slow
+def test_many_demos_benchmark_fits_each_number_of_copies(tmp_path):
+  out = tmp_path / "many.json"
+  proc = subprocess.run([sys.executable, "-m", "experiments.benchmark", "many_demos",
+                         f"--demos={ROOT / 'examples' / 'warehouse' / 'train.jsonl'}",
+                         f"--hierarchy={ROOT / 'examples' / 'warehouse' / 'warehouse.json'}", "--copies=1,8",
+                         "--iterations=200", f"--out={out}"], capture_output=True, text=True, timeout=900, cwd=ROOT)
+  assert proc.returncode == 0, proc.stderr[-3000:]
+  rows = json.loads(out.read_text())
+  assert [r["demonstrations"] for r in rows] == [40, 320]
+  assert [r["batch_size"] for r in rows] == [36, 64]  # all 36 in training; 288, above 256: the default minibatch
+  assert all(r["peak_gb"] > 0 and r["s_per_update"] > 0 and r["steps_per_s"] > 0 for r in rows)
+
+
 def test_benchmark_rejects_unknown_command():
   proc = subprocess.run([sys.executable, "-m", "experiments.benchmark", "nonsense"], capture_output=True,
                         text=True, timeout=120, cwd=ROOT)
