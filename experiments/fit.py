@@ -21,7 +21,7 @@ import dataclasses
 import numpy as np
 from absl import app, flags
 
-from experiments.common import cli, config_flags, progress, training
+from experiments.common import cli, config_flags, progress, run_report, training
 from php_jax import encoders
 from php_jax.data import demo_files
 from php_jax.demos import Demonstration
@@ -114,6 +114,8 @@ def run() -> dict:
     call_graph.resolve(config.call_graph, demos, spec)
   except ValueError as e:  # demonstrations are numbered from 0 in the file's order
     raise config_flags.UsageError(f"--demos={_DEMOS.value}: {e}") from None
+  shown = run_report.drawn_demonstrations(demos)  # the report's, kept so that it need not read the file again
+  shown_demos = Demonstration(*(np.asarray(x)[shown] for x in demos))
   try:
     numbers = None
     if _VALIDATION.value:
@@ -146,7 +148,7 @@ def run() -> dict:
                                    training.WAIT.value, echo)
     else:
       results = training.train_php(experiment, config, config_flags.given_settings(overrides), echo)
-  training.write_report(training.WORKDIR.value)  # drawn from --demos, numbered as in that file
+  training.write_report(training.WORKDIR.value, shown_demos, shown)
   return results
 
 

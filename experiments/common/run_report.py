@@ -20,9 +20,11 @@ from php_jax.training.run import METRICS_FILE, REPORT_FILE, RESULTS_FILE
 NUM_DRAWN = 3
 
 
-def write(workdir: str, demos: Demonstration | None = None) -> str:
+def write(workdir: str, demos: Demonstration | None = None, numbers: list[int] | None = None) -> str:
   """Writes workdir/report.html (atomically) and returns its path. demos: the run's training demonstrations
-  (default: rebuilt as `experiments.show` does). Raises ValueError naming what cannot be read."""
+  (default: rebuilt as `experiments.show` does), or with numbers, those of the file results.json names that
+  `drawn_demonstrations` draws from it, numbers their places there. Raises ValueError naming what cannot be
+  read."""
   results = run_view.read_results(workdir)
   if not (isinstance(results.get("test"), dict) and isinstance(results.get("config", {}), dict)):
     raise ValueError(f"{os.path.join(workdir, RESULTS_FILE)}: not a finished run's results (needs its \"test\" "
@@ -37,13 +39,14 @@ def write(workdir: str, demos: Demonstration | None = None) -> str:
     parts.append("<p>No call stack to show: a flat LSTM has none.</p>")
   else:
     parts += ["<h2>Call graph</h2>", _call_graph(run)]
-    source = "its training demonstrations"
+    source = "its training demonstrations" if numbers is None else results["demos"]
     if demos is None:
       demos, source = run_view.demonstrations(run, None)
     parts.append("<h2>Decoded demonstrations</h2>")
     indices = drawn_demonstrations(demos)
     for index, (drawn, lines) in zip(indices, run_view.decoded(run, demos, indices)):
-      caption = (f"demonstration {index} of {source} ({int(demos.length[index])} steps, "
+      number = index if numbers is None else numbers[index]
+      caption = (f"demonstration {number} of {source} ({int(demos.length[index])} steps, "
                  f"{'annotated' if demos.strong[index] else 'actions only'})")
       parts += [f"<h3>{html.escape(caption)}</h3>", pictures.svg(run_view.figure(run, drawn, caption)),
                 f"<details><summary>call trees</summary><pre>{html.escape(chr(10).join(lines))}</pre></details>"]
@@ -52,7 +55,7 @@ def write(workdir: str, demos: Demonstration | None = None) -> str:
   return path
 
 
-def write_if_stale(workdir: str, demos: Demonstration | None = None) -> str | None:
+def write_if_stale(workdir: str, demos: Demonstration | None = None, numbers: list[int] | None = None) -> str | None:
   """write, unless workdir's report.html is newer than its results.json (or this is not the first of several
   processes, which writes the files); returns the path written, or None."""
   if jax.process_index() != 0:
@@ -60,7 +63,7 @@ def write_if_stale(workdir: str, demos: Demonstration | None = None) -> str | No
   path, results = os.path.join(workdir, REPORT_FILE), os.path.join(workdir, RESULTS_FILE)
   if os.path.exists(path) and os.path.getmtime(path) >= os.path.getmtime(results):
     return None
-  return write(workdir, demos)
+  return write(workdir, demos, numbers)
 
 
 def drawn_demonstrations(demos: Demonstration) -> list[int]:

@@ -33,10 +33,11 @@ REPORT = flags.DEFINE_bool("report", True, "At the end, write WORKDIR/report.htm
                            "curves, call graph and three training demonstrations decoded and drawn (a few seconds).")
 
 
-def write_report(workdir: str, demos=None) -> None:
-  """With --report, the run's report.html where it is missing or older than its results (`run_report`)."""
+def write_report(workdir: str, demos=None, numbers: list[int] | None = None) -> None:
+  """With --report, the run's report.html where it is missing or older than its results (`run_report.write`
+  says what demos and numbers are)."""
   if REPORT.value:
-    written = run_report.write_if_stale(workdir, demos)
+    written = run_report.write_if_stale(workdir, demos, numbers)
     if written:
       progress.report_written(written)
 

@@ -198,6 +198,8 @@ def test_fit_decode_show_and_report_on_the_warehouse_example(tmp_path):
   report = (workdir / "report.html").read_text()
   assert report.count("<svg") == 4 and "<script" not in report and "Decoded demonstrations" in report
   assert "fulfil" in report and "held_out_replayed" in report
+  captions = [part.split("</h3>")[0] for part in report.split("<h3>")[1:]]
+  assert len(captions) == 3 and all(f" of {WAREHOUSE / 'train.jsonl'} (" in c for c in captions)  # as numbered there
   held_out = tmp_path / "held.jsonl"
   held_out.write_text("".join((WAREHOUSE / "held_out.jsonl").read_text().splitlines(keepends=True)[:5]))
   shown = [tmp_path / "shown.png", tmp_path / "shown.html"]

@@ -5,6 +5,7 @@ import dataclasses
 import json
 import os
 import pathlib
+import re
 import shutil
 
 import numpy as np
@@ -14,7 +15,7 @@ from flax import nnx
 from experiments.common import pictures, run_report, run_view
 from php_jax.analysis import decoding
 from php_jax.data import agreement, demo_files
-from php_jax.demos import UNKNOWN
+from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.model import PHPHierarchy
 from php_jax.training import checkpoint, run, storage
 from php_jax.training.config import DISCOVERY_SPLIT_ROUNDS, WEAK_ONLY_ANNEALING, TrainConfig
@@ -199,3 +200,24 @@ def test_a_run_whose_task_is_not_its_models_hierarchy_is_refused(fitted, tmp_pat
                                                     "num_strong": 0, "config": {}, "test": {}}))
   with pytest.raises(ValueError, match="its model is not a hierarchy of task 'bubblesort'"):
     run_view.demonstrations(run_view.load(str(other)), None)
+
+
+def test_a_report_given_the_drawn_demonstrations_and_their_numbers_is_the_one_that_reads_the_file(fitted, tmp_path):
+  workdir = tmp_path / "given"
+  shutil.copytree(fitted, workdir)
+  read_again = pathlib.Path(run_report.write(str(workdir))).read_text()
+  batch, _ = run_view.demonstrations(run_view.load(str(workdir)), None)
+  drawn = run_report.drawn_demonstrations(batch)
+  given = Demonstration(*(np.asarray(x)[drawn] for x in batch))
+  page = pathlib.Path(run_report.write(str(workdir), given, drawn)).read_text()
+  assert _drawn(page) == _drawn(read_again) and len(_drawn(page)) == 6
+  assert f"<h3>demonstration {drawn[0]} of {_results_demos(workdir)} (" in page
+
+
+def _drawn(page: str) -> list[str]:
+  """The captions and call trees of the demonstrations a report draws."""
+  return re.findall(r"<h3>.*?</h3>|<pre>.*?</pre>", page, re.S)
+
+
+def _results_demos(workdir) -> str:
+  return json.loads((workdir / run.RESULTS_FILE).read_text())["demos"]
