@@ -496,8 +496,8 @@ def bench_many_demos():
       with open(os.path.join(folder, "fit.err"), "w") as err:
         start = time.perf_counter()
         process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err)
-        _, status, usage = os.wait4(process.pid, 0)
-        process.returncode, wall = os.waitstatus_to_exitcode(status), time.perf_counter() - start
+        _, status, usage = os.wait4(process.pid, 0)  # the fit's own peak memory, which Popen.wait does not give
+        process.returncode, wall = os.waitstatus_to_exitcode(status), time.perf_counter() - start  # reaped here
       if process.returncode:
         with open(err.name) as f:
           raise RuntimeError(f"{' '.join(command)} ended with status {process.returncode}: {f.read()[-2000:]}")

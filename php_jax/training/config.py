@@ -48,7 +48,7 @@ EPISODE_ENDS = ("root", "environment")
 WEAK_ONLY_ANNEALING = 1.5  # the start temperature of joint runs without annotation (RESULTS.md, NanoCraft weak only)
 DISCOVERY_SPLIT_ROUNDS = 2  # split-search rounds of joint runs without annotation segmented by loops
 FULL_BATCH_MAX = 256  # the most demonstrations an unset batch size trains on whole at every update
-DEFAULT_BATCH_SIZE = 64  # an unset batch size above that (BUILD.md, "what an update costs")
+DEFAULT_BATCH_SIZE = 64  # an unset batch size above that (docs/training.md, "Minibatches", measures it)
 
 
 @dataclasses.dataclass(frozen=True)
