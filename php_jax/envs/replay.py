@@ -44,6 +44,7 @@ class Recording:
 
 
 RECORDING = Recording()  # one instance: the executor compiles once per shape, not once per call
+REPLAY_CHUNK = 1024  # demonstrations replayed at once (`replay`)
 
 
 class Replay(NamedTuple):
@@ -53,15 +54,33 @@ class Replay(NamedTuple):
   first_mismatch: np.ndarray
 
 
-def replay(policy, spec: HierarchySpec, batch: Demonstration, key: jax.Array | None = None) -> Replay:
+def replay(policy, spec: HierarchySpec, batch: Demonstration, key: jax.Array | None = None,
+           chunk: int = REPLAY_CHUNK) -> Replay:
   """Runs policy (an argmax hierarchy, or a flat LSTM, whose root returning is its stopping) on each
-  demonstration of batch [B, ...]; see the module docstring."""
+  demonstration of batch [B, ...]; see the module docstring. Above `chunk` demonstrations, they run chunk at a
+  time (the last chunk padded with copies of its first), so the rollout's memory is bounded by the chunk."""
   num = batch.length.shape[0]
-  states = RecordingState(jnp.asarray(batch.observations), jnp.asarray(batch.actions), jnp.asarray(batch.length),
-                          jnp.zeros(num, jnp.int32), jnp.zeros(num, bool))
+  if chunk < 1:
+    raise ValueError(f"chunk must be a positive integer; got {chunk}")
   keys = jax.random.split(jax.random.key(0) if key is None else key, num)
-  rollout = evaluation.rollout(policy, spec, RECORDING, states, keys, int(batch.actions.shape[1]) + 1)
-  steps, length = np.asarray(rollout.length), np.asarray(batch.length)
+  size = max(1, min(num, chunk))
+  parts = [Replay(np.zeros(0, bool), np.zeros(0, np.int32))]  # an empty batch's result, and the start of any other's
+  for start in range(0, num, size):
+    rows = np.arange(start, min(start + size, num))
+    padded = np.concatenate([rows, np.full(size - len(rows), start)])
+    part = _replay_rows(policy, spec, batch, keys, padded, int(batch.actions.shape[1]) + 1)
+    parts.append(Replay(*(x[:len(rows)] for x in part)))
+  return Replay(*(np.concatenate(field) for field in zip(*parts)))
+
+
+def _replay_rows(policy, spec: HierarchySpec, batch: Demonstration, keys: jax.Array, rows: np.ndarray,
+                 max_steps: int) -> Replay:
+  """The `Replay` of batch's rows, each run for at most max_steps."""
+  observations, actions, length = (np.asarray(x)[rows] for x in (batch.observations, batch.actions, batch.length))
+  states = RecordingState(jnp.asarray(observations), jnp.asarray(actions), jnp.asarray(length),
+                          jnp.zeros(len(rows), jnp.int32), jnp.zeros(len(rows), bool))
+  rollout = evaluation.rollout(policy, spec, RECORDING, states, keys[rows], max_steps)
+  steps = np.asarray(rollout.length)
   # A failed step is the episode's last; a root returning early ends the episode at `steps` < length.
   first = np.where(np.asarray(rollout.valid), steps, steps - 1)
   if getattr(policy, "end_given", False):  # an action after the last (first = length) is not the demonstration's

@@ -7,6 +7,7 @@ import pathlib
 import subprocess
 import sys
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -161,6 +162,11 @@ def test_oracle_replays_its_demonstrations_and_mismatches_are_located():
   result = replay.replay(NANOCRAFT.oracle, NANOCRAFT.spec, changed)
   assert result.replayed.tolist() == [False, False] + [True] * 6
   assert result.first_mismatch[:2].tolist() == [3, length[1]]
+  shuffled = jax.tree.map(lambda x: np.asarray(x)[[2, 0, 3, 4, 1, 5, 6, 7]], changed)
+  for chunk in (1, 3):  # chunks of 1, and of 3 with the last padded: each demonstration's own result
+    in_chunks = replay.replay(NANOCRAFT.oracle, NANOCRAFT.spec, shuffled, chunk=chunk)
+    assert in_chunks.replayed.tolist() == [True, False, True, True, False, True, True, True]
+    assert in_chunks.first_mismatch[[1, 4]].tolist() == [3, length[1]]
 
 
 def test_a_flat_lstm_replays_as_its_own_steps_on_the_recorded_observations_say():
