@@ -23,7 +23,7 @@ from absl import app, flags
 
 from experiments.common import cli, config_flags, progress, run_report, training
 from php_jax import encoders
-from php_jax.data import demo_files
+from php_jax.data import demo_files, views
 from php_jax.demos import Demonstration
 from php_jax.envs import gym, replay
 from php_jax.training import call_graph, recipe
@@ -81,7 +81,7 @@ def split(batch: Demonstration, fraction: float, seed: int) -> tuple[Demonstrati
   order = np.concatenate([order[~batch.strong[order]], order[batch.strong[order]]])
   held = np.zeros(num, bool)
   held[order[:held_out_count(num, fraction)]] = True
-  kept, held_out = (Demonstration(*(np.asarray(x)[mask] for x in batch)) for mask in (~held, held))
+  kept, held_out = (views.select(batch, mask) for mask in (~held, held))
   return kept, held_out, tuple(int(b) for b in np.flatnonzero(~held))
 
 
@@ -115,7 +115,7 @@ def run() -> dict:
   except ValueError as e:  # demonstrations are numbered from 0 in the file's order
     raise config_flags.UsageError(f"--demos={_DEMOS.value}: {e}") from None
   shown = run_report.drawn_demonstrations(demos)  # the report's, kept so that it need not read the file again
-  shown_demos = Demonstration(*(np.asarray(x)[shown] for x in demos))
+  shown_demos = views.select(demos, shown)
   try:
     numbers = None
     if _VALIDATION.value:

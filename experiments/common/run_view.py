@@ -13,7 +13,7 @@ import numpy as np
 
 from experiments.common import pictures
 from php_jax.analysis import decoding
-from php_jax.data import agreement, call_tree, demo_files
+from php_jax.data import agreement, call_tree, demo_files, views
 from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.envs import datasets, tasks
 from php_jax.model import PHPHierarchy
@@ -97,7 +97,7 @@ def decoded(run: RunView, batch: Demonstration, indices: list[int]) -> list[tupl
   "supervisor" (None where it has no stack): call_tree.Call; "marginals": per level [T, K_i]; "actions": their
   names; "log_likelihood" (None where no stack fits); "agreement": per level below the root, the fraction of
   annotated steps whose decoded frame is the demonstration's}, the text lines)."""
-  chosen = Demonstration(*(np.asarray(x)[indices] for x in batch))
+  chosen = views.select(batch, indices)
   stacks, marginals = decoding.explain(run.hierarchy, run.capacity, chosen)
   shown = []
   for b in range(len(indices)):

@@ -48,9 +48,9 @@ class LevelView(NamedTuple):
   real: np.ndarray
 
 
-def select(view: LevelView, mask: np.ndarray) -> LevelView:
-  """The views where mask [B] is True."""
-  return LevelView(*(np.asarray(x)[mask] for x in view))
+def select(batch: Batch, rows: np.ndarray) -> Batch:
+  """batch's rows (LevelView or Demonstration [B, ...]) where rows [B] bool is True, or at rows' indices."""
+  return type(batch)(*(np.asarray(x)[rows] for x in batch))
 
 
 def length_groups(lengths: np.ndarray, num_buckets: int) -> list[tuple[np.ndarray, int]]:

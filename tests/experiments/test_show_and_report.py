@@ -14,8 +14,8 @@ from flax import nnx
 
 from experiments.common import pictures, run_report, run_view
 from php_jax.analysis import decoding
-from php_jax.data import agreement, demo_files
-from php_jax.demos import UNKNOWN, Demonstration
+from php_jax.data import agreement, demo_files, views
+from php_jax.demos import UNKNOWN
 from php_jax.model import PHPHierarchy
 from php_jax.training import checkpoint, run, storage
 from php_jax.training.config import DISCOVERY_SPLIT_ROUNDS, WEAK_ONLY_ANNEALING, TrainConfig
@@ -208,7 +208,7 @@ def test_a_report_given_the_drawn_demonstrations_and_their_numbers_is_the_one_th
   read_again = pathlib.Path(run_report.write(str(workdir))).read_text()
   batch, _ = run_view.demonstrations(run_view.load(str(workdir)), None)
   drawn = run_report.drawn_demonstrations(batch)
-  given = Demonstration(*(np.asarray(x)[drawn] for x in batch))
+  given = views.select(batch, drawn)
   page = pathlib.Path(run_report.write(str(workdir), given, drawn)).read_text()
   assert _drawn(page) == _drawn(read_again) and len(_drawn(page)) == 6
   assert f"<h3>demonstration {drawn[0]} of {_results_demos(workdir)} (" in page
