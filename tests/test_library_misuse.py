@@ -14,7 +14,7 @@ import php_jax
 from php_jax import demos, executor
 from php_jax.analysis import annotation_choice
 from php_jax.data import call_tree
-from php_jax.envs import addition, bubblesort, datasets, gym, nanocraft, nanocraft_task
+from php_jax.envs import addition, bubblesort, datasets, gym, nanocraft, nanocraft_task, replay
 from php_jax.hierarchy import HierarchySpec
 from php_jax.inference import stack_lattice as sl
 from php_jax.model import PHPHierarchy, PHPLevel, RootLSTM, RootMLP
@@ -169,6 +169,10 @@ MISUSES = [
     ("from_rollouts: strong [3] for 2", lambda: demos.from_rollouts(ROLLOUTS, [True, False, True]),
      r"strong must be one bool or \[B\] = \[2\] bools"),
     ("validate: spec None", lambda: demos.validate(BATCH, None), "spec must be a HierarchySpec"),
+    ("replay: chunk 0", lambda: replay.replay(TASK.oracle, TASK.spec, BATCH, chunk=0),
+     "chunk must be a positive integer; got 0"),
+    ("replay: chunk 2.5", lambda: replay.replay(TASK.oracle, TASK.spec, BATCH, chunk=2.5),
+     "chunk must be a positive integer; got 2.5"),
     # Gymnasium helpers
     ("flatten_observation: out of Discrete", lambda: gym.flatten_observation(spaces.Discrete(3), 5),
      r"observation 5 is not in Discrete\(3\)"),

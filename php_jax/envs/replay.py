@@ -60,8 +60,8 @@ def replay(policy, spec: HierarchySpec, batch: Demonstration, key: jax.Array | N
   demonstration of batch [B, ...]; see the module docstring. Above `chunk` demonstrations, they run chunk at a
   time (the last chunk padded with copies of its first), so the rollout's memory is bounded by the chunk."""
   num = batch.length.shape[0]
-  if chunk < 1:
-    raise ValueError(f"chunk must be a positive integer; got {chunk}")
+  if not (isinstance(chunk, int) and not isinstance(chunk, bool) and chunk >= 1):
+    raise ValueError(f"chunk must be a positive integer; got {chunk!r}")
   keys = jax.random.split(jax.random.key(0) if key is None else key, num)
   size = max(1, min(num, chunk))
   parts = [Replay(np.zeros(0, bool), np.zeros(0, np.int32))]  # an empty batch's result, and the start of any other's
