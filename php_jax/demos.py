@@ -17,7 +17,8 @@ class Demonstration(NamedTuple):
   """One demonstration (a batch has a leading axis B). T = padded length, d = levels.
 
   Attributes:
-    observations: [T+1, obs_dim] o_0 .. o_length (zero after).
+    observations: [T+1, obs_dim] o_0 .. o_length (zero after): real numbers in any dtype that holds them exactly
+      (the file readers give the narrowest, `compact_dtype`); the networks read them as float32.
     actions: [T, num_factors] int32 elementary actions.
     procedures: [T, d] int32 procedure per level at each step; UNKNOWN where not annotated or padding.
     counters: [T, d] int32 τ per level at each step; UNKNOWN where not annotated or padding.
@@ -31,6 +32,37 @@ class Demonstration(NamedTuple):
   counters: jax.Array
   length: jax.Array
   strong: jax.Array
+
+
+OBSERVATION_DTYPES = ("uint8", "int8", "uint16", "int16", "float16", "float32")  # narrowest first
+_CHECKED_ROWS = 1 << 16  # rows compared at a time, so that the check holds little more than its input
+
+
+def compact_dtype(observations: np.ndarray) -> np.dtype:
+  """The narrowest of OBSERVATION_DTYPES that holds every value of observations [..., D] (as float32) bit for
+  bit (-0.0 is no integer): where observations are small integers, a quarter of float32's memory or less."""
+  values = np.asarray(observations).reshape(-1, np.shape(observations)[-1])
+  candidates = [np.dtype(name) for name in OBSERVATION_DTYPES[:-1]]
+  for start in range(0, len(values), _CHECKED_ROWS):
+    chunk = values[start:start + _CHECKED_ROWS].astype(np.float32)
+    candidates = [dtype for dtype in candidates if _holds(dtype, chunk)]
+  return candidates[0] if candidates else np.dtype(np.float32)
+
+
+def _holds(dtype: np.dtype, values: np.ndarray) -> bool:
+  """Whether dtype gives back float32 values bit for bit."""
+  if dtype.kind in "iu" and values.size:
+    info = np.iinfo(dtype)
+    if not (values.min() >= info.min and values.max() <= info.max):
+      return False
+  with np.errstate(over="ignore", invalid="ignore"):
+    return np.array_equal(values.astype(dtype).astype(np.float32).view(np.uint32), values.view(np.uint32))
+
+
+def compacted(batch: Demonstration) -> Demonstration:
+  """batch with its observations in `compact_dtype` (host side)."""
+  observations = np.asarray(batch.observations)
+  return batch._replace(observations=observations.astype(compact_dtype(observations), copy=False))
 
 
 def from_rollouts(rollouts: Rollout, strong) -> Demonstration:

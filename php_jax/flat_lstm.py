@@ -35,13 +35,14 @@ class FlatLSTMPolicy(nnx.Module):
     self.cell = nnx.LSTMCell(features + sum(action_sizes), hidden, rngs=rngs)
     self.head = nnx.Linear(hidden, sum(action_sizes) + 1, rngs=rngs)
 
-  def initial_carry(self, dtype=jnp.float32):
-    zeros = jnp.zeros(self.hidden, dtype)
+  def initial_carry(self):
+    zeros = jnp.zeros(self.hidden, jnp.float32)
     return zeros, zeros
 
   def step(self, carry, obs: jax.Array, prev_action: jax.Array):
     """obs [D], prev_action [F] int (−1 before the first action) → (carry, [log-probs per factor], stop logit)."""
     previous = [jax.nn.one_hot(prev_action[f], n) for f, n in enumerate(self.action_sizes)]
+    obs = jnp.asarray(obs, jnp.float32)
     obs = obs if self.encoder is None else self.encoder(obs[None])[0]
     carry, h = self.cell(carry, jnp.concatenate([obs, *previous]))
     out = self.head(h)
@@ -62,7 +63,7 @@ class FlatLSTMPolicy(nnx.Module):
       term = jnp.where(t < length, log_action + jax.nn.log_sigmoid(-stop), jax.nn.log_sigmoid(stop))
       return carry, jnp.where(t <= length, term, 0.0)
 
-    _, terms = jax.lax.scan(body, self.initial_carry(observations.dtype),
+    _, terms = jax.lax.scan(body, self.initial_carry(),
                             (observations, previous, targets, jnp.arange(num_steps + 1)))
     return jnp.sum(terms)
 

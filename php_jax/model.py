@@ -156,6 +156,7 @@ class PHPLevel(nnx.Module):
   def encode(self, obs: jax.Array) -> jax.Array:
     """The level's encoding of observations [N, obs_dim]: [N, obs_dim] (no trunk) or [N, trunk]. Without a
     history these are the features every other method takes."""
+    obs = jnp.asarray(obs, jnp.float32)  # a file's observations may be held narrower (`demos.compact_dtype`)
     return obs if self.trunk is None else self.trunk(obs)
 
   def features(self, observations: jax.Array, actions: jax.Array) -> jax.Array:
@@ -226,7 +227,7 @@ class RootMLP(nnx.Module):
     self.head = nnx.Linear(sizes[-1], num_children, rngs=rngs)
 
   def __call__(self, observations: jax.Array) -> jax.Array:
-    x = observations
+    x = jnp.asarray(observations, jnp.float32)
     for layer in self.layers:
       x = jax.nn.relu(layer(x))
     return jax.nn.log_softmax(self.head(x), axis=-1)
@@ -244,8 +245,9 @@ class RootLSTM(nnx.Module):
     self.head = nnx.Linear(hidden, num_children, rngs=rngs)
 
   def __call__(self, observations: jax.Array) -> jax.Array:
-    zeros = jnp.zeros(self.hidden, observations.dtype)
-    _, hidden = jax.lax.scan(lambda carry, obs: self.cell(carry, obs), (zeros, zeros), observations)
+    zeros = jnp.zeros(self.hidden, jnp.float32)
+    _, hidden = jax.lax.scan(lambda carry, obs: self.cell(carry, obs), (zeros, zeros),
+                             jnp.asarray(observations, jnp.float32))
     return jax.nn.log_softmax(self.head(hidden), axis=-1)
 
 

@@ -162,3 +162,33 @@ def test_a_hierarchy_with_trunks_saves_loads_and_acts_the_same(tmp_path):
       args = (level, proc, 1, obs, jax.random.key(0))
       np.testing.assert_array_equal(hierarchy.operation(*args), loaded.operation(*args))
       assert bool(hierarchy.terminates(*args)) == bool(loaded.terminates(*args))
+
+
+def test_networks_read_narrow_observations_as_their_float32_values():
+  """A file's observations may be held as uint8 (`demos.compact_dtype`): every network, and the E-step over a
+  whole hierarchy, give the same numbers as on the float32 values, and compute in float32."""
+  from php_jax.demos import Demonstration, UNKNOWN
+  from php_jax.flat_lstm import FlatLSTMPolicy
+  from php_jax.training import objective
+  rng = np.random.default_rng(0)
+  narrow = rng.integers(0, 256, (6, 5)).astype(np.uint8)
+  wide = narrow.astype(np.float32)
+  for level in (PHPLevel(2, 5, (3,), hidden=(8,), rngs=nnx.Rngs(0)),
+                PHPLevel(2, 5, (3,), hidden=(8,), trunk=4, rngs=nnx.Rngs(0))):
+    assert level.encode(narrow).dtype == jnp.float32
+    np.testing.assert_array_equal(level.encode(narrow), level.encode(wide))
+  for root in (RootMLP(5, 3, (8,), rngs=nnx.Rngs(0)), RootLSTM(5, 3, 8, rngs=nnx.Rngs(0))):
+    np.testing.assert_array_equal(root(narrow), root(wide))
+  flat = FlatLSTMPolicy(5, (3,), 8, rngs=nnx.Rngs(0))
+  actions, length = jnp.array([[0], [2], [1], [1], [0]]), jnp.int32(4)
+  np.testing.assert_array_equal(flat.log_likelihood(narrow, actions, length), flat.log_likelihood(wide, actions, length))
+  task = tasks.get("addition")
+  hierarchy = PHPHierarchy(task.spec, hidden=(8,), rngs=nnx.Rngs(1))
+  obs = rng.integers(0, 2, (2, 4, task.spec.obs_dim)).astype(np.uint8)
+  unknown = np.full((2, 3, task.spec.num_levels), UNKNOWN, np.int32)
+  demos = Demonstration(obs, rng.integers(0, 2, (2, 3, len(task.spec.action_sizes))).astype(np.int32), unknown,
+                        unknown, np.array([3, 2], np.int32), np.zeros(2, bool))
+  capacity = (4,) * task.spec.num_levels
+  np.testing.assert_array_equal(
+      objective.stack_log_likelihoods(hierarchy, demos, capacity),
+      objective.stack_log_likelihoods(hierarchy, demos._replace(observations=obs.astype(np.float32)), capacity))

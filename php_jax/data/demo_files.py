@@ -44,7 +44,7 @@ from php_jax.data import json_lines, shards
 from php_jax.data.demo_checks import (DemoFileError, action_error, check_stack, counter_error, fitted_spec,
                                       observation_size_error)
 from php_jax.data.files import write_atomically
-from php_jax.demos import UNKNOWN, Demonstration
+from php_jax.demos import UNKNOWN, Demonstration, compacted
 from php_jax.hierarchy import HierarchySpec
 
 HIERARCHY_KEYS = ("levels", "action_sizes", "name", "capacity", "hidden", "calls", "observes", "action_names",
@@ -341,8 +341,9 @@ def _batch(parsed: list, depth: int) -> Demonstration:
     observations[b, :len(o)], actions[b, :len(a)] = o, a
     if p is not None:
       procs[b, :len(a)], taus[b, :len(a)] = p, c
-  return Demonstration(observations, actions, procs, taus, np.array([len(a) for _, a, _, _ in parsed], np.int32),
-                       np.array([p is not None for _, _, p, _ in parsed]))
+  return compacted(Demonstration(observations, actions, procs, taus,
+                                 np.array([len(a) for _, a, _, _ in parsed], np.int32),
+                                 np.array([p is not None for _, _, p, _ in parsed])))
 
 
 def demonstration_lines(batch: Demonstration, annotated) -> list[str]:
@@ -351,7 +352,7 @@ def demonstration_lines(batch: Demonstration, annotated) -> list[str]:
   obs, actions = np.asarray(batch.observations), np.asarray(batch.actions)
   procs, taus = np.asarray(batch.procedures), np.asarray(batch.counters)
   for b, n in enumerate(np.asarray(batch.length)):
-    line = {"observations": obs[b, :n + 1].tolist(), "actions": actions[b, :n].tolist()}
+    line = {"observations": obs[b, :n + 1].astype(np.float32).tolist(), "actions": actions[b, :n].tolist()}
     if annotated[b]:
       line["stack"] = [[[int(h), int(tau)] if h != UNKNOWN else None for h, tau in zip(procs[b, t], taus[b, t])]
                        for t in range(n)]

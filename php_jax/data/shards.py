@@ -41,7 +41,7 @@ import numpy as np
 
 from php_jax.data import files, json_lines
 from php_jax.data.demo_checks import DemoFileError, action_error, check_stack, fitted_spec, observation_size_error
-from php_jax.demos import UNKNOWN, Demonstration
+from php_jax.demos import OBSERVATION_DTYPES, UNKNOWN, Demonstration, compact_dtype
 from php_jax.hierarchy import HierarchySpec
 
 SUFFIX = ".shards"  # a writer's path ending in it gets this format
@@ -49,7 +49,7 @@ MANIFEST = "manifest.json"
 FORMAT = "php_jax demonstration shards"
 VERSION = 1
 SHARD_SIZE = 1000
-ENCODINGS = ("uint8", "float16", "float32")  # narrowest first
+ENCODINGS = OBSERVATION_DTYPES  # narrowest first
 COMPRESSION_LEVEL = 1  # zlib's fastest: a third of level 6's writing time, 1.7 times its size (measured)
 _MANIFEST_KEYS = ("format", "version", "observation_size", "shards")
 _ENTRY_KEYS = ("file", "demonstrations", "steps", "observations", "bytes", "sha256")
@@ -63,7 +63,8 @@ Unpadded = tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]
 
 
 class _Ragged(NamedTuple):
-  """A shard's demonstrations one after another: observations [Σ(T+1), D] float32, actions [ΣT, F] int32,
+  """A shard's demonstrations one after another: observations [Σ(T+1), D] (float32 to write; read: as stored),
+  actions [ΣT, F] int32,
   lengths [n] int32, annotated [n] bool, procedures and counters [Σ annotated T, d] int32."""
   observations: np.ndarray
   actions: np.ndarray
@@ -145,7 +146,7 @@ def _write_shard(directory: str, number: int, chunk: list, first: int, shape: tu
   """Writes chunk's demonstrations (the first numbered first in the set; shape: as `_joined`'s) as shard
   number; (its manifest entry, the shape)."""
   ragged, shape = _joined(chunk, first, shape)
-  encoding = _encoding(ragged.observations)
+  encoding = compact_dtype(ragged.observations).name
   data = _archive({**ragged._asdict(), "observations": ragged.observations.astype(encoding)})
   name = f"shard-{number:05d}.npz"
   _write_new(os.path.join(directory, name), data)
@@ -177,19 +178,6 @@ def _joined(chunk: list, first: int, shape: tuple | None) -> tuple[_Ragged, tupl
                    np.array([len(a) for _, a, _, _ in chunk], np.int32),
                    np.array([p is not None for _, _, p, _ in chunk]), procedures, counters)
   return ragged, (obs_dim, factors, depth)
-
-
-def _encoding(observations: np.ndarray) -> str:
-  """The narrowest of ENCODINGS whose values give back observations [S, D] float32 bit for bit (-0.0 is not
-  a uint8)."""
-  bits = observations.view(np.uint32)
-  with np.errstate(over="ignore", invalid="ignore"):
-    if observations.min() >= 0 and observations.max() <= 255:
-      if np.array_equal(observations.astype(np.uint8).astype(np.float32).view(np.uint32), bits):
-        return "uint8"
-    if np.array_equal(observations.astype(np.float16).astype(np.float32).view(np.uint32), bits):
-      return "float16"
-  return "float32"
 
 
 def _archive(arrays: dict[str, np.ndarray]) -> bytes:
@@ -253,6 +241,7 @@ def read_demonstrations(path: str, spec: HierarchySpec) -> tuple[Demonstration, 
   size; what `demo_files.read_demonstrations` gives for the JSON lines the set was written from."""
   parts = list(_shards(path, spec))
   joined = _Ragged(*(np.concatenate(arrays) for arrays in zip(*parts)))
+  joined = joined._replace(observations=joined.observations.astype(compact_dtype(joined.observations), copy=False))
   return _padded(joined, spec.num_levels), fitted_spec(path, spec, joined.observations.shape[1])
 
 
@@ -378,8 +367,8 @@ def _loaded(data: bytes, entry: dict, obs_dim: int) -> _Ragged:
   _expect(arrays, "actions", np.int32, (steps, None))
   _expect(arrays, "procedures", np.int32, (annotated_steps, None))
   _expect(arrays, "counters", np.int32, arrays["procedures"].shape)
-  observations = arrays.pop("observations").astype(np.float32)
-  if not np.isfinite(observations).all():
+  observations = arrays.pop("observations")
+  if observations.dtype.kind == "f" and not np.isfinite(observations).all():
     raise ValueError("its observations hold NaN or infinity")
   return _Ragged(observations=observations, **arrays)
 
@@ -478,7 +467,7 @@ def _padded(ragged: _Ragged, depth: int) -> Demonstration:
   starts = np.cumsum(lengths) - lengths
   demo = np.repeat(np.arange(num), lengths)
   t = np.arange(len(demo)) - np.repeat(starts, lengths)
-  observations = np.zeros((num, width + 1, ragged.observations.shape[1]), np.float32)
+  observations = np.zeros((num, width + 1, ragged.observations.shape[1]), ragged.observations.dtype)
   rows = np.arange(len(ragged.observations)) - np.repeat(starts + np.arange(num), lengths + 1)
   observations[np.repeat(np.arange(num), lengths + 1), rows] = ragged.observations
   actions = np.zeros((num, width, ragged.actions.shape[1]), np.int32)

@@ -181,7 +181,7 @@ def _pack(demos: Demonstration, level: int, times: list[np.ndarray], actions: li
   num_demos, width = len(times), max(1, max(len(t) for t in times))
   num_factors = actions[0].shape[1] if actions[0].ndim == 2 else 1
   view = LevelView(
-      observations=np.zeros((num_demos, width + 1, obs.shape[-1]), np.float32),
+      observations=np.zeros((num_demos, width + 1, obs.shape[-1]), obs.dtype),
       actions=np.zeros((num_demos, width, num_factors), np.int32),
       procedures=np.full((num_demos, width), UNKNOWN, np.int32),
       counters=np.full((num_demos, width), UNKNOWN, np.int32),

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 from experiments.common import problems as problem_files
 from php_jax.data import demo_files, json_lines
+from php_jax.demos import OBSERVATION_DTYPES
 from php_jax.envs import tasks
 from php_jax.hierarchy import HierarchySpec
 from tests import processes
@@ -84,7 +85,7 @@ def _demos(path: str):
   read = _read_or_refuse(lambda: demo_files.read_demonstrations(path, SPEC), path, demo_files.DemoFileError)
   if read is not None:
     batch, spec = read
-    assert batch.observations.dtype == np.float32 and np.isfinite(batch.observations).all()
+    assert batch.observations.dtype.name in OBSERVATION_DTYPES and np.isfinite(batch.observations).all()
     assert ((0 <= batch.actions) & (batch.actions < np.array(SPEC.action_sizes))).all()
     assert (batch.counters < batch.observations.shape[1]).all() and spec.obs_dim > 0
 

@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 
 from php_jax.analysis import annotation_choice
 from php_jax.data import demo_checks, demo_files, shards
+from php_jax.demos import OBSERVATION_DTYPES, compact_dtype
 from php_jax.envs import datasets, gym, tasks
 from php_jax.hierarchy import HierarchySpec
 from tests import processes
@@ -42,12 +43,14 @@ def _json_file(tmp_path, lines, name="d.jsonl") -> str:
 
 
 def _assert_same(a, b):
-  """Two batches hold the same arrays: dtypes, shapes and values (observations bit for bit, -0.0 kept)."""
+  """Two batches hold the same arrays: dtypes, shapes and values (observations as float32 bit for bit, -0.0
+  kept, in whatever type each holds them)."""
   for name, x, y in zip(a._fields, a, b):
     x, y = np.asarray(x), np.asarray(y)
+    if name == "observations":
+      x, y = (v.astype(np.float32).view(np.uint32) for v in (x, y))
     assert x.dtype == y.dtype and x.shape == y.shape, (name, x.dtype, y.dtype, x.shape, y.shape)
-    assert np.array_equal(x.view(np.uint32) if name == "observations" else x,
-                          y.view(np.uint32) if name == "observations" else y), name
+    assert np.array_equal(x, y), name
 
 
 @pytest.fixture
@@ -78,6 +81,7 @@ def test_json_to_binary_to_json_reads_to_the_same_arrays(written, tmp_path):
   binary, spec = demo_files.read_demonstrations(out, SPEC)
   assert spec == demo_files.read_demonstrations(path, SPEC)[1] and spec.obs_dim == 4
   _assert_same(batch, binary)
+  assert binary.observations.dtype == batch.observations.dtype == np.float32  # 0.1 is no float16
   assert np.asarray(binary.procedures)[2, 0].tolist() == [-1, -1, -1] and binary.strong.tolist() == [1, 0, 1, 1, 1]
   back = str(tmp_path / "back.jsonl")
   demo_files.write_demonstrations(back, binary, binary.strong)
@@ -86,6 +90,56 @@ def test_json_to_binary_to_json_reads_to_the_same_arrays(written, tmp_path):
   demo_files.write_demonstrations(again, binary, binary.strong, shard_size=2)
   assert all(open(os.path.join(out, n), "rb").read() == open(os.path.join(again, n), "rb").read()
              for n in os.listdir(out))
+
+
+def _holds_each(dtype: np.dtype, values: np.ndarray) -> bool:
+  """Whether every value, one at a time, comes back from dtype as the same float32 bits."""
+  for x in values.ravel():
+    if dtype.kind in "iu" and not (np.iinfo(dtype).min <= x <= np.iinfo(dtype).max and float(x).is_integer()):
+      return False
+    with np.errstate(over="ignore"):
+      if np.float32(dtype.type(x)).view(np.uint32) != x.view(np.uint32):
+        return False
+  return True
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.sampled_from([0, 1, 7, 255, 256, -1, -128, -129, 300, 65535, 65536, -32768, -32769, 0.5,
+                                 -0.0, 1024.25, 2049, 1e-30, 0.1, 1e5]), min_size=1, max_size=12),
+       st.integers(1, 3))
+def test_compact_dtype_is_the_narrowest_that_holds_every_value(values, columns):
+  observations = np.resize(np.array(values, np.float32), (max(1, len(values) // columns), columns))
+  chosen = compact_dtype(observations)
+  assert chosen.name in OBSERVATION_DTYPES and _holds_each(chosen, observations)
+  assert not any(_holds_each(np.dtype(d), observations) for d in OBSERVATION_DTYPES[:OBSERVATION_DTYPES.index(chosen.name)])
+
+
+def test_compact_dtype_reads_every_row_of_a_large_array():
+  zeros = np.zeros((1 << 17, 2), np.float32)  # rows are checked a block at a time: the last block decides here
+  assert compact_dtype(zeros) == np.uint8
+  assert compact_dtype(np.concatenate([zeros, [[300, 0]]])) == np.uint16
+  assert compact_dtype(np.concatenate([zeros, [[-1, 0]], [[0.5, 0]]])) == np.float16
+
+
+@pytest.mark.parametrize("values, stored, read", [
+    ([[[-1, 5]], [[3, 0]]], ["int8", "uint8"], np.int8),
+    ([[[300, 0]], [[-2, 1]]], ["uint16", "int8"], np.int16),
+    ([[[-300, 2]], [[0.5, 1]]], ["int16", "float16"], np.float16),
+    ([[[70000, 0]], [[1, 1]]], ["float32", "uint8"], np.float32),
+    ([[[255, 0]], [[256, 1]]], ["uint8", "uint16"], np.uint16)])
+def test_each_shard_and_each_read_holds_observations_in_the_narrowest_exact_type(tmp_path, values, stored, read):
+  spec = HierarchySpec("t", (("r",), ("x",)), (2,), 0)
+  lines = [{"observations": obs * 2, "actions": [[0]]} for obs in values]
+  path = _json_file(tmp_path, lines)
+  batch, _ = demo_files.read_demonstrations(path, spec)
+  out = str(tmp_path / "d.shards")
+  demo_files.write_demonstrations(out, batch, batch.strong, shard_size=1)
+  with open(os.path.join(out, shards.MANIFEST)) as f:
+    assert [e["observations"] for e in json.load(f)["shards"]] == stored
+  binary, _ = demo_files.read_demonstrations(out, spec)
+  assert binary.observations.dtype == batch.observations.dtype == read
+  _assert_same(batch, binary)
+  assert np.array_equal(binary.observations, np.array([obs * 2 for obs in values], np.float32))
 
 
 def test_iter_shards_yields_the_whole_read_a_shard_at_a_time(written):

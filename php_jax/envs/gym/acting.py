@@ -62,7 +62,7 @@ def _lstm_decisions(policy: FlatLSTMPolicy, memory: _Carry, obs, fresh):
   """Per copy: the LSTM's step on obs (from its initial carry where fresh): stop, or the next action."""
 
   def one(carry, previous, o, is_fresh):
-    carry = jax.tree.map(lambda c, c0: jnp.where(is_fresh, c0, c), carry, policy.initial_carry(o.dtype))
+    carry = jax.tree.map(lambda c, c0: jnp.where(is_fresh, c0, c), carry, policy.initial_carry())
     previous = jnp.where(is_fresh, -1, previous)
     carry, factors, stop = policy.step(carry, o, previous)
     action = jnp.stack([jnp.argmax(lp) for lp in factors]).astype(jnp.int32)
