@@ -273,7 +273,8 @@ def bench_scaling():
   spec, num_demos = task.spec, _NUM_DEMOS.value or task.defaults.num_demos
   demos = datasets.training_demos(task, 1, num_demos, min(_NUM_STRONG.value, num_demos))
   config = TrainConfig(hidden=tuple(int(h) for h in _HIDDEN.value), root=_ROOT.value,
-                             strong_weight=balanced_strong_weight(demos.strong))
+                             strong_weight=balanced_strong_weight(demos.strong),
+                             length_buckets=views.bucket_count(demos.length))
   mesh, num_devices = sharding.data_mesh(), len(jax.devices())
   annotated = demos._replace(strong=np.ones_like(demos.strong))  # every demonstration's true views, above too
   level_views = views.annotated_views(annotated, spec.num_levels)
@@ -316,9 +317,9 @@ def bench_scaling():
   capacity = joint.joint_capacity(demos, spec, config)
   graphdef, params, rest = nnx.split(networks.make_hierarchy(spec, config), nnx.Param, ...)
   loss = lambda p, b: objective.stack_loss(nnx.merge(graphdef, p, rest), b, capacity, config.strong_weight)
-  one = joint._buckets(demos, config.length_buckets)
+  one = views.demonstration_buckets(demos, config.length_buckets)
   devices_row(f"joint loss (C = {','.join(map(str, capacity))})", jax.jit(jax.value_and_grad(loss)), params, one,
-              joint._buckets(demos, config.length_buckets, mesh))
+              views.demonstration_buckets(demos, config.length_buckets, mesh))
   seed_losses["joint loss"] = (loss, [nnx.split(networks.make_hierarchy(spec, dataclasses.replace(config, seed=s)),
                                                 nnx.Param, ...)[1] for s in range(_SEEDS.value)], one)
 

@@ -53,6 +53,22 @@ def select(batch: Batch, rows: np.ndarray) -> Batch:
   return type(batch)(*(np.asarray(x)[rows] for x in batch))
 
 
+LEAST_BUCKETS, MOST_BUCKETS = 4, 8  # the range `bucket_count` chooses in
+MOST_PADDING = 0.25  # the share of the steps computed that `bucket_count` lets be padding
+
+
+def bucket_count(lengths: np.ndarray) -> int:
+  """The fewest length buckets, from LEAST_BUCKETS to MOST_BUCKETS, whose `length_groups` of lengths [B] leave at
+  most MOST_PADDING of the steps computed as padding (MOST_BUCKETS where none does). Each bucket is one more
+  compiled program, hence the fewest."""
+  lengths = np.asarray(lengths)
+  for count in range(LEAST_BUCKETS, MOST_BUCKETS):
+    computed = sum(len(group) * longest for group, longest in length_groups(lengths, count))
+    if 1.0 - int(lengths.sum()) / computed <= MOST_PADDING:
+      return count
+  return MOST_BUCKETS
+
+
 def length_groups(lengths: np.ndarray, num_buckets: int) -> list[tuple[np.ndarray, int]]:
   """The indices of lengths [B] in ascending order of length, split into min(num_buckets, B) groups, each
   padded to its longest: (indices, longest length) per group. The split points leave the fewest padding steps
@@ -95,9 +111,12 @@ def padding_fraction(buckets: list[Batch]) -> float:
   return 1.0 - sum(int(np.sum(b.length)) for b in buckets) / computed if computed else 0.0
 
 
-def length_buckets(batch: Batch, num_buckets: int) -> list[Batch]:
-  """batch (LevelView or Demonstration [B, ...]) in `length_groups` (`grouped`)."""
-  return grouped(batch, [group for group, _ in length_groups(np.asarray(batch.length), num_buckets)])
+def length_buckets(batch: Batch, num_buckets: int | None) -> list[Batch]:
+  """batch (LevelView or Demonstration [B, ...]) in `length_groups` (`grouped`): num_buckets of them, or where
+  None, `bucket_count`'s."""
+  lengths = np.asarray(batch.length)
+  count = bucket_count(lengths) if num_buckets is None else num_buckets
+  return grouped(batch, [group for group, _ in length_groups(lengths, count)])
 
 
 def grouped(batch: Batch, groups: list[np.ndarray]) -> list[Batch]:
@@ -129,7 +148,7 @@ def device_demonstrations(demos: Demonstration, mesh: Mesh | None = None) -> tup
   return sharding.put(sharding.pad(strong_annotations_only(demos), mesh), mesh)
 
 
-def demonstration_buckets(demos: Demonstration, num_buckets: int,
+def demonstration_buckets(demos: Demonstration, num_buckets: int | None,
                           mesh: Mesh | None = None) -> list[tuple[Demonstration, jax.Array]]:
   """`length_buckets` of demos as device arrays (`device_demonstrations`): (batch, real [B]) each."""
   return [device_demonstrations(bucket, mesh) for bucket in length_buckets(demos, num_buckets)]

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from php_jax import fitting
+from php_jax.data import views
 from php_jax.demos import Demonstration
 from php_jax.demos import validate as validate_demos
 from php_jax.hierarchy import HierarchySpec
@@ -106,9 +107,11 @@ class TrainConfig:
   eval_every: int = _setting(100, "Iterations between logged losses, checkpoints and validated snapshots.", "int")
   snapshot: str = _setting("latest", "Which of the equally best-validated snapshots is kept.", "str",
                            fitting.SNAPSHOT_RULES)
-  length_buckets: int = _setting(4, "Demonstrations (level-wise: views) are batched by length into this many "
-                                 "buckets, each padded to its longest, split where they leave the fewest padding "
-                                 "steps (a run logs the padded share).", "int")
+  length_buckets: int | None = _setting(
+      None, "Demonstrations (level-wise: views) are batched by length into this many buckets, each padded to its "
+      "longest, split where they leave the fewest padding steps (a run logs the padded share); unset: the fewest "
+      f"from {views.LEAST_BUCKETS} to {views.MOST_BUCKETS} that leave at most {views.MOST_PADDING:.0%} of the "
+      f"demonstrations' steps computed as padding ({views.MOST_BUCKETS} where none does).", "int")
   batch_size: int | None = _setting(
       None, "Demonstrations (level-wise: views) per Adam update, drawn afresh at each from every length bucket "
       "in proportion (minibatch Expectation–Gradient: each update's E-step is exact for its demonstrations); "
@@ -172,7 +175,8 @@ class TrainConfig:
   def __post_init__(self):
     """Raises ConfigError naming the first setting that is not allowed."""
     for name in ("root_hidden", "capacity", "eval_every", "length_buckets"):
-      if not (_is_int(getattr(self, name)) and getattr(self, name) >= 1):
+      if not (_is_int(getattr(self, name)) and getattr(self, name) >= 1
+              or name == "length_buckets" and self.length_buckets is None):
         raise ConfigError(name, f"must be a positive integer; got {getattr(self, name)!r}")
     # 0 iterations: a warm-up alone
     for name in ("iterations", "strong_warmup", "seed", "split_iterations", "split_hint_iterations"):
@@ -289,7 +293,7 @@ def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, fla
   call graph (which says itself which procedure takes which operation) and config.segment_rule applies to
   their actions (`segmentation.read_rule`), the segmentation for half the iterations (else 0), and
   DISCOVERY_SPLIT_ROUNDS of the split search where that rule is "loops" (else 0); the batch size
-  (`batch_size_for`)."""
+  (`batch_size_for`); the length buckets (`views.bucket_count` of the demonstrations' lengths)."""
   strong = np.asarray(demos.strong)
   strong_weight = balanced_strong_weight(strong) if config.strong_weight is None else config.strong_weight
   training = training_mode(config, bool(strong.any())) if not flat_lstm else config.training or "levelwise"
@@ -307,7 +311,8 @@ def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, fla
       anneal_temperature=unset_or(config.anneal_temperature, WEAK_ONLY_ANNEALING if weak_only else 1.0),
       segment_iterations=unset_or(config.segment_iterations, config.iterations // 2 if rule else 0),
       split_rounds=unset_or(config.split_rounds, DISCOVERY_SPLIT_ROUNDS if rule and rule.name == "loops" else 0),
-      batch_size=batch_size_for(config, len(strong)))
+      batch_size=batch_size_for(config, len(strong)),
+      length_buckets=unset_or(config.length_buckets, views.bucket_count(demos.length)))
 
 
 def batch_size_for(config: TrainConfig, num_demos: int) -> int:

@@ -81,7 +81,9 @@ class LevelFit:
       capacity = self.capacities[0]
       return [fitting.fit(self.models[0], lambda m, buckets: level_loss(m, buckets, capacity, weights[0]), schedule,
                           hooks.of_first_model(), resume and resume[0], args=(buckets,), mesh=mesh)]
-    buckets = views.stack_seeds([views.length_buckets(p, config.length_buckets) for p in parts], mesh)
+    count = max(views.bucket_count(p.length) if c.length_buckets is None else c.length_buckets
+                for p, c in zip(parts, self.configs))  # every seed with as many buckets
+    buckets = views.stack_seeds([views.length_buckets(p, count) for p in parts], mesh)
     weights, used = sharding.replicate((np.asarray(weights, np.float32), np.asarray(self.capacities, np.int32)),
                                        mesh)
     largest = max(self.capacities)

@@ -150,7 +150,7 @@ def run_settings(spec: HierarchySpec, demos: Demonstration, config: TrainConfig)
 
 # Settings whose default differs from what runs did before the setting existed.
 _BEFORE_THEY_EXISTED = {"snapshot": "earliest", "anneal_temperature": 1.0, "training": "levelwise",
-                        "segment_iterations": 0, "split_rounds": 0}
+                        "segment_iterations": 0, "split_rounds": 0, "length_buckets": 4}
 
 
 def saved_config(saved: dict) -> dict:

@@ -39,3 +39,37 @@ def test_a_long_outlier_gets_a_bucket_of_its_own_where_equal_counts_would_pad_a_
   steps = sum(int(np.sum(b.length)) for b in buckets)
   computed = sum(b.actions.shape[0] * b.actions.shape[1] for b in buckets)
   assert 0 <= padding < 1 and np.isclose(padding, 1 - steps / computed)
+
+
+def _padding(lengths, count) -> float:
+  groups = views.length_groups(lengths, count)
+  return 1 - lengths.sum() / sum(len(g) * width for g, width in groups)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.integers(1, 200), min_size=1, max_size=60))
+def test_bucket_count_is_the_fewest_from_4_to_8_that_pad_at_most_a_quarter(lengths):
+  lengths = np.asarray(lengths)
+  count = views.bucket_count(lengths)
+  assert views.LEAST_BUCKETS <= count <= views.MOST_BUCKETS
+  assert all(_padding(lengths, c) > views.MOST_PADDING for c in range(views.LEAST_BUCKETS, count))
+  assert count == views.MOST_BUCKETS or _padding(lengths, count) <= views.MOST_PADDING
+  assert len(views.length_buckets(views.LevelView(*[np.zeros((len(lengths), 1))] * 4, lengths, *[np.zeros(
+      len(lengths))] * 3), None)) == min(count, len(lengths))
+
+
+def test_lengths_spread_far_get_more_buckets_and_a_run_records_how_many():
+  from php_jax.demos import Demonstration, UNKNOWN
+  from php_jax.hierarchy import HierarchySpec
+  from php_jax.training.config import TrainConfig, resolved
+  spread = np.unique(np.round(np.logspace(0, 3, 60)).astype(int))  # lengths 1 to 1,000, evenly on a log scale
+  assert [round(_padding(spread, c), 2) for c in (4, 5, 6)] == [0.32, 0.26, 0.22] and views.bucket_count(spread) == 6
+  assert views.bucket_count(np.array([5] * 10 + [6] * 10)) == 4
+  spec = HierarchySpec("t", (("r",), ("a",)), (2,), 1)
+  width = int(spread.max())
+  demos = Demonstration(np.zeros((len(spread), width + 1, 1), np.float32), np.zeros((len(spread), width, 1), np.int32),
+                        np.full((len(spread), width, 2), UNKNOWN, np.int32), np.full((len(spread), width, 2), UNKNOWN,
+                                                                                     np.int32),
+                        spread.astype(np.int32), np.zeros(len(spread), bool))
+  assert resolved(TrainConfig(), demos, spec).length_buckets == views.bucket_count(spread)
+  assert resolved(TrainConfig(length_buckets=2), demos, spec).length_buckets == 2
