@@ -8,6 +8,7 @@ r"""Benchmarks as commands: ratios against baselines measured in the same proces
   python -m experiments.benchmark act --policy=RUN --env=ENV --num_envs=64  # a policy in a Gymnasium env vs the env
   python -m experiments.benchmark demo_files --num_demos=300  # the binary demonstration format vs JSON lines
   python -m experiments.benchmark fast_path --num_demos=1000  # one EG update on BabyAI-sized data, each speed-up
+  python -m experiments.benchmark fast_path --demos=F --hierarchy=H --env=E  # the same on your demonstrations
   python -m experiments.benchmark many_demos --demos=F --hierarchy=H --copies=1,10,100  # fit's memory and speed
 
 estep times values + marginals for B demonstrations of T steps (vmapped, jitted) at the paper's sizes and beyond,
@@ -64,11 +65,11 @@ _NUM_STRONG = flags.DEFINE_integer("num_strong", 3, "train_step, scaling: annota
 _NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "scaling: demonstrations of the training set (default: the "
                                   "task's); demo_files, fast_path: synthetic demonstrations (default: 300).")
 _POLICY = flags.DEFINE_string("policy", None, "act: a workdir of experiments.fit.")
-_ENV = flags.DEFINE_string("env", None, "act, many_demos: the Gymnasium environment (what experiments.act and "
-                           "experiments.fit --env take).")
-_DEMOS = flags.DEFINE_string("demos", None, "many_demos: the demonstrations to copy (what experiments.fit --demos "
-                             "takes).")
-_HIERARCHY = flags.DEFINE_string("hierarchy", None, "many_demos: their hierarchy file.")
+_ENV = flags.DEFINE_string("env", None, "act, many_demos, fast_path: the Gymnasium environment (what "
+                           "experiments.act and experiments.fit --env take).")
+_DEMOS = flags.DEFINE_string("demos", None, "many_demos: the demonstrations to copy; fast_path: the demonstrations "
+                             "timed (default: synthetic ones). What experiments.fit --demos takes.")
+_HIERARCHY = flags.DEFINE_string("hierarchy", None, "many_demos, fast_path: their hierarchy file.")
 _COPIES = flags.DEFINE_list("copies", ["1", "10", "100"], "many_demos: copies of --demos each fit trains on.")
 _ITERATIONS = flags.DEFINE_integer("iterations", 300, "many_demos: each fit's --iterations.")
 _NUM_ENVS = flags.DEFINE_integer("num_envs", 64, "act: copies of the environment stepped together.")
@@ -408,9 +409,9 @@ def bench_fast_path():
   one and all together: length buckets split where they pad least (instead of equal counts), a trunk per
   level (--trunk), minibatches (--batch_size). Prints ms per update, the ratio to the baseline, and each
   bucketing's padded share of the steps computed."""
-  demos = babyai_like_demos(_NUM_DEMOS.value or 300)
-  view = views.lowest_view(demos, BABYAI_LIKE.num_levels)
-  level, hidden = BABYAI_LIKE.num_levels - 1, tuple(int(h) for h in _HIDDEN.value)
+  demos, spec, described = _fast_path_data()
+  view = views.lowest_view(demos, spec.num_levels)
+  level, hidden = spec.num_levels - 1, tuple(int(h) for h in _HIDDEN.value)
   equal_counts = views.grouped(view, np.array_split(np.argsort(view.length, kind="stable"), 4))
   fewest = views.length_buckets(view, 4)
   variants = [("today: equal-count buckets, no trunk, every view", equal_counts, None, None),
@@ -418,14 +419,14 @@ def bench_fast_path():
               ("+ trunk 64", fewest, 64, None),
               (f"+ batch_size {_BATCH.value}", fewest, None, _BATCH.value),
               (f"all: trunk 64, batch_size {_BATCH.value}", fewest, 64, _BATCH.value)]
-  print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}); {len(demos.length)} BabyAI-sized "
-        f"demonstrations, level {level}: hidden {hidden}; padded share of the steps computed: equal counts "
+  print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}); {described}, level {level}: hidden "
+        f"{hidden}; padded share of the steps computed: equal counts "
         f"{views.padding_fraction(equal_counts):.3f}, fewest padded {views.padding_fraction(fewest):.3f}")
   rows, first = [], None
   for name, parts, trunk, batch in variants:
     config = TrainConfig(hidden=hidden, root="mlp", trunk=trunk, batch_size=batch,
                          strong_weight=balanced_strong_weight(demos.strong))
-    model = levelwise.level_model(BABYAI_LIKE, networks.make_hierarchy(BABYAI_LIKE, config), level, config)
+    model = levelwise.level_model(spec, networks.make_hierarchy(spec, config), level, config)
     buckets = [views.device_view(b) for b in parts]
     capacity = levelwise.level_capacity(view, level, config)
     loss = fitting.minibatched(lambda m, b: objective.level_loss(m, b, capacity, config.strong_weight), batch,
@@ -438,6 +439,22 @@ def bench_fast_path():
     rows.append({"what": name, "ms": seconds * 1e3, "speedup": first / seconds})
     print(f"{name:>44}: {seconds * 1e3:8.1f} ms per update  ({first / seconds:.1f}× today's)")
   return rows
+
+
+def _fast_path_data() -> tuple[Demonstration, HierarchySpec, str]:
+  """fast_path's demonstrations, their hierarchy and a description: --demos read with --hierarchy (and, as fit
+  reads them, the observation fields of --env), else --num_demos synthetic ones (`babyai_like_demos`)."""
+  if not _DEMOS.value:
+    num = _NUM_DEMOS.value or 300
+    return babyai_like_demos(num), BABYAI_LIKE, f"{num} BabyAI-sized synthetic demonstrations"
+  if not _HIERARCHY.value:
+    raise app.UsageError("fast_path with --demos needs --hierarchy")
+  spec = demo_files.read_hierarchy(_HIERARCHY.value).spec
+  if _ENV.value and spec.observation is None:
+    from php_jax.envs import gym  # gymnasium is an optional extra
+    spec = dataclasses.replace(spec, observation=gym.env_observation_fields(_ENV.value))
+  demos, spec = demo_files.read_demonstrations(_DEMOS.value, spec)
+  return demos, spec, f"{len(demos.length)} demonstrations of {_DEMOS.value}"
 
 
 def _size(path: str) -> int:

@@ -98,9 +98,7 @@ def run() -> dict:
     raise config_flags.UsageError(str(e)) from None
   try:
     if _ENV.value and hierarchy.spec.observation is None:
-      env = gym.env_maker(_ENV.value)()
-      fields = gym.observation_fields(env.observation_space)
-      env.close()
+      fields = gym.env_observation_fields(_ENV.value)
       hierarchy = dataclasses.replace(hierarchy, spec=dataclasses.replace(hierarchy.spec, observation=fields))
     demos, spec = demo_files.read_demonstrations(_DEMOS.value, hierarchy.spec)
   except (demo_files.DemoFileError, gym.GymError) as e:

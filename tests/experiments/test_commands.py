@@ -54,6 +54,20 @@ def test_many_demos_benchmark_fits_each_number_of_copies(tmp_path):
   assert all(r["peak_gb"] > 0 and r["s_per_update"] > 0 and r["steps_per_s"] > 0 for r in rows)
 
 
+@pytest.mark.slow
+def test_fast_path_benchmark_times_a_users_demonstrations(tmp_path):
+  out = tmp_path / "fast.json"
+  proc = subprocess.run([sys.executable, "-m", "experiments.benchmark", "fast_path",
+                         f"--demos={ROOT / 'examples' / 'warehouse' / 'train.jsonl'}",
+                         f"--hierarchy={ROOT / 'examples' / 'warehouse' / 'warehouse.json'}", "--batch_size=4",
+                         "--hidden=8", "--min_time=0", f"--out={out}"], capture_output=True, text=True, timeout=900,
+                        cwd=ROOT)
+  assert proc.returncode == 0, proc.stderr[-3000:]
+  assert "40 demonstrations of" in proc.stdout and "today's)" in proc.stdout
+  rows = json.loads(out.read_text())
+  assert len(rows) == 5 and rows[0]["speedup"] == 1.0 and all(r["ms"] > 0 for r in rows)
+
+
 def test_benchmark_rejects_unknown_command():
   proc = subprocess.run([sys.executable, "-m", "experiments.benchmark", "nonsense"], capture_output=True,
                         text=True, timeout=120, cwd=ROOT)

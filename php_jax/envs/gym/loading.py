@@ -8,7 +8,8 @@ from typing import Any
 import gymnasium
 
 from php_jax.envs import import_path
-from php_jax.envs.gym.spaces import GymError
+from php_jax import encoders
+from php_jax.envs.gym.spaces import GymError, observation_fields
 
 DEFAULT_MAX_STEPS = 10_000  # an episode's step limit where the environment sets none
 
@@ -46,6 +47,16 @@ def env_maker(name: str) -> Callable[[], gymnasium.Env]:
     return env
 
   return checked
+
+
+def env_observation_fields(name: str) -> tuple[encoders.Field, ...]:
+  """What each number of the named environment's flattened observations is (`spaces.observation_fields`), read
+  from a copy of it made and closed."""
+  env = env_maker(name)()
+  try:
+    return observation_fields(env.observation_space)
+  finally:
+    env.close()
 
 
 def expert_maker(name: str) -> Callable[[gymnasium.Env], Any]:
