@@ -153,10 +153,17 @@ _BEFORE_THEY_EXISTED = {"snapshot": "earliest", "anneal_temperature": 1.0, "trai
                         "segment_iterations": 0, "split_rounds": 0, "length_buckets": 4}
 
 
+# Settings that runs recorded unset before a run resolved them, and what unset meant then.
+_UNSET_MEANT = {"batch_size": 0}
+
+
 def saved_config(saved: dict) -> dict:
   """A config a run recorded (JSON), with every setting it does not name (it predates the setting) as what
-  runs did before it: its default, or _BEFORE_THEY_EXISTED's value."""
-  return json.loads(json.dumps({**dataclasses.asdict(TrainConfig()), **_BEFORE_THEY_EXISTED, **saved}))
+  runs did before it: its default, or _BEFORE_THEY_EXISTED's value; and a setting recorded unset before runs
+  resolved it as what unset meant then (_UNSET_MEANT)."""
+  config = {**dataclasses.asdict(TrainConfig()), **_BEFORE_THEY_EXISTED, **saved}
+  config.update({name: meant for name, meant in _UNSET_MEANT.items() if config.get(name) is None})
+  return json.loads(json.dumps(config))
 
 
 _WHY = {"demonstrations": " (another seed, number of demonstrations or of annotated ones, or data file; the "
