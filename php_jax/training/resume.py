@@ -137,12 +137,21 @@ def read_decoded(path: str) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     raise CheckpointError(f"{path}: no decoded views ({e!r})") from None
 
 
+_DIGESTED_ROWS = 1024
+
+
 def run_settings(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> dict:
   """What a checkpoint must have been made with to be resumed: the config, the hierarchy and a digest of the
-  demonstrations (so another seed, data set or annotation is noticed)."""
+  demonstrations (so another seed, data set or annotation is noticed; their observations' values, not the
+  type that holds them)."""
   digest = hashlib.sha256()
-  for array in demos:
-    digest.update(np.ascontiguousarray(np.asarray(array)).tobytes())
+  for name, array in zip(demos._fields, demos):
+    array = np.asarray(array)
+    if name == "observations":  # as float32, whatever type holds them, a block of rows at a time
+      for start in range(0, len(array), _DIGESTED_ROWS):
+        digest.update(np.ascontiguousarray(array[start:start + _DIGESTED_ROWS], np.float32).tobytes())
+    else:
+      digest.update(np.ascontiguousarray(array).tobytes())
   settings = {"config": dataclasses.asdict(config), "levels": spec.levels, "demonstrations": digest.hexdigest(),
               **({"observes": spec.observes} if spec.observes is not None else {})}
   return json.loads(json.dumps(settings))  # as a checkpoint stores it: tuples become lists

@@ -178,10 +178,12 @@ def test_corrupt_or_mismatched_saved_files_are_refused_naming_the_file(tmp_path)
 
 
 def test_resume_check_names_what_differs_and_takes_defaults_for_settings_a_checkpoint_predates():
-  config = TrainConfig(hidden=(8,), seed=1, training="levelwise")  # resolved, as checkpoints record it
+  config = TrainConfig(hidden=(8,), seed=1, training="levelwise", batch_size=0)  # resolved, as checkpoints record it
   settings = {"config": json.loads(json.dumps(dataclasses.asdict(config))), "levels": [1, 2], "demonstrations": "x"}
   older = {**settings, "config": {k: v for k, v in settings["config"].items() if k != "training"}}
   resume.check_resumable("ckpt", older, settings)  # made before --training existed: level-wise, its default
+  unresolved = {**settings, "config": {**settings["config"], "batch_size": None}}
+  resume.check_resumable("ckpt", unresolved, settings)  # recorded before runs resolved it: None was the full batch
   no_snapshot = {**settings, "config": {k: v for k, v in settings["config"].items() if k != "snapshot"}}
   with pytest.raises(checkpoint.CheckpointError, match="snapshot: 'earliest' there, 'latest' here"):
     resume.check_resumable("ckpt", no_snapshot, settings)  # runs before --snapshot kept the earliest
@@ -194,6 +196,19 @@ def test_resume_check_names_what_differs_and_takes_defaults_for_settings_a_check
     resume.check_resumable("ckpt", settings, {**settings, "demonstrations": "y"})
   with pytest.raises(checkpoint.CheckpointError, match="observes differ \\(another hierarchy: what its procedures"):
     resume.check_resumable("ckpt", settings, {**settings, "observes": [None, [[0], [1]]]})
+
+
+def test_the_demonstrations_digest_reads_observations_values_not_their_type():
+  from php_jax.demos import compacted
+  task = tasks.get("nanocraft")
+  demos = datasets.training_demos(task, 1, 4, 2)
+  config = TrainConfig()
+  digest = resume.run_settings(task.spec, demos, config)["demonstrations"]
+  assert compacted(demos).observations.dtype == np.uint8
+  assert resume.run_settings(task.spec, compacted(demos), config)["demonstrations"] == digest
+  observations = np.array(demos.observations)
+  observations[0, 0, 0] += 1
+  assert resume.run_settings(task.spec, demos._replace(observations=observations), config)["demonstrations"] != digest
 
 
 @pytest.mark.slow
