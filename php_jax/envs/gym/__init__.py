@@ -10,6 +10,5 @@ from php_jax.envs.gym.spaces import (GymError, action_factors, action_sizes, env
                                      flatten_observation, observation_fields, observation_size)
 
 __all__ = ["DEFAULT_MAX_STEPS", "GymError", "act", "action_factors", "action_sizes", "check_policy", "env_actions",
-           "env_maker", "env_observation_fields", "expert_maker", "flatten_batch", "flatten_observation", "observation_fields",
-           "observation_size", "policy_sizes",
-           "record", "vector_env", "write_demonstrations"]
+           "env_maker", "env_observation_fields", "expert_maker", "flatten_batch", "flatten_observation",
+           "observation_fields", "observation_size", "policy_sizes", "record", "vector_env", "write_demonstrations"]
