@@ -4,8 +4,9 @@ r"""Fits a PHP hierarchy to your own demonstrations: no environment code needed.
 
 Reads the hierarchy file and the demonstrations (JSON lines or a binary set; annotated ones carry their call
 stack, fully or partly) and trains the hierarchy as the recipe chooses from them: where they leave the
-training mode or the segmentation open, each candidate is trained and the one most likely on the held-out
-demonstrations (--validation, or else --validation_fraction of TRAIN, held out at random by --seed) is kept.
+training mode or the segmentation open, each candidate is trained (where one or two demonstrations are annotated,
+from two initialisations: --restarts) and the one most likely on the held-out demonstrations (--validation, or
+else --validation_fraction of TRAIN, held out at random by --seed) is kept.
 Each training keeps the snapshot that replays the most held-out demonstrations. A demonstration is replayed
 when the learned hierarchy's argmax policy, run on its recorded observations, takes every recorded action and
 returns from its root after the last. Writes the model (`experiments.decode --policy=DIR` reads it) and
@@ -145,7 +146,8 @@ def run() -> dict:
       results = train_and_evaluate(experiment, config, training.WORKDIR.value, training.OVERWRITE.value, flat,
                                    training.WAIT.value, echo)
     else:
-      results = training.train_php(experiment, config, config_flags.given_settings(overrides), echo)
+      results = training.train_php(experiment, config, config_flags.given_settings(overrides), echo,
+                                   recipe.restarts_where_unset(int(np.sum(demos.strong))))
   training.write_report(training.WORKDIR.value, shown_demos, shown)
   return results
 

@@ -131,7 +131,7 @@ def _seeds(config: TrainConfig) -> list[int]:
     raise config_flags.UsageError("--seeds trains PHP hierarchies (not --model=flat_lstm)")
   if config.training == "joint":
     raise config_flags.UsageError(config_flags.joint_refusal("--seeds trains level-wise only"))
-  if training.RESTARTS.value > 1:
+  if (training.RESTARTS.value or 1) > 1:
     raise config_flags.UsageError("--seeds and --restarts: give one of them (--seeds trains one run per seed)")
   try:
     return cli.seed_list(SEEDS.value)

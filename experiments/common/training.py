@@ -26,9 +26,10 @@ MODEL = flags.DEFINE_enum("model", "php", ["php", "flat_lstm"],
                           "php: the hierarchy (--training says how); flat_lstm: the behaviour-cloning baseline, "
                           "an LSTM over observations and previous actions.")
 LSTM_HIDDEN = flags.DEFINE_integer("lstm_hidden", 128, "Hidden units of the flat LSTM baseline.")
-RESTARTS = flags.DEFINE_integer("restarts", 1, "Train each of the recipe's candidates from this many "
+RESTARTS = flags.DEFINE_integer("restarts", None, "Train each of the recipe's candidates from this many "
                                 "initialisations and keep the one most likely on the held-out demonstrations "
-                                "(docs/training.md, the recipe).", lower_bound=1)
+                                "(docs/training.md, the recipe). Default: 1; fit: 2 where one or two "
+                                "demonstrations are annotated.", lower_bound=1)
 REPORT = flags.DEFINE_bool("report", True, "At the end, write WORKDIR/report.html: settings, results, learning "
                            "curves, call graph and three training demonstrations decoded and drawn (a few seconds).")
 
@@ -47,7 +48,7 @@ def flat_lstm_hidden() -> int | None:
   is given to the flat LSTM (which has no recipe)."""
   if LSTM_HIDDEN.value < 1:
     raise UsageError(f"--lstm_hidden must be a positive integer; got {LSTM_HIDDEN.value}")
-  if MODEL.value == "flat_lstm" and RESTARTS.value > 1:
+  if MODEL.value == "flat_lstm" and (RESTARTS.value or 1) > 1:
     raise UsageError("--restarts applies to PHP hierarchies (not --model=flat_lstm)")
   return LSTM_HIDDEN.value if MODEL.value == "flat_lstm" else None
 
@@ -77,8 +78,9 @@ def _environment_int(name: str) -> int | None:
   return int(value) if value else None
 
 
-def train_php(experiment: run.Experiment, config, given, echo) -> dict:
+def train_php(experiment: run.Experiment, config, given, echo, restarts: int = 1) -> dict:
   """Trains experiment's PHP hierarchy in --workdir by the recipe (`php_jax.training.recipe`) for config,
-  whose settings named in `given` were asked for; returns its results.json."""
-  chosen = recipe.choose(experiment.spec, experiment.demos, config, given, RESTARTS.value)
+  whose settings named in `given` were asked for, each candidate from --restarts initialisations (unset: from
+  `restarts`); returns its results.json."""
+  chosen = recipe.choose(experiment.spec, experiment.demos, config, given, RESTARTS.value or restarts)
   return selection.train_and_choose(experiment, config, chosen, WORKDIR.value, OVERWRITE.value, WAIT.value, echo)

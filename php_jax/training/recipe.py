@@ -87,6 +87,17 @@ def choose(spec: HierarchySpec, demos: Demonstration, config: TrainConfig, given
   return Recipe(tuple(candidates), tuple(reasons))
 
 
+FEW_ANNOTATED, RESTARTS_WHERE_FEW = 2, 2
+
+
+def restarts_where_unset(num_annotated: int) -> int:
+  """`fit`'s initialisations of each candidate where --restarts is not given: RESTARTS_WHERE_FEW where 1 to
+  FEW_ANNOTATED training demonstrations are annotated, else 1. With so few, a run from one initialisation can
+  settle on a worse explanation that another initialisation avoids, and the held-out likelihood tells them
+  apart (NanoCraft with 1 or 2 of 64 annotated: docs/training.md, the recipe)."""
+  return RESTARTS_WHERE_FEW if 1 <= num_annotated <= FEW_ANNOTATED else 1
+
+
 def _fixed_mode(config: TrainConfig, given, annotated: bool) -> str | None:
   """The training mode the settings fix (None: open to the recipe): the one given, joint where a setting of
   joint training only is on, level-wise where a setting of level-wise training only is given (or where

@@ -251,6 +251,27 @@ def test_fit_decode_show_and_report_on_the_warehouse_example(tmp_path):
   assert (workdir / "results.json").read_bytes() == results_before
 
 
+def test_fit_restarts_each_candidate_by_default_where_one_or_two_demonstrations_are_annotated():
+  from php_jax.training import recipe
+  assert [recipe.restarts_where_unset(n) for n in (0, 1, 2, 3, 16)] == [1, 2, 2, 1, 1]
+
+
+@pytest.mark.slow
+def test_fit_with_two_annotated_trains_each_candidate_from_two_initialisations(tmp_path):
+  lines = [json.loads(line) for line in (WAREHOUSE / "train.jsonl").read_text().splitlines()]
+  annotated = [i for i, line in enumerate(lines) if "stack" in line][:2]
+  two = _demo_file(tmp_path, [line if i in annotated else {k: v for k, v in line.items() if k != "stack"}
+                              for i, line in enumerate(lines)])
+  workdir = tmp_path / "fit"
+  proc = _run("experiments.fit", f"--demos={two}", f"--hierarchy={WAREHOUSE / 'warehouse.json'}",
+              f"--workdir={workdir}", "--training=levelwise", "--iterations=10", "--eval_every=10", "--hidden=8",
+              "--noreport")
+  assert proc.returncode == 0, proc.stderr[-3000:]
+  chosen = json.loads((workdir / "results.json").read_text())["recipe"]
+  assert [c["name"] for c in chosen["candidates"]] == ["levelwise", "levelwise-restart1"]
+  assert "each is trained from 2 initialisations" in chosen["reasons"]
+
+
 def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
   bad = _demo_file(tmp_path, [GOOD, '{"observations": [[0.0]], "actions": [[1]]}'])
   hierarchy = str(WAREHOUSE / "warehouse.json")
