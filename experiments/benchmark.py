@@ -414,7 +414,7 @@ def bench_fast_path():
   level, hidden = spec.num_levels - 1, tuple(int(h) for h in _HIDDEN.value)
   equal_counts = views.grouped(view, np.array_split(np.argsort(view.length, kind="stable"), 4))
   fewest = views.length_buckets(view, 4)
-  variants = [("today: equal-count buckets, no trunk, every view", equal_counts, None, None),
+  variants = [("today: equal-count buckets, every view", equal_counts, None, None),
               ("buckets that pad least", fewest, None, None),
               ("+ trunk 64", fewest, 64, None),
               (f"+ batch_size {_BATCH.value}", fewest, None, _BATCH.value),
@@ -449,12 +449,23 @@ def _fast_path_data() -> tuple[Demonstration, HierarchySpec, str]:
     return babyai_like_demos(num), BABYAI_LIKE, f"{num} BabyAI-sized synthetic demonstrations"
   if not _HIERARCHY.value:
     raise app.UsageError("fast_path with --demos needs --hierarchy")
-  spec = demo_files.read_hierarchy(_HIERARCHY.value).spec
-  if _ENV.value and spec.observation is None:
-    from php_jax.envs import gym  # gymnasium is an optional extra
-    spec = dataclasses.replace(spec, observation=gym.env_observation_fields(_ENV.value))
-  demos, spec = demo_files.read_demonstrations(_DEMOS.value, spec)
+  try:
+    spec = demo_files.read_hierarchy(_HIERARCHY.value).spec
+    if _ENV.value and spec.observation is None:
+      spec = dataclasses.replace(spec, observation=_env_fields(_ENV.value))
+    demos, spec = demo_files.read_demonstrations(_DEMOS.value, spec)
+  except demo_files.DemoFileError as e:
+    raise app.UsageError(str(e)) from None
   return demos, spec, f"{len(demos.length)} demonstrations of {_DEMOS.value}"
+
+
+def _env_fields(env_id: str):
+  """The observation fields of env_id (`gym.env_observation_fields`); app.UsageError where it cannot be made."""
+  from php_jax.envs import gym  # gymnasium is an optional extra
+  try:
+    return gym.env_observation_fields(env_id)
+  except gym.GymError as e:
+    raise app.UsageError(f"--env={env_id}: {e}") from None
 
 
 def _size(path: str) -> int:

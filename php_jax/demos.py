@@ -40,7 +40,8 @@ _CHECKED_ROWS = 1 << 16  # rows compared at a time, so that the check holds litt
 
 def compact_dtype(observations: np.ndarray) -> np.dtype:
   """The narrowest of OBSERVATION_DTYPES that holds every value of observations [..., D] (as float32) bit for
-  bit (-0.0 is no integer): where observations are small integers, a quarter of float32's memory or less."""
+  bit (-0.0 is no integer): where observations are small integers, a quarter (uint8, int8) or a half of float32's
+  memory."""
   values = np.asarray(observations).reshape(-1, np.shape(observations)[-1])
   candidates = [np.dtype(name) for name in OBSERVATION_DTYPES[:-1]]
   for start in range(0, len(values), _CHECKED_ROWS):

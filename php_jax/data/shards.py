@@ -1,7 +1,7 @@
 """Demonstrations in a binary format for large data sets: a directory of shards with a manifest.
 
   NAME.shards/
-    manifest.json     {"format": FORMAT, "version": 1, "observation_size": D,
+    manifest.json     {"format": FORMAT, "version": 2, "observation_size": D,
                        "shards": [{"file": "shard-00000.npz", "demonstrations": n, "steps": s,
                                    "observations": "uint8", "bytes": b, "sha256": "..."}, ...]}
     shard-00000.npz   a NumPy .npz archive (deflated) of the next shard_size demonstrations, in order:
@@ -47,7 +47,8 @@ from php_jax.hierarchy import HierarchySpec
 SUFFIX = ".shards"  # a writer's path ending in it gets this format
 MANIFEST = "manifest.json"
 FORMAT = "php_jax demonstration shards"
-VERSION = 1
+VERSION = 2  # version 1 knew the encodings uint8, float16 and float32 alone; this reader reads both
+READ_VERSIONS = (1, 2)
 SHARD_SIZE = 1000
 ENCODINGS = OBSERVATION_DTYPES  # narrowest first
 COMPRESSION_LEVEL = 1  # zlib's fastest: a third of level 6's writing time, 1.7 times its size (measured)
@@ -64,8 +65,7 @@ Unpadded = tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]
 
 class _Ragged(NamedTuple):
   """A shard's demonstrations one after another: observations [Σ(T+1), D] (float32 to write; read: as stored),
-  actions [ΣT, F] int32,
-  lengths [n] int32, annotated [n] bool, procedures and counters [Σ annotated T, d] int32."""
+  actions [ΣT, F] int32, lengths [n] int32, annotated [n] bool, procedures and counters [Σ annotated T, d] int32."""
   observations: np.ndarray
   actions: np.ndarray
   lengths: np.ndarray
@@ -230,7 +230,7 @@ def _put_in_place(fresh: str, path: str) -> None:
 
 def iter_shards(path: str, spec: HierarchySpec) -> Iterator[Demonstration]:
   """The set's demonstrations, a shard at a time, each shard a padded batch [n, ...] as `read_demonstrations`'
-  (padded to the shard's longest), checked as it is read. Raises DemoFileError naming the file of the first
+  (padded to the shard's longest, its observations in the shard's own type), checked as it is read. Raises DemoFileError naming the file of the first
   problem (the manifest's before any shard is read)."""
   for ragged in _shards(path, spec):
     yield _padded(ragged, spec.num_levels)
@@ -296,8 +296,9 @@ def _check_manifest(obj) -> None:
   if not (isinstance(obj, dict) and obj.get("format") == FORMAT):
     raise ValueError(f'its "format" is not {FORMAT!r}')
   json_lines.check_keys(obj, _MANIFEST_KEYS, "manifest")
-  if not (_is_count(obj.get("version"), 0) and obj["version"] == VERSION):
-    raise ValueError(f"version {json_lines.shown(obj.get('version'))}; this php_jax reads version {VERSION}")
+  if not (_is_count(obj.get("version"), 0) and obj["version"] in READ_VERSIONS):
+    raise ValueError(f"version {json_lines.shown(obj.get('version'))}; this php_jax reads versions "
+                     f"{' and '.join(map(str, READ_VERSIONS))}")
   if not _is_count(obj.get("observation_size"), 1):
     raise ValueError('"observation_size" must be a positive integer; got '
                      f'{json_lines.shown(obj.get("observation_size"))}')

@@ -61,10 +61,11 @@ def bucket_count(lengths: np.ndarray) -> int:
   """The fewest length buckets, from LEAST_BUCKETS to MOST_BUCKETS, whose `length_groups` of lengths [B] leave at
   most MOST_PADDING of the steps computed as padding (MOST_BUCKETS where none does). Each bucket is one more
   compiled program, hence the fewest."""
-  lengths = np.asarray(lengths)
-  for count in range(LEAST_BUCKETS, MOST_BUCKETS):
-    computed = sum(len(group) * longest for group, longest in length_groups(lengths, count))
-    if 1.0 - int(lengths.sum()) / computed <= MOST_PADDING:
+  values, counts = np.unique(np.asarray(lengths), return_counts=True)
+  cells, _ = _fewest_padded_cells(values, counts, min(MOST_BUCKETS - 1, len(values)))
+  steps = int(np.sum(values * counts))
+  for count in range(LEAST_BUCKETS, MOST_BUCKETS):  # more groups than distinct lengths pad nothing
+    if 1.0 - steps / cells[min(count, len(values)), len(values)] <= MOST_PADDING:
       return count
   return MOST_BUCKETS
 
@@ -88,21 +89,29 @@ def length_groups(lengths: np.ndarray, num_buckets: int) -> list[tuple[np.ndarra
 def _fewest_padded_ends(values: np.ndarray, counts: np.ndarray, groups: int) -> list[int]:
   """The last distinct-length index of each of `groups` contiguous groups of the sorted distinct lengths
   `values` (each held `counts` times) that minimise Σ group size × its longest length."""
-  n = len(values)
-  total = np.concatenate([[0], np.cumsum(counts)])
-  best = np.full((groups + 1, n + 1), np.inf)  # best[g, j]: the first j distinct lengths in g groups
-  choice = np.zeros((groups + 1, n + 1), int)
-  best[0, 0] = 0.0
-  for g in range(1, groups + 1):
-    for j in range(g, n + 1):  # group g holds distinct lengths i..j-1, padded to values[j-1]
-      costs = best[g - 1, :j] + (total[j] - total[:j]) * values[j - 1]
-      choice[g, j] = int(np.argmin(costs))
-      best[g, j] = costs[choice[g, j]]
-  ends, j = [], n
+  _, choice = _fewest_padded_cells(values, counts, groups)
+  ends, j = [], len(values)
   for g in range(groups, 0, -1):
     ends.append(j - 1)
     j = choice[g, j]
   return ends[::-1]
+
+
+def _fewest_padded_cells(values: np.ndarray, counts: np.ndarray, groups: int) -> tuple[np.ndarray, np.ndarray]:
+  """Dynamic programming over the sorted distinct lengths `values` (each held `counts` times): cells[g, j], the
+  fewest steps computed (Σ group size × its longest) that the first j distinct lengths take in g contiguous
+  groups, for g ≤ groups; choice[g, j], where the last of those groups starts."""
+  n = len(values)
+  total = np.concatenate([[0], np.cumsum(counts)])
+  cells = np.full((groups + 1, n + 1), np.inf)
+  choice = np.zeros((groups + 1, n + 1), int)
+  cells[0, 0] = 0.0
+  for g in range(1, groups + 1):
+    for j in range(g, n + 1):  # group g holds distinct lengths i..j-1, padded to values[j-1]
+      costs = cells[g - 1, :j] + (total[j] - total[:j]) * values[j - 1]
+      choice[g, j] = int(np.argmin(costs))
+      cells[g, j] = costs[choice[g, j]]
+  return cells, choice
 
 
 def padding_fraction(buckets: list[Batch]) -> float:

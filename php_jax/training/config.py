@@ -312,7 +312,14 @@ def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, fla
       segment_iterations=unset_or(config.segment_iterations, config.iterations // 2 if rule else 0),
       split_rounds=unset_or(config.split_rounds, DISCOVERY_SPLIT_ROUNDS if rule and rule.name == "loops" else 0),
       batch_size=batch_size_for(config, len(strong)),
-      length_buckets=unset_or(config.length_buckets, views.bucket_count(demos.length)))
+      length_buckets=config.length_buckets or views.bucket_count(demos.length))
+
+
+def with_common_buckets(configs: list[TrainConfig]) -> list[TrainConfig]:
+  """Resolved configs of seeds trained together, each with the most length buckets any of them resolved to:
+  their buckets are stacked one on another (`views.stack_seeds`)."""
+  count = max(c.length_buckets for c in configs)
+  return [dataclasses.replace(c, length_buckets=count) for c in configs]
 
 
 def batch_size_for(config: TrainConfig, num_demos: int) -> int:

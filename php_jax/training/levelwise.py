@@ -23,7 +23,7 @@ from php_jax.training import call_graph
 from php_jax.training.resume import (CheckpointError, CountedLog, decoded_views, read_training, read_training_seeds,
                                      restore_progress, resume_from, run_settings, write_training,
                                      write_training_seeds)
-from php_jax.training.config import TrainConfig, in_mode, prepare
+from php_jax.training.config import TrainConfig, in_mode, prepare, with_common_buckets
 from php_jax.training.networks import make_hierarchy, make_root
 from php_jax.training.objective import LevelModel, counter_capacity, decode, level_loss
 
@@ -81,9 +81,7 @@ class LevelFit:
       capacity = self.capacities[0]
       return [fitting.fit(self.models[0], lambda m, buckets: level_loss(m, buckets, capacity, weights[0]), schedule,
                           hooks.of_first_model(), resume and resume[0], args=(buckets,), mesh=mesh)]
-    count = max(views.bucket_count(p.length) if c.length_buckets is None else c.length_buckets
-                for p, c in zip(parts, self.configs))  # every seed with as many buckets
-    buckets = views.stack_seeds([views.length_buckets(p, count) for p in parts], mesh)
+    buckets = views.stack_seeds([views.length_buckets(p, config.length_buckets) for p in parts], mesh)
     weights, used = sharding.replicate((np.asarray(weights, np.float32), np.asarray(self.capacities, np.int32)),
                                        mesh)
     largest = max(self.capacities)
@@ -191,7 +189,7 @@ def _train_levels(spec: HierarchySpec, demos: list[Demonstration], configs: list
                   validate: list[Callable[[PHPHierarchy], float]] | None, log: Callable[[int, dict], None],
                   store: _Store) -> list[tuple[PHPHierarchy, dict]]:
   """The level-wise loop of train_hierarchy (one seed, not batched) and train_seeds."""
-  configs = [prepare(spec, d, in_mode(c, "levelwise")) for d, c in zip(demos, configs)]
+  configs = with_common_buckets([prepare(spec, d, in_mode(c, "levelwise")) for d, c in zip(demos, configs)])
   if len({dataclasses.replace(c, seed=0, strong_weight=None) for c in configs}) != 1:
     raise ValueError("seeds trained together must have the same settings but for their seed")
   graph = common_call_graph(spec, demos, configs)

@@ -29,7 +29,7 @@ from php_jax.data import files
 from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
 from php_jax.training import call_graph, checkpoint, joint, levelwise, provenance, resume, storage
-from php_jax.training.config import TrainConfig, in_mode, resolved
+from php_jax.training.config import TrainConfig, in_mode, resolved, with_common_buckets
 
 METRICS_FILE, RESULTS_FILE, SEEDS_CHECKPOINT = "metrics.jsonl", "results.json", "seeds_checkpoint"
 REPORT_FILE = "report.html"  # the training commands write it (`experiments.common.run_report`); --overwrite clears it
@@ -119,7 +119,8 @@ def train_and_evaluate_seeds(experiments: list[Experiment], configs: list[TrainC
   in workdir/seeds_checkpoint/ and resumed from there. The run holds the locks of workdir and of every
   seed's workdir throughout."""
   workdirs = [os.path.join(workdir, f"seed={c.seed}") for c in configs]
-  configs = [resolved(in_mode(c, "levelwise"), e.demos, e.spec) for c, e in zip(configs, experiments)]
+  configs = with_common_buckets([resolved(in_mode(c, "levelwise"), e.demos, e.spec)
+                                 for c, e in zip(configs, experiments)])
   commit, spec = provenance.code_version(), experiments[0].spec
   with contextlib.ExitStack() as stack:
     for locked in (workdir, *workdirs):  # each seed's workdir too, as its separate run would

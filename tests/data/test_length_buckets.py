@@ -73,3 +73,9 @@ def test_lengths_spread_far_get_more_buckets_and_a_run_records_how_many():
                         spread.astype(np.int32), np.zeros(len(spread), bool))
   assert resolved(TrainConfig(), demos, spec).length_buckets == views.bucket_count(spread)
   assert resolved(TrainConfig(length_buckets=2), demos, spec).length_buckets == 2
+
+
+def test_seeds_trained_together_take_the_most_buckets_any_of_them_needs():
+  from php_jax.training.config import TrainConfig, with_common_buckets
+  configs = with_common_buckets([TrainConfig(seed=1, length_buckets=4), TrainConfig(seed=2, length_buckets=6)])
+  assert [c.length_buckets for c in configs] == [6, 6] and [c.seed for c in configs] == [1, 2]

@@ -142,6 +142,17 @@ def test_each_shard_and_each_read_holds_observations_in_the_narrowest_exact_type
   assert np.array_equal(binary.observations, np.array([obs * 2 for obs in values], np.float32))
 
 
+def test_a_version_1_set_reads_as_it_was_written(written):
+  _, batch, out = written  # uint8, float16 and float32 shards: the encodings version 1 knew
+  manifest_path = os.path.join(out, shards.MANIFEST)
+  with open(manifest_path) as f:
+    manifest = json.load(f)
+  assert manifest["version"] == shards.VERSION == 2
+  with open(manifest_path, "w") as f:
+    json.dump({**manifest, "version": 1}, f)
+  _assert_same(batch, demo_files.read_demonstrations(out, SPEC)[0])
+
+
 def test_iter_shards_yields_the_whole_read_a_shard_at_a_time(written):
   _, batch, out = written
   parts = list(shards.iter_shards(out, SPEC))
@@ -327,7 +338,7 @@ def test_export_record_convert_and_suggest_end_to_end(tmp_path):
   demo_files.write_hierarchy(str(hierarchy), task.spec)
   bad = tmp_path / "bad.shards"
   bad.mkdir()
-  (bad / shards.MANIFEST).write_text('{"format": "php_jax demonstration shards", "version": 2}')
+  (bad / shards.MANIFEST).write_text('{"format": "php_jax demonstration shards", "version": 3}')
   (tmp_path / "taken.shards").mkdir()
   (tmp_path / "taken.shards" / "mine.txt").write_text("keep")
   export, *refused = processes.run_all([[sys.executable, "-m", *args] for args in [
@@ -338,8 +349,8 @@ def test_export_record_convert_and_suggest_end_to_end(tmp_path):
       capture_output=True, text=True, timeout=600)
   assert export.returncode == 0 and "6 training demonstrations (2 annotated)" in export.stdout, export.stderr
   assert [(proc.returncode, proc.stderr) for proc in refused] == [
-      (2, f"error: {bad}/{shards.MANIFEST}: not a demonstration set's manifest: version 2; this php_jax reads "
-       "version 1\n"),
+      (2, f"error: {bad}/{shards.MANIFEST}: not a demonstration set's manifest: version 3; this php_jax reads "
+       "versions 1 and 2\n"),
       (2, f"error: --out={tmp_path / 'taken.shards'}: something that is not a demonstration set is there; not "
        "replaced\n")]
   suggest, convert, record = processes.run_all([[sys.executable, "-m", *args] for args in [
