@@ -230,8 +230,8 @@ def _put_in_place(fresh: str, path: str) -> None:
 
 def iter_shards(path: str, spec: HierarchySpec) -> Iterator[Demonstration]:
   """The set's demonstrations, a shard at a time, each shard a padded batch [n, ...] as `read_demonstrations`'
-  (padded to the shard's longest, its observations in the shard's own type), checked as it is read. Raises DemoFileError naming the file of the first
-  problem (the manifest's before any shard is read)."""
+  (padded to the shard's longest, its observations in the shard's own type), checked as it is read. Raises
+  DemoFileError naming the file of the first problem (the manifest's before any shard is read)."""
   for ragged in _shards(path, spec):
     yield _padded(ragged, spec.num_levels)
 

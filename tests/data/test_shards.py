@@ -111,7 +111,8 @@ def test_compact_dtype_is_the_narrowest_that_holds_every_value(values, columns):
   observations = np.resize(np.array(values, np.float32), (max(1, len(values) // columns), columns))
   chosen = compact_dtype(observations)
   assert chosen.name in OBSERVATION_DTYPES and _holds_each(chosen, observations)
-  assert not any(_holds_each(np.dtype(d), observations) for d in OBSERVATION_DTYPES[:OBSERVATION_DTYPES.index(chosen.name)])
+  narrower = OBSERVATION_DTYPES[:OBSERVATION_DTYPES.index(chosen.name)]
+  assert not any(_holds_each(np.dtype(d), observations) for d in narrower)
 
 
 def test_compact_dtype_reads_every_row_of_a_large_array():
