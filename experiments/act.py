@@ -35,15 +35,15 @@ from absl import app, flags
 from experiments.common import cli, environment_flags, progress
 from php_jax.data import files
 from php_jax.envs import gym, success
-from php_jax.model import PHPHierarchy
 from php_jax.training import checkpoint
 
 _POLICY = flags.DEFINE_string("policy", None, "Workdir of experiments.fit holding the policy.")
 _EPISODES = flags.DEFINE_integer("episodes", 100, "Episodes to run.", lower_bound=1)
 _NUM_ENVS = flags.DEFINE_integer("num_envs", 1, "Copies of the environment stepped together.", lower_bound=1)
 _OUT = flags.DEFINE_string("out", None, "Output JSON-lines file, one line per episode.")
-_SAMPLE = flags.DEFINE_bool("sample", False, "A hierarchy samples its operations and terminations instead of "
-                            "taking the most likely (the key of episode i's step t folds in i and t).")
+_SAMPLE = flags.DEFINE_bool("sample", False, "Draw each choice from the policy's distribution instead of taking "
+                            "the most likely (a hierarchy: operations and terminations; a flat LSTM: actions and "
+                            "its stop); episode i's step t folds i and t into --seed's key.")
 
 flags.adopt_module_key_flags(environment_flags)
 
@@ -56,10 +56,7 @@ def main(argv):
     cli.check_outputs({"out": _OUT.value}, {"policy": _POLICY.value})
     rule = environment_flags.success_rule()
     _, policy = checkpoint.load_policy(_POLICY.value)
-    if _SAMPLE.value:
-      if not isinstance(policy, PHPHierarchy):
-        raise ValueError(f"--sample: --policy={_POLICY.value} is a flat LSTM, which acts greedily")
-      policy.sample = True
+    policy.sample = _SAMPLE.value
     envs = gym.vector_env(gym.env_maker(environment_flags.ENV.value), _NUM_ENVS.value)
     try:
       gym.check_policy(policy, envs.single_observation_space, envs.single_action_space)

@@ -4,7 +4,8 @@ demonstrations' elementary actions (call stacks ignored), run in the same enviro
 At each step t the LSTM reads o_t and the previous action, then either stops (the episode ends, as when a
 PHP root returns) or emits an action, one categorical per action factor. Training maximises
 Σ_t<T [log p(a_t | o_≤t) + log p(continue)] + log p(stop at T), full-batch Adam, with the same snapshot rule as
-PHP training: the latest (or earliest) snapshot with the best validation accuracy.
+PHP training: the latest (or earliest) snapshot with the best validation accuracy. It acts greedily, or with
+`sample` draws each action and the stop from its distributions.
 """
 from __future__ import annotations
 
@@ -26,8 +27,9 @@ class FlatLSTMPolicy(nnx.Module):
   from what the encoder brings."""
 
   def __init__(self, obs_dim: int, action_sizes: tuple[int, ...], hidden: int = 128,
-               fields: tuple[encoders.Field, ...] | None = None, *, rngs: nnx.Rngs):
+               fields: tuple[encoders.Field, ...] | None = None, sample: bool = False, *, rngs: nnx.Rngs):
     self.obs_dim = obs_dim
+    self.sample = sample
     self.action_sizes = tuple(action_sizes)
     self.hidden = hidden
     self.encoder = encoders.Encoder(fields, encoders.DEFAULT_WIDTH, rngs=rngs) if encoders.structured(fields) else None
@@ -50,6 +52,15 @@ class FlatLSTMPolicy(nnx.Module):
     factors = [jax.nn.log_softmax(part) for part in jnp.split(out[:-1], splits)]
     return carry, factors, out[-1]
 
+  def decide(self, factors: list[jax.Array], stop_logit: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """`step`'s outputs → (action [F] int32, stop []): the most likely of each, or drawn from them (with key)
+    where self.sample."""
+    if self.sample:
+      action_keys = jax.random.split(key, len(factors) + 1)
+      action = jnp.stack([jax.random.categorical(k, lp) for k, lp in zip(action_keys[1:], factors)])
+      return action.astype(jnp.int32), jax.random.bernoulli(action_keys[0], jax.nn.sigmoid(stop_logit))
+    return jnp.stack([jnp.argmax(lp) for lp in factors]).astype(jnp.int32), stop_logit > 0
+
   def log_likelihood(self, observations: jax.Array, actions: jax.Array, length: jax.Array) -> jax.Array:
     """log p(actions, stop at `length` | observations). observations [T+1, D], actions [T, F], length [] → []."""
     num_steps = actions.shape[0]
@@ -68,26 +79,27 @@ class FlatLSTMPolicy(nnx.Module):
     return jnp.sum(terms)
 
 
-def _act(policy: FlatLSTMPolicy, env, machine):
+def _act(policy: FlatLSTMPolicy, env, machine, key):
   """One decision of one episode: stop, or act. machine = (state, carry, previous action)."""
   state, carry, previous = machine
   carry, factors, stop_logit = policy.step(carry, env.observe(state), previous)
-  action = jnp.stack([jnp.argmax(lp) for lp in factors]).astype(jnp.int32)
-  return (env.step(state, action), carry, action), stop_logit > 0
+  action, stop = policy.decide(factors, stop_logit, key)
+  return (env.step(state, action), carry, action), stop
 
 
 @functools.partial(jax.jit, static_argnames=("env", "max_steps"))
-def rollout_batch(policy: FlatLSTMPolicy, env, states, max_steps: int) -> executor.Rollout:
-  """Greedy episodes from a batch of start states [B, ...] until each stops, fails or spends max_steps
-  actions; the same outcome fields as the hierarchy executor's (nothing recorded)."""
+def rollout_batch(policy: FlatLSTMPolicy, env, states, keys, max_steps: int) -> executor.Rollout:
+  """Episodes from a batch of start states [B, ...] until each stops, fails or spends max_steps actions,
+  greedy or (policy.sample) drawn with keys [B] (step t's key folds t into the episode's); the same outcome
+  fields as the hierarchy executor's (nothing recorded)."""
   batch = jax.tree.leaves(states)[0].shape[0]
   carry = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), policy.initial_carry())
   previous = jnp.full((batch, len(policy.action_sizes)), -1, jnp.int32)
-  act = jax.vmap(lambda m: _act(policy, env, m))
+  act = jax.vmap(lambda m, k: _act(policy, env, m, k))
 
   def body(loop):
     t, machines, done, stopped, length, failed_action = loop
-    advanced, stop = act(machines)
+    advanced, stop = act(machines, jax.vmap(lambda k: jax.random.fold_in(k, t))(keys))
     moving = ~done & ~stop & (t < max_steps)  # the last pass only decides whether to stop
 
     def keep(new, old):

@@ -19,7 +19,7 @@ def rollout(policy, spec: HierarchySpec, env, states, keys, max_steps: int) -> e
   """The outcomes (nothing recorded) of a batch of episodes from states [B, ...]: a hierarchy (oracle or PHP)
   runs in the stack-machine executor, the flat LSTM baseline in its own loop."""
   if isinstance(policy, flat_lstm.FlatLSTMPolicy):
-    return flat_lstm.rollout_batch(policy, env, states, max_steps)
+    return flat_lstm.rollout_batch(policy, env, states, keys, max_steps)
   return executor.rollout_batch(policy, spec, env, states, keys, max_steps, record=False)
 
 

@@ -321,6 +321,15 @@ def test_a_flat_lstm_acts_through_the_same_loop():
   assert len(outcomes) == 4 and all(o["stack"] is None and 0 <= o["steps"] <= 20 for o in outcomes)
 
 
+def test_a_sampling_flat_lstm_acts_the_same_for_the_same_seed_whatever_the_number_of_copies():
+  policy = FlatLSTMPolicy(8, (2,), 4, sample=True, rngs=nnx.Rngs(1))
+  one = gym.act(policy, make_corridor(), 8, seed=11)
+  assert gym.act(policy, gym.vector_env(make_corridor, 3), 8, seed=11) == one
+  assert gym.act(policy, make_corridor(), 8, seed=12) != one
+  policy.sample = False
+  assert gym.act(policy, make_corridor(), 8, seed=11) != one  # the greedy choices on the same episodes
+
+
 def _run(*args):
   return subprocess.run([sys.executable, "-m", *args], capture_output=True, text=True, timeout=600)
 
@@ -422,8 +431,6 @@ def test_record_and_act_refusals_end_in_one_line_and_exit_2(tmp_path):
       ((*record, "--episodes=2", "--seed=-1"), "--seed=-1"),
       ((*record, "--episodes=2", "--max_steps=0"), "--max_steps=0"),
       (("experiments.act", f"--policy={flat}", env, "--num_envs=0", f"--out={out}"), "--num_envs=0"),
-      (("experiments.act", f"--policy={flat}", env, "--sample", f"--out={out}"),
-       f"--sample: --policy={flat} is a flat LSTM, which acts greedily"),
   ]
   processes.assert_refused(cases)
   assert not out.exists()

@@ -58,6 +58,22 @@ def test_flat_lstm_clones_its_training_demonstrations_and_survives_saving(tmp_pa
   name, loaded = checkpoint.load_policy(str(tmp_path))
   assert name == "nanocraft" and isinstance(loaded, flat_lstm.FlatLSTMPolicy)
   assert evaluation.solve(NANOCRAFT, loaded, problems) == outcomes
+  loaded.sample = True  # drawn with the evaluation's keys: the same draws each time
+  assert evaluation.solve(NANOCRAFT, loaded, problems) == evaluation.solve(NANOCRAFT, loaded, problems)
+
+
+def test_a_sampling_flat_lstm_draws_its_actions_and_stop_from_their_distributions():
+  policy = flat_lstm.FlatLSTMPolicy(5, (2, 3), 4, rngs=nnx.Rngs(0))
+  factors = [jnp.log(jnp.array([0.3, 0.7])), jnp.log(jnp.array([0.5, 0.1, 0.4]))]
+  stop_logit = jnp.log(0.2 / 0.8)
+  action, stop = policy.decide(factors, stop_logit, jax.random.key(0))
+  assert action.tolist() == [1, 0] and not stop  # the most likely of each
+  policy.sample = True
+  actions, stops = jax.vmap(lambda k: policy.decide(factors, stop_logit, k))(jax.random.split(jax.random.key(1),
+                                                                                               20_000))
+  np.testing.assert_allclose(np.bincount(actions[:, 0], minlength=2) / 20_000, [0.3, 0.7], atol=0.015)
+  np.testing.assert_allclose(np.bincount(actions[:, 1], minlength=3) / 20_000, [0.5, 0.1, 0.4], atol=0.015)
+  assert abs(float(np.mean(stops)) - 0.2) < 0.015
 
 
 def test_sweep_grid_is_the_product_without_impossible_combinations():

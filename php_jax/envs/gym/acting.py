@@ -58,17 +58,17 @@ def _hierarchy_decisions(policy: PHPHierarchy, memory: _Stack, obs, fresh, keys)
   return _Stack(procs, taus, remembered, actions), actions, returned
 
 
-def _lstm_decisions(policy: FlatLSTMPolicy, memory: _Carry, obs, fresh):
+def _lstm_decisions(policy: FlatLSTMPolicy, memory: _Carry, obs, fresh, keys):
   """Per copy: the LSTM's step on obs (from its initial carry where fresh): stop, or the next action."""
 
-  def one(carry, previous, o, is_fresh):
+  def one(carry, previous, o, is_fresh, key):
     carry = jax.tree.map(lambda c, c0: jnp.where(is_fresh, c0, c), carry, policy.initial_carry())
     previous = jnp.where(is_fresh, -1, previous)
-    carry, factors, stop = policy.step(carry, o, previous)
-    action = jnp.stack([jnp.argmax(lp) for lp in factors]).astype(jnp.int32)
-    return carry, action, stop > 0
+    carry, factors, stop_logit = policy.step(carry, o, previous)
+    action, stop = policy.decide(factors, stop_logit, key)
+    return carry, action, stop
 
-  carry, actions, stopped = jax.vmap(one)(memory.carry, memory.previous, obs, fresh)
+  carry, actions, stopped = jax.vmap(one)(memory.carry, memory.previous, obs, fresh, keys)
   return _Carry(carry, actions), actions, stopped
 
 
@@ -81,9 +81,9 @@ def _decisions(structure: tuple, leaves: list, memory, obs, fresh, clock: tuple,
   graphdef, treedef = structure
   episodes, steps = clock
   policy = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
-  if isinstance(policy, FlatLSTMPolicy):
-    return _lstm_decisions(policy, memory, obs, fresh)
   keys = jax.vmap(lambda e, s: jax.random.fold_in(jax.random.fold_in(key, e), s))(episodes, steps)
+  if isinstance(policy, FlatLSTMPolicy):
+    return _lstm_decisions(policy, memory, obs, fresh, keys)
   return _hierarchy_decisions(policy, memory, obs, fresh, keys)
 
 
@@ -189,9 +189,10 @@ def act(policy: PHPHierarchy | FlatLSTMPolicy, env: gymnasium.Env | gymnasium.ve
         success_rule: success.SuccessRule | None = None) -> list[dict]:
   """Runs a learned policy for `episodes` episodes in the real environment; episode i is reset with seed + i.
 
-  A hierarchy runs by the executor's semantics (greedy, or sampling when built with sample=True): push the
-  root and descend on the first observation; after each action pop the frames that stop, resume and descend;
-  the episode ends when the environment terminates or truncates it, when the root returns, or after
+  A hierarchy runs by the executor's semantics: push the root and descend on the first observation; after each
+  action pop the frames that stop, resume and descend. Either policy takes its most likely choices, or where
+  policy.sample is set draws them (step t of episode i with a key folding in seed, i and t). The episode ends
+  when the environment terminates or truncates it, when the policy stops (a hierarchy's root returns), or after
   max_steps actions (default: the environment's time limit, else DEFAULT_MAX_STEPS; then it counts as
   truncated). With a vector environment (`vector_env`) its copies run episodes side by side and each
   step's decisions are one jitted call over all copies.
