@@ -2,7 +2,7 @@ r"""Runs a fitted policy in a Gymnasium environment: one JSON line per episode, 
 
   python -m experiments.act --policy=RUN --env=ENV --episodes=N --seed=S [--num_envs=M] --out=FILE.jsonl
 
---policy is a workdir of `experiments.fit` (a PHP hierarchy or a flat LSTM); ENV as in `experiments.record`.
+--policy is a workdir of `experiments.fit` (a PHP hierarchy or a flat baseline); ENV as in `experiments.record`.
 Episode i is reset with seed S + i. A hierarchy acts by the executor's semantics (greedy, or with --sample
 drawing its operations and terminations): it pushes its root, descends on the first observation, and after
 every action pops the procedures that terminate and resumes the one below them; the episode ends when the
@@ -15,7 +15,7 @@ line, in episode order:
                                         the environment reports it, else null (unknown)
    "terminated": bool, "truncated": bool,
    "stack": [[[h, tau], ...], ...]}     per step, root first: the call stack that chose the action (null
-                                        for a flat LSTM)
+                                        for a flat baseline)
 
 The closing lines give the success rate and the rule it was judged by (or say that success is unknown and
 how to define it), the mean return, and how many episodes the environment terminated or truncated and how
@@ -42,7 +42,7 @@ _EPISODES = flags.DEFINE_integer("episodes", 100, "Episodes to run.", lower_boun
 _NUM_ENVS = flags.DEFINE_integer("num_envs", 1, "Copies of the environment stepped together.", lower_bound=1)
 _OUT = flags.DEFINE_string("out", None, "Output JSON-lines file, one line per episode.")
 _SAMPLE = flags.DEFINE_bool("sample", False, "Draw each choice from the policy's distribution instead of taking "
-                            "the most likely (a hierarchy: operations and terminations; a flat LSTM: actions and "
+                            "the most likely (a hierarchy: operations and terminations; a flat baseline: actions and "
                             "its stop); episode i's step t folds i and t into --seed's key.")
 
 flags.adopt_module_key_flags(environment_flags)

@@ -64,7 +64,7 @@ def main(argv):
     _, hierarchy = checkpoint.load_policy(_POLICY.value)
     capacity = checkpoint.saved_capacity(_POLICY.value)
     if not isinstance(hierarchy, PHPHierarchy) or capacity is None:
-      raise ValueError(f"--policy={_POLICY.value} holds no hierarchy with its counter capacities (a flat LSTM, "
+      raise ValueError(f"--policy={_POLICY.value} holds no hierarchy with its counter capacities (a flat baseline, "
                        "or a model saved before they were recorded)")
     batch, _ = demo_files.read_demonstrations(_DEMOS.value, hierarchy.spec)
   except (OSError, ValueError) as e:  # DemoFileError and CheckpointError are ValueErrors

@@ -2,7 +2,7 @@ r"""Runs a hierarchy on a file of problems and writes one JSON outcome line per 
 
   python -m experiments.evaluate --task=NAME --policy=oracle --problems=IN.jsonl --out=OUT.jsonl
 
---policy is `oracle` (the supervisor) or a training workdir holding a saved model (PHP or flat LSTM). Bad
+--policy is `oracle` (the supervisor) or a training workdir holding a saved model (PHP or flat baseline). Bad
 flags (an --out that is the problem file, a directory or in a missing directory; --batch_size below 1), a
 file without problems and a malformed problem line (named by its line number) are reported in one line with
 exit status 2 before anything runs; the output file is written atomically, so it is either complete or
@@ -30,7 +30,7 @@ _BATCH_SIZE = flags.DEFINE_integer("batch_size", 64, "Problems rolled out togeth
 
 
 def load_policy(task_name: str, task: Task, policy: str):
-  """The oracle, or the model (PHP hierarchy or flat LSTM baseline) saved in a workdir for the same task."""
+  """The oracle, or the model (PHP hierarchy or flat baseline) saved in a workdir for the same task."""
   if policy == "oracle":
     return task.oracle
   saved_task, model = checkpoint.load_policy(policy)

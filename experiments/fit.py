@@ -140,7 +140,7 @@ def run() -> dict:
              "num_demos": len(demos.length), "num_annotated": int(np.sum(demos.strong)),
              "num_held_out": len(held_out.length), "num_held_out_annotated": int(np.sum(held_out.strong))},
       action_name=demo_files.action_namer(hierarchy.action_names), numbers=numbers, validation_demos=held_out)
-  flat = training.flat_lstm_hidden()
+  flat = training.flat_model()
   with progress.shown(config, None if flat else spec.num_levels, training.WORKDIR.value) as echo:
     if flat:
       results = train_and_evaluate(experiment, config, training.WORKDIR.value, training.OVERWRITE.value, flat,

@@ -93,17 +93,17 @@ def _check_result(result) -> None:
 
 def group_runs(results: list[dict]) -> dict[str, dict[Key, list[dict]]]:
   """task → (model, num_demos, num_strong) → its trials' results; model is "php" (level-wise), "php-joint", either
-  followed by "-" and the call graph where it is not "all" (e.g. "php-joint-operations"), or "flat_lstm"
-  (num_strong 0: it uses actions only)."""
+  followed by "-" and the call graph where it is not "all" (e.g. "php-joint-operations"), or "flat_lstm" or
+  "flat_gru" (num_strong 0: it uses actions only)."""
   groups = defaultdict(lambda: defaultdict(list))
   for r in results:
     model = r.get("model", "php")
     config = r.get("config", {})
     if model == "php" and config.get("training") == "joint":
       model = "php-joint"
-    if model != "flat_lstm" and config.get("call_graph", "all") != "all":
+    if not _flat(model) and config.get("call_graph", "all") != "all":
       model += "-" + config["call_graph"]
-    groups[r["task"]][(model, r.get("num_demos", 0), r["num_strong"] if model != "flat_lstm" else 0)].append(r)
+    groups[r["task"]][(model, r.get("num_demos", 0), r["num_strong"] if not _flat(model) else 0)].append(r)
   return {task: dict(sorted(by_key.items())) for task, by_key in sorted(groups.items())}
 
 
@@ -209,10 +209,15 @@ def _size_words(task: str) -> tuple[str, str]:
   return _SIZES.get(task, ("test problems of size {}", "test problem size"))
 
 
+def _flat(model: str) -> bool:
+  """Whether a model name is a flat baseline's (flat_lstm, flat_gru), which takes no annotation."""
+  return model.startswith("flat_")
+
+
 def _label(model: str, total: int) -> str:
   """A line's legend: the model, the number of demonstrations, how it was trained."""
-  if model == "flat_lstm":
-    return f"flat LSTM, {total} demonstrations"
+  if _flat(model):
+    return f"flat {model[5:].upper()}, {total} demonstrations"
   parts = model.split("-")[1:]
   how = [_MODES.get(p, f"call graph: {p}") for p in parts]
   return ", ".join([f"PHP, {total} demonstrations", *how])
@@ -238,7 +243,7 @@ def figure(table: dict[Key, Row], task: str = "") -> bytes:
         lines[(model, total)].append((strong, a.mean, a.low, a.high))
     for (model, total), points in sorted(lines.items()):
       x, mean, low, high = map(np.array, zip(*sorted(points)))
-      php, label = model != "flat_lstm", _label(model, total)
+      php, label = not _flat(model), _label(model, total)
       if php and np.any(x > 0):
         annotated = x > 0
         marker, linestyle = _STYLES.get(model, ("^", "-"))
@@ -269,7 +274,7 @@ def size_figure(table: dict[Key, Row], task: str = "") -> bytes:
       continue
     x = np.array([s for s, _ in points])
     mean, low, high = (np.array([getattr(a, f) for _, a in points]) for f in ("mean", "low", "high"))
-    annotated = "" if model == "flat_lstm" else f", {strong} annotated"
+    annotated = "" if _flat(model) else f", {strong} annotated"
     ax.errorbar(x, mean, yerr=[mean - low, high - mean], marker=("o", "s", "^", "D", "v")[i % 5], capsize=3,
                 color=f"C{i}", label=f"{_label(model, total)}{annotated} ({row.trials} trials)")
   _log_axis(ax, sizes, f"{_size_words(task)[1]} (log scale)")

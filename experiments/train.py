@@ -99,7 +99,7 @@ def run(task_name: str) -> dict:
   if NUM_VALIDATION.value < 1:
     raise config_flags.UsageError(f"--num_validation must be a positive integer; got {NUM_VALIDATION.value}")
   workdir, overwrite, wait = training.WORKDIR.value, training.OVERWRITE.value, training.WAIT.value
-  flat = training.flat_lstm_hidden()
+  flat = training.flat_model()
   if SEEDS.value is None:
     experiment = _experiment(task_name, task, config.seed, num_demos, num_test, lengths, annotated)
     with progress.shown(config, None if flat else task.spec.num_levels, workdir) as echo:
@@ -128,7 +128,7 @@ def _seeds(config: TrainConfig) -> list[int]:
   if flags.FLAGS["seed"].present:
     raise config_flags.UsageError("--seeds and --seed: give one of them")
   if training.MODEL.value != "php":
-    raise config_flags.UsageError("--seeds trains PHP hierarchies (not --model=flat_lstm)")
+    raise config_flags.UsageError(f"--seeds trains PHP hierarchies (not --model={training.MODEL.value})")
   if config.training == "joint":
     raise config_flags.UsageError(config_flags.joint_refusal("--seeds trains level-wise only"))
   if (training.RESTARTS.value or 1) > 1:

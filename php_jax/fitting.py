@@ -1,6 +1,6 @@
 """Adam, full-batch or on minibatches of demonstrations, with the project's snapshot rule and resumable
 progress: the loop that the PHP levels (php_jax.training.levelwise), joint training (php_jax.training.joint)
-and the flat LSTM baseline (php_jax.flat_lstm) train with (`fit`), and the same loop and update step for
+and the flat baselines (php_jax.flat) train with (`fit`), and the same loop and update step for
 several seeds' models at once, vmapped (`fit_seeds`, for php_jax.training.levelwise.train_seeds)."""
 from __future__ import annotations
 

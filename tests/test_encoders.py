@@ -210,7 +210,8 @@ def test_an_environment_seen_as_an_image_and_words_is_learned_end_to_end(tmp_pat
   assert all(e["success"] for e in episodes), episodes
   # the flat LSTM reads the same encoder, and is its own memory
   flat = processes.fit_recorded(tmp_path / "flat", HIERARCHY, lines, "--env=tests.test_encoders:make_seen_corridor",
-                                "--model=flat_lstm", "--iterations=20", "--eval_every=10")
+                                "--model=flat_lstm", "--lstm_hidden=16", "--iterations=20", "--eval_every=10")
   _, lstm = checkpoint.load_policy(str(flat))
+  assert lstm.cell_kind == "lstm" and lstm.hidden == 16  # --lstm_hidden: --flat_hidden's older name
   assert lstm.encoder.fields == encoders.from_json(architecture["spec"]["observation"])
   assert len(gym.act(lstm, gym.vector_env(make_seen_corridor, 2), 2, seed=100)) == 2

@@ -168,7 +168,7 @@ def test_networks_read_narrow_observations_as_their_float32_values():
   """A file's observations may be held as uint8 (`demos.compact_dtype`): every network, and the E-step over a
   whole hierarchy, give the same numbers as on the float32 values, and compute in float32."""
   from php_jax.demos import Demonstration, UNKNOWN
-  from php_jax.flat_lstm import FlatLSTMPolicy
+  from php_jax.flat import FlatPolicy
   from php_jax.training import objective
   rng = np.random.default_rng(0)
   narrow = rng.integers(0, 256, (6, 5)).astype(np.uint8)
@@ -179,7 +179,7 @@ def test_networks_read_narrow_observations_as_their_float32_values():
     np.testing.assert_array_equal(level.encode(narrow), level.encode(wide))
   for root in (RootMLP(5, 3, (8,), rngs=nnx.Rngs(0)), RootLSTM(5, 3, 8, rngs=nnx.Rngs(0))):
     np.testing.assert_array_equal(root(narrow), root(wide))
-  flat = FlatLSTMPolicy(5, (3,), 8, rngs=nnx.Rngs(0))
+  flat = FlatPolicy(5, (3,), 8, rngs=nnx.Rngs(0))
   actions, length = jnp.array([[0], [2], [1], [1], [0]]), jnp.int32(4)
   np.testing.assert_array_equal(flat.log_likelihood(narrow, actions, length), flat.log_likelihood(wide, actions, length))
   task = tasks.get("addition")

@@ -66,7 +66,7 @@ def shown(config: TrainConfig, num_levels: int | None, workdir: str) -> Iterator
 class TrainingProgress:
   """echo for `php_jax.training.run`: fed each logged row (and last the test results), it draws the run's progress.
 
-  num_levels: the hierarchy's levels (None for the flat LSTM); with several seeds trained together, the
+  num_levels: the hierarchy's levels (None for a flat baseline); with several seeds trained together, the
   first seed's rows stand for all."""
 
   def __init__(self, config: TrainConfig, num_levels: int | None, workdir: str, console: Console | None = None):
@@ -134,7 +134,7 @@ class TrainingProgress:
     if phase == "joint":
       description, total = "every level at once", self.config.iterations
     elif phase == "flat":
-      description, total = "flat LSTM", self.config.iterations
+      description, total = "flat baseline", self.config.iterations
     else:
       warmup = self.config.strong_warmup if phase > 0 else 0
       done = self.num_levels - phase

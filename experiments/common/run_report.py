@@ -29,14 +29,15 @@ def write(workdir: str, demos: Demonstration | None = None, numbers: list[int] |
   if not (isinstance(results.get("test"), dict) and isinstance(results.get("config", {}), dict)):
     raise ValueError(f"{os.path.join(workdir, RESULTS_FILE)}: not a finished run's results (needs its \"test\" "
                      "results and \"config\")")
-  flat = results.get("model") == "flat_lstm"
+  model = results.get("model", "php")
+  flat = model != "php"
   run = None if flat else run_view.load(workdir)  # a hierarchy that cannot be read is refused
   title = f"{results.get('task', 'run')}: {workdir}"
   parts = [_summary(results), *_recipe(results), *_split_search(results), "<h2>Learning curves</h2>"]
-  curves = pictures.curves_figure(_metrics(workdir), "flat LSTM" if flat else "every level at once")
+  curves = pictures.curves_figure(_metrics(workdir), f"flat {model[5:].upper()}" if flat else "every level at once")
   parts.append(pictures.svg(curves) if curves else "<p>No training iterations were logged.</p>")
   if flat:
-    parts.append("<p>No call stack to show: a flat LSTM has none.</p>")
+    parts.append(f"<p>No call stack to show: a flat {model[5:].upper()} has none.</p>")
   else:
     parts += ["<h2>Call graph</h2>", _call_graph(run)]
     source = "its training demonstrations" if numbers is None else results["demos"]

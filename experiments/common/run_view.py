@@ -54,7 +54,7 @@ def load(workdir: str) -> RunView:
     raise ValueError(str(e)) from None
   capacity = checkpoint.saved_capacity(workdir)
   if not isinstance(model, PHPHierarchy):
-    raise ValueError(f"{workdir} holds a flat LSTM, which has no call stack to show")
+    raise ValueError(f"{workdir} holds a flat baseline, which has no call stack to show")
   if capacity is None:
     raise ValueError(f"{workdir}: the saved model records no counter capacities (saved by an older version)")
   results = read_results(workdir)

@@ -10,6 +10,7 @@ from absl import flags
 
 from experiments.common import cli, progress, run_report
 from experiments.common.config_flags import UsageError
+from php_jax import flat
 from php_jax.training import checkpoint, recipe, run, selection
 
 WORKDIR = flags.DEFINE_string("workdir", None, "Directory for results.json, metrics.jsonl and the model.")
@@ -22,10 +23,11 @@ WAIT = flags.DEFINE_bool("wait", False, "If another run holds the workdir, wait 
 OVERWRITE = flags.DEFINE_bool("overwrite", False, "Start afresh in a workdir that holds another run (its "
                               "checkpoint, model, metrics and results are deleted); without it such a run is "
                               "resumed if its settings match, and refused if they do not.")
-MODEL = flags.DEFINE_enum("model", "php", ["php", "flat_lstm"],
-                          "php: the hierarchy (--training says how); flat_lstm: the behaviour-cloning baseline, "
-                          "an LSTM over observations and previous actions.")
-LSTM_HIDDEN = flags.DEFINE_integer("lstm_hidden", 128, "Hidden units of the flat LSTM baseline.")
+MODEL = flags.DEFINE_enum("model", "php", ["php", *map(flat.model_name, flat.CELLS)],
+                          "php: the hierarchy (--training says how); flat_lstm, flat_gru: a behaviour-cloning "
+                          "baseline, an LSTM or a GRU over observations and previous actions.")
+FLAT_HIDDEN = flags.DEFINE_integer("flat_hidden", 128, "Hidden units of the flat baseline's LSTM or GRU.")
+flags.DEFINE_alias("lstm_hidden", "flat_hidden")
 RESTARTS = flags.DEFINE_integer("restarts", None, "Train each of the recipe's candidates from this many "
                                 "initialisations and keep the one most likely on the held-out demonstrations "
                                 "(docs/training.md, the recipe). Default: 1; fit: 2 where one or two "
@@ -43,14 +45,16 @@ def write_report(workdir: str, demos=None, numbers: list[int] | None = None) -> 
       progress.report_written(written)
 
 
-def flat_lstm_hidden() -> int | None:
-  """--lstm_hidden where --model=flat_lstm, else None; UsageError if it is not positive, or if --restarts
-  is given to the flat LSTM (which has no recipe)."""
-  if LSTM_HIDDEN.value < 1:
-    raise UsageError(f"--lstm_hidden must be a positive integer; got {LSTM_HIDDEN.value}")
-  if MODEL.value == "flat_lstm" and (RESTARTS.value or 1) > 1:
-    raise UsageError("--restarts applies to PHP hierarchies (not --model=flat_lstm)")
-  return LSTM_HIDDEN.value if MODEL.value == "flat_lstm" else None
+def flat_model() -> flat.FlatModel | None:
+  """The flat baseline --model and --flat_hidden ask for, None for a PHP; UsageError if --flat_hidden is not
+  positive, or if --restarts is given to a flat baseline (which has no recipe)."""
+  if FLAT_HIDDEN.value < 1:
+    raise UsageError(f"--flat_hidden must be a positive integer; got {FLAT_HIDDEN.value}")
+  if MODEL.value == "php":
+    return None
+  if (RESTARTS.value or 1) > 1:
+    raise UsageError(f"--restarts applies to PHP hierarchies (not --model={MODEL.value})")
+  return flat.FlatModel(MODEL.value.removeprefix("flat_"), FLAT_HIDDEN.value)
 
 
 def run_resumable(body: Callable[[], object]) -> None:

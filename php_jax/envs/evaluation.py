@@ -10,16 +10,16 @@ from collections import defaultdict
 import jax
 import numpy as np
 
-from php_jax import executor, flat_lstm
+from php_jax import executor, flat
 from php_jax.envs.task import Task
 from php_jax.hierarchy import HierarchySpec
 
 
 def rollout(policy, spec: HierarchySpec, env, states, keys, max_steps: int) -> executor.Rollout:
   """The outcomes (nothing recorded) of a batch of episodes from states [B, ...]: a hierarchy (oracle or PHP)
-  runs in the stack-machine executor, the flat LSTM baseline in its own loop."""
-  if isinstance(policy, flat_lstm.FlatLSTMPolicy):
-    return flat_lstm.rollout_batch(policy, env, states, keys, max_steps)
+  runs in the stack-machine executor, a flat baseline in its own loop."""
+  if isinstance(policy, flat.FlatPolicy):
+    return flat.rollout_batch(policy, env, states, keys, max_steps)
   return executor.rollout_batch(policy, spec, env, states, keys, max_steps, record=False)
 
 

@@ -56,7 +56,7 @@ class Replay(NamedTuple):
 
 def replay(policy, spec: HierarchySpec, batch: Demonstration, key: jax.Array | None = None,
            chunk: int = REPLAY_CHUNK) -> Replay:
-  """Runs policy (an argmax hierarchy, or a flat LSTM, whose root returning is its stopping) on each
+  """Runs policy (an argmax hierarchy, or a flat baseline, whose root returning is its stopping) on each
   demonstration of batch [B, ...]; see the module docstring. Above `chunk` demonstrations, they run chunk at a
   time (the last chunk padded with copies of its first), so the rollout's memory is bounded by the chunk."""
   num = batch.length.shape[0]

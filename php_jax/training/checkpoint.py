@@ -14,7 +14,7 @@ from flax import nnx
 from php_jax import encoders
 from php_jax.data.files import WRITING, write_atomically
 from php_jax.envs import tasks
-from php_jax.flat_lstm import FlatLSTMPolicy
+from php_jax.flat import CELLS, FlatPolicy, model_name
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy
 from php_jax.training.storage import (CheckpointError, check_signed, named_arrays, read_json, restore_arrays,
@@ -26,6 +26,7 @@ OLDER_FILES = ("model.msgpack", "checkpoint.msgpack", "seeds_checkpoint.msgpack"
 
 MAX_CAPACITY = 4096  # counters per level a saved model may claim (a hierarchy file's bound too)
 MAX_SIZE = 1 << 20  # observation size, action factor size and procedures per level a saved model may claim
+FLAT_KINDS = {model_name(cell): cell for cell in CELLS}  # model.json's "kind" of a flat baseline → its cell
 
 
 def _save(workdir: str, model, architecture: dict) -> None:
@@ -70,9 +71,9 @@ def trunk_width(hierarchy: PHPHierarchy) -> int | None:
   return None if trunk is None else trunk.width
 
 
-def save_flat_lstm(workdir: str, task_name: str, policy: FlatLSTMPolicy, spec: HierarchySpec) -> None:
-  """The flat LSTM baseline, in the same two files."""
-  _save(workdir, policy, {"task": task_name, "kind": "flat_lstm", "spec": _spec_json(spec),
+def save_flat(workdir: str, task_name: str, policy: FlatPolicy, spec: HierarchySpec) -> None:
+  """A flat baseline (LSTM or GRU), in the same two files."""
+  _save(workdir, policy, {"task": task_name, "kind": policy.name, "spec": _spec_json(spec),
                           "hidden": policy.hidden})
 
 
@@ -123,7 +124,7 @@ def _architecture(path: str, architecture) -> tuple:
     raise CheckpointError(f"{path}: not a model description (needs a \"task\")")
   kind = architecture.get("kind", "php")
   hidden = architecture.get("hidden")
-  if kind == "flat_lstm" and isinstance(hidden, int) and hidden > 0:
+  if kind in FLAT_KINDS and isinstance(hidden, int) and hidden > 0:
     return architecture["task"], kind, hidden, None
   tau = architecture.get("tau_in_termination")
   limit = architecture.get("tau_limit", [None] * len(tau) if isinstance(tau, list) else None)
@@ -152,8 +153,8 @@ def _saved_allowed_ops(path: str, architecture: dict, spec: HierarchySpec) -> tu
                         f"[procedure][operation factor value] booleans)")
 
 
-def load_policy(workdir: str) -> tuple[str, PHPHierarchy | FlatLSTMPolicy]:
-  """(task name, model) saved by save_hierarchy or save_flat_lstm. Raises FileNotFoundError if workdir holds
+def load_policy(workdir: str) -> tuple[str, PHPHierarchy | FlatPolicy]:
+  """(task name, model) saved by save_hierarchy or save_flat. Raises FileNotFoundError if workdir holds
   no model, CheckpointError if its files are corrupt or disagree with each other."""
   arch_path, model_path = (os.path.join(workdir, f) for f in (ARCHITECTURE_FILE, MODEL_DIR))
   if os.path.isfile(arch_path) and not os.path.isdir(model_path) and os.path.isfile(model_path + ".msgpack"):
@@ -165,9 +166,10 @@ def load_policy(workdir: str) -> tuple[str, PHPHierarchy | FlatLSTMPolicy]:
   check_signed(arch_path, architecture)
   named = restore_arrays(model_path, architecture.get("files"), arch_path)
   spec = _saved_spec(arch_path, architecture)
-  if kind == "flat_lstm":
+  if kind in FLAT_KINDS:
     def build():
-      return FlatLSTMPolicy(spec.obs_dim, spec.action_sizes, hidden, spec.observation, rngs=nnx.Rngs(0))
+      return FlatPolicy(spec.obs_dim, spec.action_sizes, hidden, spec.observation, cell=FLAT_KINDS[kind],
+                        rngs=nnx.Rngs(0))
   else:
     tau_in_termination, tau_limit = tau
     if len(tau_in_termination) != spec.num_levels:

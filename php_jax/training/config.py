@@ -284,11 +284,11 @@ def prepare(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> T
   return resolved(config, demos, spec)
 
 
-def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, flat_lstm: bool = False) -> TrainConfig:
+def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, flat: bool = False) -> TrainConfig:
   """config with the settings that follow the demonstrations resolved where unset (as results.json and a
   checkpoint record them): the balanced strong weight (`balanced_strong_weight`); the training mode
-  (`training_mode`; levelwise for the flat LSTM, which has no levels, and no memory of a PHP level's: the
-  LSTM is its own); and for a PHP trained jointly on
+  (`training_mode`; levelwise for a flat baseline, which has no levels, and no memory of a PHP level's: its
+  recurrent cell is its own); and for a PHP trained jointly on
   demonstrations none of which is annotated, WEAK_ONLY_ANNEALING (else 1: none) and, where spec declares no
   call graph (which says itself which procedure takes which operation) and config.segment_rule applies to
   their actions (`segmentation.read_rule`), the segmentation for half the iterations (else 0), and
@@ -296,9 +296,9 @@ def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, fla
   (`batch_size_for`); the length buckets (`views.bucket_count` of the demonstrations' lengths)."""
   strong = np.asarray(demos.strong)
   strong_weight = balanced_strong_weight(strong) if config.strong_weight is None else config.strong_weight
-  training = training_mode(config, bool(strong.any())) if not flat_lstm else config.training or "levelwise"
-  memory = "none" if flat_lstm else config.memory
-  weak_only = not flat_lstm and training == "joint" and not strong.any()
+  training = training_mode(config, bool(strong.any())) if not flat else config.training or "levelwise"
+  memory = "none" if flat else config.memory
+  weak_only = not flat and training == "joint" and not strong.any()
   rule = (segmentation.read_rule(demos, config.segment_rule)
           if weak_only and not call_graph.restricts(spec.allowed_ops)
           and None in (config.segment_iterations, config.split_rounds) else None)

@@ -24,7 +24,7 @@ import jax
 from flax import nnx
 from jax.experimental import multihost_utils
 
-from php_jax import fitting, flat_lstm
+from php_jax import fitting, flat
 from php_jax.data import files
 from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
@@ -75,35 +75,35 @@ def print_row(row: dict) -> None:
 
 
 def train_and_evaluate(experiment: Experiment, config: TrainConfig, workdir: str, overwrite: bool = False,
-                       flat_lstm_hidden: int | None = None, wait: bool = False,
+                       flat_model: flat.FlatModel | None = None, wait: bool = False,
                        echo: Callable[[dict], None] = print_row) -> dict:
   """Trains a PHP hierarchy by config.training (resuming the workdir's checkpoint if an earlier run was
-  interrupted), or with flat_lstm_hidden the flat LSTM baseline of that many units; saves it, tests it,
+  interrupted), or with flat_model that flat baseline (`flat.FlatModel`); saves it, tests it,
   writes results.json; returns the results. overwrite: delete an earlier run's files first (else it is
   resumed, or refused with CheckpointError if its settings differ; a finished run with the same settings is
   not trained again: its results are shown and returned). The run holds the workdir's lock
   throughout (`workdir_lock`; wait: for another run holding it to end). echo(row) shows each logged row and
   last the test results."""
   # resolved here, so that results.json records it
-  config = resolved(config, experiment.demos, experiment.spec, bool(flat_lstm_hidden))
+  config = resolved(config, experiment.demos, experiment.spec, flat_model is not None)
   commit = provenance.code_version()  # the code as it was when the run started
   spec = experiment.spec
   with workdir_lock(workdir, wait):
     clear_workdir(workdir, RUN_FILES, overwrite)
-    finished = _finished(workdir, experiment, config, flat_lstm_hidden)
+    finished = _finished(workdir, experiment, config, flat_model)
     if finished:
       echo({"test": finished["test"], "wall_seconds": finished["wall_seconds"], "finished_before": True})
       return finished
-    gaps = {} if flat_lstm_hidden else annotation_gaps(experiment, config, echo)
+    gaps = {} if flat_model else annotation_gaps(experiment, config, echo)
     with MetricsLog(workdir, echo=echo) as log:
-      if flat_lstm_hidden:
-        model, trained = _train_flat_lstm(experiment, config, flat_lstm_hidden, log)
-        checkpoint.save_flat_lstm(workdir, experiment.name, model, spec)
+      if flat_model:
+        model, trained = _train_flat(experiment, config, flat_model, log)
+        checkpoint.save_flat(workdir, experiment.name, model, spec)
       else:
         model, trained, capacity = _train_php(experiment, config, log,
                                               os.path.join(workdir, checkpoint.TRAINING_DIR))
         checkpoint.save_hierarchy(workdir, experiment.name, model, config.hidden, capacity)
-    results = {"task": experiment.name, "model": "flat_lstm" if flat_lstm_hidden else "php",
+    results = {"task": experiment.name, "model": flat_model.name if flat_model else "php",
                "config": dataclasses.asdict(config), **experiment.extra, **gaps, **trained}
     log.echo({"phase": "testing"})
     return _write_results(workdir, results, experiment.test(model), log, commit)
@@ -174,17 +174,18 @@ def annotation_gaps(experiment: Experiment, config: TrainConfig, echo: Callable[
                                p.demonstrations, "example": p.example} for p in pairs]} if pairs else {}
 
 
-def _finished(workdir: str, experiment: Experiment, config: TrainConfig, flat_lstm_hidden: int | None) -> dict | None:
+def _finished(workdir: str, experiment: Experiment, config: TrainConfig,
+              flat_model: flat.FlatModel | None) -> dict | None:
   """The results.json of a run that finished in workdir with these settings; None if no run finished there
   (`read_finished`). Raises WorkdirError (or CheckpointError, for other demonstrations) naming the settings
   that differ if it was made with others."""
   results = read_finished(workdir)
   if results is None:
     return None
-  model = "flat_lstm" if flat_lstm_hidden else "php"
+  model = flat_model.name if flat_model else "php"
   differ = other_settings(results, {"task": experiment.name, "model": model, **experiment.extra}, config)
-  if flat_lstm_hidden and (results.get("flat_lstm") or {}).get("hidden") != flat_lstm_hidden:
-    differ.append(f"--lstm_hidden: {(results.get('flat_lstm') or {}).get('hidden')!r} there, {flat_lstm_hidden} here")
+  if flat_model and (results.get(model) or {}).get("hidden") != flat_model.hidden:
+    differ.append(f"--flat_hidden: {(results.get(model) or {}).get('hidden')!r} there, {flat_model.hidden} here")
   if differ:
     raise made_otherwise(workdir, differ)
   saved = resume.read_training(os.path.join(workdir, checkpoint.TRAINING_DIR))
@@ -379,14 +380,14 @@ def _summary(entry: dict) -> dict:
       "final_loss": entry["losses"][-1][1] if entry["losses"] else None}
 
 
-def _train_flat_lstm(experiment: Experiment, config: TrainConfig, hidden: int, log):
+def _train_flat(experiment: Experiment, config: TrainConfig, model: flat.FlatModel, log):
   """The baseline on the same demonstrations' elementary actions (annotations unused), same iterations,
   learning rate, seed and snapshot rule."""
   spec = experiment.spec
-  policy = flat_lstm.FlatLSTMPolicy(spec.obs_dim, spec.action_sizes, hidden, spec.observation,
-                                    rngs=nnx.Rngs(config.network_seed))
+  policy = flat.FlatPolicy(spec.obs_dim, spec.action_sizes, model.hidden, spec.observation, cell=model.cell,
+                           rngs=nnx.Rngs(config.network_seed))
   schedule = config.schedule()
-  report = flat_lstm.train(policy, experiment.demos, schedule,
-                           fitting.Hooks(lambda iteration, loss: experiment.validate(policy), log))
-  return policy, {"flat_lstm": {"hidden": hidden, "best_iteration": report["best_iteration"],
-                                "validation": report["validation"], "final_loss": report["losses"][-1][1]}}
+  report = flat.train(policy, experiment.demos, schedule,
+                      fitting.Hooks(lambda iteration, loss: experiment.validate(policy), log))
+  return policy, {model.name: {"hidden": model.hidden, "best_iteration": report["best_iteration"],
+                               "validation": report["validation"], "final_loss": report["losses"][-1][1]}}

@@ -19,7 +19,7 @@ from gymnasium import spaces
 from php_jax import executor
 from php_jax.data import demo_files
 from php_jax.envs import gym
-from php_jax.flat_lstm import FlatLSTMPolicy
+from php_jax.flat import FlatPolicy
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy
 from php_jax.training import checkpoint
@@ -311,18 +311,18 @@ def test_act_refuses_a_policy_sized_for_another_environment():
   with pytest.raises(gym.GymError, match="observes vectors of 9 numbers; this environment's observations "
                                          "flatten to 8"):
     gym.act(other, make_corridor(), 1, 0)
-  lstm = FlatLSTMPolicy(8, (3,), 4, rngs=nnx.Rngs(0))
+  lstm = FlatPolicy(8, (3,), 4, rngs=nnx.Rngs(0))
   with pytest.raises(gym.GymError, match=r"factor sizes \[3\]; this environment's Discrete\(2\) has \[2\]"):
     gym.act(lstm, make_corridor(), 1, 0)
 
 
 def test_a_flat_lstm_acts_through_the_same_loop():
-  outcomes = gym.act(FlatLSTMPolicy(8, (2,), 4, rngs=nnx.Rngs(1)), gym.vector_env(make_corridor, 2), 4, seed=0)
+  outcomes = gym.act(FlatPolicy(8, (2,), 4, rngs=nnx.Rngs(1)), gym.vector_env(make_corridor, 2), 4, seed=0)
   assert len(outcomes) == 4 and all(o["stack"] is None and 0 <= o["steps"] <= 20 for o in outcomes)
 
 
 def test_a_sampling_flat_lstm_acts_the_same_for_the_same_seed_whatever_the_number_of_copies():
-  policy = FlatLSTMPolicy(8, (2,), 4, sample=True, rngs=nnx.Rngs(1))
+  policy = FlatPolicy(8, (2,), 4, sample=True, rngs=nnx.Rngs(1))
   one = gym.act(policy, make_corridor(), 8, seed=11)
   assert gym.act(policy, gym.vector_env(make_corridor, 3), 8, seed=11) == one
   assert gym.act(policy, make_corridor(), 8, seed=12) != one
@@ -386,10 +386,11 @@ def test_record_fit_act_commands_on_an_environment_php_jax_has_never_seen(tmp_pa
       f"mean return {np.mean([e['return'] for e in episodes]):.2f}; 20 terminated, 0 truncated"]
   flat = tmp_path / "flat"
   proc = _run("experiments.fit", f"--demos={demos}", f"--hierarchy={hierarchy}", f"--workdir={flat}",
-              "--model=flat_lstm", "--lstm_hidden=8", "--iterations=20", "--eval_every=10")
+              "--model=flat_gru", "--flat_hidden=8", "--iterations=20", "--eval_every=10")
   assert proc.returncode == 0, proc.stderr
-  assert json.loads((flat / "results.json").read_text())["model"] == "flat_lstm"
-  proc = _run("experiments.act", f"--policy={flat}", env, "--episodes=3", f"--out={out}")
+  results = json.loads((flat / "results.json").read_text())
+  assert results["model"] == "flat_gru" and results["flat_gru"]["hidden"] == 8
+  proc = _run("experiments.act", f"--policy={flat}", env, "--episodes=3", "--sample", f"--out={out}")
   assert proc.returncode == 0, proc.stderr
   assert [json.loads(line)["stack"] for line in out.read_text().splitlines()] == [None] * 3
 
@@ -411,7 +412,7 @@ def test_record_and_act_refusals_end_in_one_line_and_exit_2(tmp_path):
   flat.mkdir()
   checkpoint.save_hierarchy(str(wide), "c", PHPHierarchy(HierarchySpec("c", SPEC.levels, (2,), 9), hidden=(8,),
                                                          rngs=nnx.Rngs(0)), (8,))
-  checkpoint.save_flat_lstm(str(flat), "c", FlatLSTMPolicy(8, (2,), 4, rngs=nnx.Rngs(0)), SPEC)
+  checkpoint.save_flat(str(flat), "c", FlatPolicy(8, (2,), 4, rngs=nnx.Rngs(0)), SPEC)
   env, expert = "--env=tests.envs.test_gym:make_corridor", "--expert=tests.envs.test_gym:CorridorExpert"
   record = ("experiments.record", env, expert, f"--out={out}")
   chosen = tmp_path / "chosen.jsonl"

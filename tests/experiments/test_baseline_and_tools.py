@@ -1,4 +1,4 @@
-"""The flat LSTM baseline, the sweep runner's grid, the plot command and the segmentation report."""
+"""The flat baselines (LSTM, GRU), the sweep runner's grid, the plot command and the segmentation report."""
 import collections
 import json
 import re
@@ -14,7 +14,7 @@ import pytest
 from flax import nnx
 
 from experiments import plot, segment_errors, sweep
-from php_jax import fitting, flat_lstm
+from php_jax import fitting, flat
 from php_jax.analysis import decoding
 from php_jax.data import views
 from php_jax.envs import datasets, evaluation, nanocraft, nanocraft_task, tasks
@@ -31,9 +31,10 @@ def _demos(num=8, seed=3):
                                                   nanocraft.ORACLE_STEP_BUDGET)
 
 
-def test_flat_lstm_log_likelihood_matches_stepping_by_hand():
+@pytest.mark.parametrize("cell", flat.CELLS)
+def test_flat_log_likelihood_matches_stepping_by_hand(cell):
   _, demos = _demos(2)
-  policy = flat_lstm.FlatLSTMPolicy(5, (5,), 16, rngs=nnx.Rngs(0))
+  policy = flat.FlatPolicy(5, (5,), 16, cell=cell, rngs=nnx.Rngs(0))
   obs, actions, n = demos.observations[0], demos.actions[0], int(demos.length[0])
   carry, expected, previous = policy.initial_carry(), 0.0, jnp.array([-1])
   for t in range(n + 1):
@@ -47,23 +48,24 @@ def test_flat_lstm_log_likelihood_matches_stepping_by_hand():
   np.testing.assert_allclose(got, expected, rtol=1e-5)
 
 
-def test_flat_lstm_clones_its_training_demonstrations_and_survives_saving(tmp_path):
+@pytest.mark.parametrize("cell", flat.CELLS)
+def test_flat_baseline_clones_its_training_demonstrations_and_survives_saving(tmp_path, cell):
   problems, demos = _demos(8)
-  policy = flat_lstm.FlatLSTMPolicy(5, (5,), 32, rngs=nnx.Rngs(1))
-  report = flat_lstm.train(policy, demos, fitting.Schedule(400, 1e-2, 100), fitting.Hooks(log=lambda r: None))
+  policy = flat.FlatPolicy(5, (5,), 32, cell=cell, rngs=nnx.Rngs(1))
+  report = flat.train(policy, demos, fitting.Schedule(400, 1e-2, 100), fitting.Hooks(log=lambda r: None))
   assert report["losses"][-1][1] < 0.05 * report["losses"][0][1]
   outcomes = evaluation.solve(NANOCRAFT, policy, problems)
   assert np.mean([o["correct"] for o in outcomes]) >= 0.75  # its own training problems
-  checkpoint.save_flat_lstm(str(tmp_path), "nanocraft", policy, NANOCRAFT.spec)
+  checkpoint.save_flat(str(tmp_path), "nanocraft", policy, NANOCRAFT.spec)
   name, loaded = checkpoint.load_policy(str(tmp_path))
-  assert name == "nanocraft" and isinstance(loaded, flat_lstm.FlatLSTMPolicy)
+  assert name == "nanocraft" and isinstance(loaded, flat.FlatPolicy) and loaded.cell_kind == cell
   assert evaluation.solve(NANOCRAFT, loaded, problems) == outcomes
   loaded.sample = True  # drawn with the evaluation's keys: the same draws each time
   assert evaluation.solve(NANOCRAFT, loaded, problems) == evaluation.solve(NANOCRAFT, loaded, problems)
 
 
 def test_a_sampling_flat_lstm_draws_its_actions_and_stop_from_their_distributions():
-  policy = flat_lstm.FlatLSTMPolicy(5, (2, 3), 4, rngs=nnx.Rngs(0))
+  policy = flat.FlatPolicy(5, (2, 3), 4, rngs=nnx.Rngs(0))
   factors = [jnp.log(jnp.array([0.3, 0.7])), jnp.log(jnp.array([0.5, 0.1, 0.4]))]
   stop_logit = jnp.log(0.2 / 0.8)
   action, stop = policy.decide(factors, stop_logit, jax.random.key(0))

@@ -17,7 +17,7 @@ from php_jax import demos
 from php_jax.data import call_tree, demo_files, views
 from php_jax.demos import UNKNOWN
 from php_jax.envs import datasets, replay, tasks
-from php_jax.flat_lstm import FlatLSTMPolicy
+from php_jax.flat import FlatPolicy
 from tests import processes
 
 NANOCRAFT = tasks.get("nanocraft")
@@ -171,7 +171,7 @@ def test_oracle_replays_its_demonstrations_and_mismatches_are_located():
 
 def test_a_flat_lstm_replays_as_its_own_steps_on_the_recorded_observations_say():
   batch = datasets.training_demos(NANOCRAFT, 1, 6, 0)
-  policy = FlatLSTMPolicy(NANOCRAFT.spec.obs_dim, NANOCRAFT.spec.action_sizes, 8, rngs=nnx.Rngs(2))
+  policy = FlatPolicy(NANOCRAFT.spec.obs_dim, NANOCRAFT.spec.action_sizes, 8, rngs=nnx.Rngs(2))
   result = replay.replay(policy, NANOCRAFT.spec, batch)
   for b, length in enumerate(np.asarray(batch.length)):
     carry, previous, expected = policy.initial_carry(), jnp.full(len(policy.action_sizes), -1), -1

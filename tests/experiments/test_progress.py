@@ -60,7 +60,7 @@ def test_joint_and_flat_runs_and_other_seeds():
   assert "resumed from the checkpoint: level joint\n" in text and "iteration None" not in text
   assert "split search" in text and "kept: unchanged (log-likelihood per step -0.5)" in text
   text = _display(config, None, [{"iteration": 60, "loss": 0.3, "seconds": 2.0}])
-  assert "flat LSTM" in text and "60/60" in text
+  assert "flat baseline" in text and "60/60" in text
   text = _display(config, 3, [{"seed": 1, "level": 2, "capacity": 4, "seconds": 1.0},
                               {"seed": 2, "level": 2, "iteration": 60, "loss": 9.0, "seconds": 2.0},
                               {"seed": 1, "level": 2, "iteration": 30, "loss": 1.0, "seconds": 2.0},

@@ -13,6 +13,7 @@ import pytest
 from flax import nnx
 
 from experiments.common import pictures, run_report, run_view
+from php_jax import flat
 from php_jax.analysis import decoding
 from php_jax.data import agreement, demo_files, views
 from php_jax.demos import UNKNOWN
@@ -20,6 +21,8 @@ from php_jax.model import PHPHierarchy
 from php_jax.training import checkpoint, run, storage
 from php_jax.training.config import DISCOVERY_SPLIT_ROUNDS, WEAK_ONLY_ANNEALING, TrainConfig
 from tests.saved import file_bytes
+
+LSTM4 = flat.FlatModel("lstm", 4)  # a flat baseline small enough to train in a test
 
 WAREHOUSE = pathlib.Path(__file__).resolve().parents[2] / "examples" / "warehouse"
 
@@ -104,9 +107,9 @@ def test_a_joint_runs_split_search_is_reported_round_by_round(fitted, tmp_path):
 def test_a_flat_lstm_is_refused_by_show_and_reported_without_stacks(tmp_path):
   workdir = str(tmp_path / "flat")
   experiment = _flat_experiment()
-  run.train_and_evaluate(experiment, TrainConfig(iterations=2, eval_every=1), workdir, flat_lstm_hidden=4,
+  run.train_and_evaluate(experiment, TrainConfig(iterations=2, eval_every=1), workdir, flat_model=LSTM4,
                          echo=lambda row: None)
-  with pytest.raises(ValueError, match="holds a flat LSTM, which has no call stack to show"):
+  with pytest.raises(ValueError, match="holds a flat baseline, which has no call stack to show"):
     run_view.load(workdir)
   page = pathlib.Path(run_report.write(workdir)).read_text()
   assert "No call stack to show" in page and page.count("<svg") == 1 and "flat LSTM</text>" in page
@@ -115,10 +118,10 @@ def test_a_flat_lstm_is_refused_by_show_and_reported_without_stacks(tmp_path):
 def test_a_finished_run_is_not_trained_again_and_other_settings_are_named(tmp_path):
   workdir, experiment, config = str(tmp_path / "flat"), _flat_experiment(), TrainConfig(iterations=2, eval_every=1)
   rows = []
-  first = run.train_and_evaluate(experiment, config, workdir, flat_lstm_hidden=4, echo=rows.append)
+  first = run.train_and_evaluate(experiment, config, workdir, flat_model=LSTM4, echo=rows.append)
   files = file_bytes(tmp_path / "flat")
   rows.clear()
-  again = run.train_and_evaluate(experiment, config, workdir, flat_lstm_hidden=4, echo=rows.append)
+  again = run.train_and_evaluate(experiment, config, workdir, flat_model=LSTM4, echo=rows.append)
   assert again == json.loads(json.dumps(first))  # as results.json holds it
   assert rows == [{"test": first["test"], "wall_seconds": first["wall_seconds"], "finished_before": True}]
   assert file_bytes(tmp_path / "flat") == files
@@ -127,11 +130,11 @@ def test_a_finished_run_is_not_trained_again_and_other_settings_are_named(tmp_pa
   del older["config"]["length_buckets"]  # a run made before that setting existed ran with its default
   older["config"]["batch_size"] = None  # recorded unset before runs resolved it: the full batch, as 0 is now
   results_path.write_text(json.dumps(older))
-  assert run.train_and_evaluate(experiment, config, workdir, flat_lstm_hidden=4, echo=rows.append) == older
+  assert run.train_and_evaluate(experiment, config, workdir, flat_model=LSTM4, echo=rows.append) == older
   with pytest.raises(run.WorkdirError, match=r"other settings \(--iterations: 2 there, 3 here\); use a fresh"):
-    run.train_and_evaluate(experiment, dataclasses.replace(config, iterations=3), workdir, flat_lstm_hidden=4)
-  with pytest.raises(run.WorkdirError, match=r"--lstm_hidden: 4 there, 5 here"):
-    run.train_and_evaluate(experiment, config, workdir, flat_lstm_hidden=5)
+    run.train_and_evaluate(experiment, dataclasses.replace(config, iterations=3), workdir, flat_model=LSTM4)
+  with pytest.raises(run.WorkdirError, match=r"--flat_hidden: 4 there, 5 here"):
+    run.train_and_evaluate(experiment, config, workdir, flat_model=flat.FlatModel("lstm", 5))
 
 
 def test_a_finished_php_run_records_its_resolved_settings_and_is_not_trained_again(tmp_path):

@@ -61,8 +61,8 @@ def test_runs_without_annotation_train_jointly_and_anneal_by_default():
   assert mode(weak, dataclasses.replace(unset, call_penalty=(0, 1, 0))) == ("joint", WEAK_ONLY_ANNEALING)  # both modes'
   assert mode(mixed, dataclasses.replace(unset, anneal_temperature=2.0)) == ("joint", 2.0)
   assert mode(weak, dataclasses.replace(joint_config, anneal_temperature=1.0)) == ("joint", 1)
-  flat = resolved(unset, weak, NANOCRAFT.spec, flat_lstm=True)
-  assert flat.training == "levelwise"  # as flat LSTM runs recorded it
+  flat = resolved(unset, weak, NANOCRAFT.spec, flat=True)
+  assert flat.training == "levelwise"  # as flat baselines record it
   def discovery(demos, config, spec=NANOCRAFT.spec):
     settled = resolved(config, demos, spec)
     return settled.segment_iterations, settled.split_rounds

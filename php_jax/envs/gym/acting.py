@@ -1,4 +1,4 @@
-"""A learned policy (a PHP hierarchy or the flat LSTM) acting in a Gymnasium environment, several copies of
+"""A learned policy (a PHP hierarchy or a flat baseline) acting in a Gymnasium environment, several copies of
 it stepped together, each step's decisions one jitted call. Episode i is reset with seed + i."""
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from php_jax import executor
 from php_jax.envs import success
 from php_jax.envs.gym.loading import max_steps_of
 from php_jax.envs.gym.spaces import GymError, action_sizes, env_actions, flatten_batch, observation_size
-from php_jax.flat_lstm import FlatLSTMPolicy
+from php_jax.flat import FlatPolicy
 from php_jax.model import PHPHierarchy
 
 
@@ -32,7 +32,7 @@ class _Stack(NamedTuple):
 
 
 class _Carry(NamedTuple):
-  """The flat LSTM's memory per copy: its carry ([M, H] twice) and previous action [M, F]."""
+  """A flat baseline's memory per copy: its cell's state (leaves [M, H]) and previous action [M, F]."""
   carry: tuple
   previous: jax.Array
 
@@ -58,7 +58,7 @@ def _hierarchy_decisions(policy: PHPHierarchy, memory: _Stack, obs, fresh, keys)
   return _Stack(procs, taus, remembered, actions), actions, returned
 
 
-def _lstm_decisions(policy: FlatLSTMPolicy, memory: _Carry, obs, fresh, keys):
+def _lstm_decisions(policy: FlatPolicy, memory: _Carry, obs, fresh, keys):
   """Per copy: the LSTM's step on obs (from its initial carry where fresh): stop, or the next action."""
 
   def one(carry, previous, o, is_fresh, key):
@@ -82,12 +82,12 @@ def _decisions(structure: tuple, leaves: list, memory, obs, fresh, clock: tuple,
   episodes, steps = clock
   policy = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
   keys = jax.vmap(lambda e, s: jax.random.fold_in(jax.random.fold_in(key, e), s))(episodes, steps)
-  if isinstance(policy, FlatLSTMPolicy):
+  if isinstance(policy, FlatPolicy):
     return _lstm_decisions(policy, memory, obs, fresh, keys)
   return _hierarchy_decisions(policy, memory, obs, fresh, keys)
 
 
-def policy_sizes(policy: PHPHierarchy | FlatLSTMPolicy) -> tuple[int, tuple[int, ...]]:
+def policy_sizes(policy: PHPHierarchy | FlatPolicy) -> tuple[int, tuple[int, ...]]:
   """(observation size, action factor sizes) a learned policy was trained with."""
   if isinstance(policy, PHPHierarchy):
     return policy.spec.obs_dim, policy.spec.action_sizes
@@ -184,7 +184,7 @@ def copy_info(infos: dict, m: int) -> dict:
   return info
 
 
-def act(policy: PHPHierarchy | FlatLSTMPolicy, env: gymnasium.Env | gymnasium.vector.VectorEnv, episodes: int,
+def act(policy: PHPHierarchy | FlatPolicy, env: gymnasium.Env | gymnasium.vector.VectorEnv, episodes: int,
         seed: int, max_steps: int | None = None, on_episode: Callable[[success.Ending], None] | None = None,
         success_rule: success.SuccessRule | None = None) -> list[dict]:
   """Runs a learned policy for `episodes` episodes in the real environment; episode i is reset with seed + i.

@@ -1,7 +1,8 @@
-"""The flat baseline a user would pick instead of PHPs: an LSTM policy trained by behaviour cloning on the
-demonstrations' elementary actions (call stacks ignored), run in the same environments on the same problems.
+"""The flat baselines a user would pick instead of PHPs: a recurrent policy (an LSTM or a GRU) trained by
+behaviour cloning on the demonstrations' elementary actions (call stacks ignored), run in the same environments on
+the same problems.
 
-At each step t the LSTM reads o_t and the previous action, then either stops (the episode ends, as when a
+At each step t the recurrent cell reads o_t and the previous action, then either stops (the episode ends, as when a
 PHP root returns) or emits an action, one categorical per action factor. Training maximises
 Σ_t<T [log p(a_t | o_≤t) + log p(continue)] + log p(stop at T), full-batch Adam, with the same snapshot rule as
 PHP training: the latest (or earliest) snapshot with the best validation accuracy. It acts greedily, or with
@@ -10,6 +11,7 @@ PHP training: the latest (or earliest) snapshot with the best validation accurac
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -19,27 +21,54 @@ from flax import nnx
 from php_jax import encoders, executor, fitting
 from php_jax.demos import Demonstration
 
+CELLS = ("lstm", "gru")
 
-class FlatLSTMPolicy(nnx.Module):
-  """An LSTM over (o_t, one-hot a_{t−1}) with a factorized action head and a stop logit. With structured
-  observation fields (`encoders.structured`) it reads o_t through the same encoder a PHP level would
-  (`encoders.Encoder`, encoders.DEFAULT_WIDTH wide), so that a comparison separates what the hierarchy brings
-  from what the encoder brings."""
+
+class FlatModel(NamedTuple):
+  """A flat baseline to train: its recurrent cell (one of CELLS) and hidden units."""
+  cell: str
+  hidden: int
+
+  @property
+  def name(self) -> str:
+    return model_name(self.cell)
+
+
+def model_name(cell: str) -> str:
+  """The name a flat policy with this cell goes by (`--model`, results.json, model.json): flat_lstm, flat_gru."""
+  return f"flat_{cell}"
+
+
+class FlatPolicy(nnx.Module):
+  """A recurrent cell (`cell`: "lstm" or "gru", `hidden` units) over (o_t, one-hot a_{t−1}) with a factorized
+  action head and a stop logit. With structured observation fields (`encoders.structured`) it reads o_t through
+  the same encoder a PHP level would (`encoders.Encoder`, encoders.DEFAULT_WIDTH wide), so that a comparison
+  separates what the hierarchy brings from what the encoder brings. Raises ValueError for another cell."""
 
   def __init__(self, obs_dim: int, action_sizes: tuple[int, ...], hidden: int = 128,
-               fields: tuple[encoders.Field, ...] | None = None, sample: bool = False, *, rngs: nnx.Rngs):
+               fields: tuple[encoders.Field, ...] | None = None, sample: bool = False, cell: str = "lstm", *,
+               rngs: nnx.Rngs):
+    if cell not in CELLS:
+      raise ValueError(f"cell must be one of {', '.join(CELLS)}; got {cell!r}")
     self.obs_dim = obs_dim
     self.sample = sample
     self.action_sizes = tuple(action_sizes)
     self.hidden = hidden
+    self.cell_kind = cell
     self.encoder = encoders.Encoder(fields, encoders.DEFAULT_WIDTH, rngs=rngs) if encoders.structured(fields) else None
     features = obs_dim if self.encoder is None else self.encoder.width
-    self.cell = nnx.LSTMCell(features + sum(action_sizes), hidden, rngs=rngs)
+    recurrent = nnx.LSTMCell if cell == "lstm" else nnx.GRUCell
+    self.cell = recurrent(features + sum(action_sizes), hidden, rngs=rngs)
     self.head = nnx.Linear(hidden, sum(action_sizes) + 1, rngs=rngs)
 
+  @property
+  def name(self) -> str:
+    return model_name(self.cell_kind)
+
   def initial_carry(self):
+    """The cell's state before the first step: (c, h) [hidden] each for an LSTM, h [hidden] for a GRU."""
     zeros = jnp.zeros(self.hidden, jnp.float32)
-    return zeros, zeros
+    return (zeros, zeros) if self.cell_kind == "lstm" else zeros
 
   def step(self, carry, obs: jax.Array, prev_action: jax.Array):
     """obs [D], prev_action [F] int (−1 before the first action) → (carry, [log-probs per factor], stop logit)."""
@@ -79,7 +108,7 @@ class FlatLSTMPolicy(nnx.Module):
     return jnp.sum(terms)
 
 
-def _act(policy: FlatLSTMPolicy, env, machine, key):
+def _act(policy: FlatPolicy, env, machine, key):
   """One decision of one episode: stop, or act. machine = (state, carry, previous action)."""
   state, carry, previous = machine
   carry, factors, stop_logit = policy.step(carry, env.observe(state), previous)
@@ -88,7 +117,7 @@ def _act(policy: FlatLSTMPolicy, env, machine, key):
 
 
 @functools.partial(jax.jit, static_argnames=("env", "max_steps"))
-def rollout_batch(policy: FlatLSTMPolicy, env, states, keys, max_steps: int) -> executor.Rollout:
+def rollout_batch(policy: FlatPolicy, env, states, keys, max_steps: int) -> executor.Rollout:
   """Episodes from a batch of start states [B, ...] until each stops, fails or spends max_steps actions,
   greedy or (policy.sample) drawn with keys [B] (step t's key folds t into the episode's); the same outcome
   fields as the hierarchy executor's (nothing recorded)."""
@@ -122,7 +151,7 @@ def rollout_batch(policy: FlatLSTMPolicy, env, states, keys, max_steps: int) -> 
                           valid=valid, failed_action=failed_action)
 
 
-def train(policy: FlatLSTMPolicy, demos: Demonstration, schedule: fitting.Schedule,
+def train(policy: FlatPolicy, demos: Demonstration, schedule: fitting.Schedule,
           hooks: fitting.Hooks = fitting.Hooks()) -> dict:
   """Behaviour cloning: Adam on −mean log p(demonstration) over every demonstration, or with
   schedule.batch_size a minibatch (`fitting.fit`: the snapshot with the best hooks.on_eval score is kept,
