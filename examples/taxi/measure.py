@@ -9,8 +9,10 @@ against the expert's stacks.
 Seed s records its training episodes from seed 10000·s (each configuration's own demonstrations), the first
 --annotated of them with the expert's stacks (--choose=suggest: those experiments.suggest chooses from their
 actions), and fits with --seed=s; every run acts in the same 1,000 episodes (seeds 100000..100999) and
-decodes the same 200 (seeds 500000..500199), none of which any training set holds. --model=flat_lstm fits
-the flat LSTM on the same demonstrations instead. Finished runs are kept, so a rerun resumes (and stops,
+decodes the same 200 (seeds 500000..500199), none of which any training set holds. Each run acts twice in
+those episodes: taking the policy's most likely choices ("success"), and drawing them with `act --sample`
+("sampled", BabyAI's protocol; a finished run measured before gets it on a rerun). --model=flat_lstm or
+flat_gru fits that flat baseline on the same demonstrations instead. Finished runs are kept, so a rerun resumes (and stops,
 exit status 2, at a finished run measured with another environment, expert, hierarchy file or fit flags);
 WORKDIR/rows.jsonl holds the row of every finished run in WORKDIR (this invocation's and earlier ones'), and
 their table is printed at the end.
@@ -73,6 +75,9 @@ def measure(setup: argparse.Namespace, workdir: str, demos: int, annotated: int,
   if os.path.exists(done):
     with open(done) as f:
       row = json.load(f)
+    if "sampled" not in row and row.get("setup", measured_with) == measured_with:
+      row["sampled"] = _act(setup, run, "--sample")
+      _write_row(done, row)
     if row.get("setup", measured_with) != measured_with:
       print(f"{done} was measured with other settings ({row['setup']}); use another --workdir", file=sys.stderr)
       sys.exit(2)
@@ -83,20 +88,29 @@ def measure(setup: argparse.Namespace, workdir: str, demos: int, annotated: int,
   _record(setup, held, 200, 200, 500000)
   _run("experiments.fit", f"--demos={train}", f"--hierarchy={setup.hierarchy}", f"--workdir={run}", f"--seed={seed}",
        f"--model={model}", *fit_flags)
-  # Taxi ends an episode only on delivering the passenger, DoorKey only at the goal: there, ending is success.
-  acted = _run("experiments.act", f"--policy={run}", f"--env={setup.env}", "--episodes=1000", "--seed=100000",
-               "--num_envs=64", "--success=terminated",
-               f"--out={os.path.join(run, 'episodes.jsonl')}")
-  success = float(re.search(r"success ([0-9.]+)", acted).group(1))
   row = {"model": model, "demos": demos, "annotated": annotated, "chosen": setup.choose, "seed": seed,
-         "success": success}
+         "success": _act(setup, run), "sampled": _act(setup, run, "--sample")}
   if model == "php":
     row.update(decode(run, held))
   row["setup"] = measured_with
-  with open(done + ".tmp", "w") as f:
-    json.dump(row, f)
-  os.replace(done + ".tmp", done)
+  _write_row(done, row)
   return row
+
+
+def _act(setup: argparse.Namespace, run: str, *act_flags: str) -> float:
+  """The success rate of the policy in `run` over the 1,000 acting episodes (their lines in
+  run/episodes.jsonl, or episodes_sampled.jsonl with --sample)."""
+  # Taxi ends an episode only on delivering the passenger, DoorKey only at the goal: there, ending is success.
+  out = os.path.join(run, "episodes_sampled.jsonl" if act_flags else "episodes.jsonl")
+  acted = _run("experiments.act", f"--policy={run}", f"--env={setup.env}", "--episodes=1000", "--seed=100000",
+               "--num_envs=64", "--success=terminated", *act_flags, f"--out={out}")
+  return float(re.search(r"success ([0-9.]+)", acted).group(1))
+
+
+def _write_row(path: str, row: dict) -> None:
+  with open(path + ".tmp", "w") as f:
+    json.dump(row, f)
+  os.replace(path + ".tmp", path)
 
 
 def decode(run: str, held: str) -> dict:
@@ -129,7 +143,7 @@ def main() -> None:
   parser.add_argument("--demos", default="100", help="comma-separated numbers of demonstrations")
   parser.add_argument("--annotated", default="3", help="comma-separated numbers annotated")
   parser.add_argument("--seeds", default="1,2,3,4,5")
-  parser.add_argument("--model", default="php", choices=["php", "flat_lstm"])
+  parser.add_argument("--model", default="php", choices=["php", "flat_lstm", "flat_gru"])
   parser.add_argument("--env", default=ENV, help="the environment's MODULE:ATTR (or Gymnasium id)")
   parser.add_argument("--expert", default=EXPERT, help="the expert's MODULE:ATTR")
   parser.add_argument("--hierarchy", default=HIERARCHY, help="the hierarchy file")
@@ -153,16 +167,18 @@ def main() -> None:
   with open(os.path.join(args.workdir, "rows.jsonl.tmp"), "w") as f:
     f.writelines(json.dumps(row) + "\n" for row in rows)
   os.replace(os.path.join(args.workdir, "rows.jsonl.tmp"), os.path.join(args.workdir, "rows.jsonl"))
-  print("| model | demos | annotated | chosen | success per seed | seeds ≥ 0.99 "
+  print("| model | demos | annotated | chosen | success per seed | seeds ≥ 0.99 | sampled (--sample) per seed "
         "| level 1, 2 agreement (renamed), mean |")
-  print("|---|---|---|---|---|---|---|")
+  print("|---|---|---|---|---|---|---|---|")
   for key in sorted({(r["model"], r["demos"], r["annotated"], r["chosen"]) for r in rows}):
     group = [r for r in rows if (r["model"], r["demos"], r["annotated"], r["chosen"]) == key]
     agreement = ", ".join(f"{sum(r[f'level{k}_renamed'] for r in group) / len(group):.3f}"
                           for k in (1, 2) if f"level{k}_renamed" in group[0]) or "–"
     successes = " ".join(f"{r['success']:.3f}" for r in group)
+    sampled = " ".join(f"{r['sampled']:.3f}" if "sampled" in r else "–" for r in group)
+    sampled += f" ({sum(r.get('sampled', 0) >= 0.99 for r in group)}/{len(group)} ≥ 0.99)"
     print(f"| {key[0]} | {key[1]} | {key[2]} | {key[3]} | {successes} | "
-          f"{sum(r['success'] >= 0.99 for r in group)}/{len(group)} | {agreement} |")
+          f"{sum(r['success'] >= 0.99 for r in group)}/{len(group)} | {sampled} | {agreement} |")
 
 
 if __name__ == "__main__":
