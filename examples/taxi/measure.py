@@ -8,14 +8,14 @@ against the expert's stacks.
 
 Seed s records its training episodes from seed 10000·s (each configuration's own demonstrations), the first
 --annotated of them with the expert's stacks (--choose=suggest: those experiments.suggest chooses from their
-actions), and fits with --seed=s; every run acts in the same 1,000 episodes (seeds 100000..100999) and
-decodes the same 200 (seeds 500000..500199), none of which any training set holds. Each run acts twice in
-those episodes: taking the policy's most likely choices ("success"), and drawing them with `act --sample`
-("sampled", BabyAI's protocol; a finished run measured before gets it on a rerun). --model=flat_lstm or
-flat_gru fits that flat baseline on the same demonstrations instead. Finished runs are kept, so a rerun resumes (and stops,
-exit status 2, at a finished run measured with another environment, expert, hierarchy file or fit flags);
-WORKDIR/rows.jsonl holds the row of every finished run in WORKDIR (this invocation's and earlier ones'), and
-their table is printed at the end.
+actions), and fits with --seed=s; every run acts in the same 1,000 episodes (seeds 100000..100999) and decodes the
+same 200 (seeds 500000..500199), none of which any training set holds. Each run acts twice in those episodes:
+taking the policy's most likely choices ("success"), and drawing them with `act --sample` ("sampled", BabyAI's
+protocol; a finished run measured before gets it on a rerun). --model=flat_lstm or flat_gru fits that flat
+baseline on the same demonstrations instead. Finished runs are kept, so a rerun resumes (and stops, exit status 2,
+at a finished run measured with another environment, expert, hierarchy file or fit flags); WORKDIR/rows.jsonl
+holds the row of every finished run in WORKDIR (this invocation's and earlier ones'), and their table is printed
+at the end.
 """
 from __future__ import annotations
 

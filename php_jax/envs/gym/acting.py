@@ -58,8 +58,8 @@ def _hierarchy_decisions(policy: PHPHierarchy, memory: _Stack, obs, fresh, keys)
   return _Stack(procs, taus, remembered, actions), actions, returned
 
 
-def _lstm_decisions(policy: FlatPolicy, memory: _Carry, obs, fresh, keys):
-  """Per copy: the LSTM's step on obs (from its initial carry where fresh): stop, or the next action."""
+def _flat_decisions(policy: FlatPolicy, memory: _Carry, obs, fresh, keys):
+  """Per copy: the flat policy's step on obs (from its initial carry where fresh): stop, or the next action."""
 
   def one(carry, previous, o, is_fresh, key):
     carry = jax.tree.map(lambda c, c0: jnp.where(is_fresh, c0, c), carry, policy.initial_carry())
@@ -83,7 +83,7 @@ def _decisions(structure: tuple, leaves: list, memory, obs, fresh, clock: tuple,
   policy = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
   keys = jax.vmap(lambda e, s: jax.random.fold_in(jax.random.fold_in(key, e), s))(episodes, steps)
   if isinstance(policy, FlatPolicy):
-    return _lstm_decisions(policy, memory, obs, fresh, keys)
+    return _flat_decisions(policy, memory, obs, fresh, keys)
   return _hierarchy_decisions(policy, memory, obs, fresh, keys)
 
 
