@@ -331,10 +331,16 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
       (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={hierarchy}",
         f"--workdir={tmp_path / 'w13'}", "--env=FrozenLake-v1"),
        "the hierarchy does not fit these demonstrations: observation: its fields take 16 numbers"),
+      (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={hierarchy}",
+        f"--workdir={tmp_path / 'w14'}", "--model=flat_gru", "--flat_hidden=0"),
+       "--flat_hidden must be a positive integer; got 0"),
+      (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={hierarchy}",
+        f"--workdir={tmp_path / 'w15'}", "--model=flat_gru", "--restarts=2"),
+       "--restarts applies to PHP hierarchies (not --model=flat_gru)"),
   ]
   # Run at the same time, each with its own workdir.
   processes.assert_refused(cases)
-  assert not any((tmp_path / f"w{i}").exists() for i in range(1, 14)) and not (tmp_path / "o.jsonl").exists()
+  assert not any((tmp_path / f"w{i}").exists() for i in range(1, 16)) and not (tmp_path / "o.jsonl").exists()
   assert not (tmp_path / "o.txt").exists()
 
 
