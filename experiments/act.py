@@ -6,7 +6,8 @@ r"""Runs a fitted policy in a Gymnasium environment: one JSON line per episode, 
 Episode i is reset with seed S + i. A hierarchy acts by the executor's semantics (greedy, or with --sample
 drawing its operations and terminations): it pushes its root, descends on the first observation, and after
 every action pops the procedures that terminate and resumes the one below them; the episode ends when the
-environment ends it, or when the root returns. With --num_envs, M copies of the environment run side by
+environment ends it, or when the root returns. A flat baseline steps its recurrent cell and stops or acts (greedy,
+or with --sample drawing its actions and its stop). With --num_envs, M copies of the environment run side by
 side (a gymnasium.vector environment) and each step's decisions for all of them are one compiled call. Each
 line, in episode order:
 
