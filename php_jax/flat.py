@@ -3,10 +3,10 @@ behaviour cloning on the demonstrations' elementary actions (call stacks ignored
 the same problems.
 
 At each step t the recurrent cell reads o_t and the previous action, then either stops (the episode ends, as when a
-PHP root returns) or emits an action, one categorical per action factor. Training maximises Σ_t<T [log p(a_t | o_≤t)
-+ log p(continue)] + log p(stop at T), by Adam (full-batch or on minibatches), with the same snapshot rule as PHP
-training: the latest (or earliest) snapshot with the best validation accuracy. It acts greedily, or with `sample`
-draws each action and the stop from its distributions.
+PHP root returns) or emits an action, one categorical per action factor. Training maximises
+Σ_t<T [log p(a_t | o_≤t) + log p(continue)] + log p(stop at T) by Adam (full-batch or on minibatches), with the
+same snapshot rule as PHP training: the latest (or earliest) snapshot with the best validation accuracy. It acts
+greedily, or with `sample` draws each action and the stop from its distributions.
 """
 from __future__ import annotations
 
