@@ -39,6 +39,9 @@ def model_name(cell: str) -> str:
   return f"flat_{cell}"
 
 
+MODEL_CELLS = {model_name(cell): cell for cell in CELLS}  # a flat baseline's name → its cell
+
+
 class FlatPolicy(nnx.Module):
   """A recurrent cell (`cell`: "lstm" or "gru", `hidden` units) over (o_t, one-hot a_{t−1}) with a factorized
   action head and a stop logit. With structured observation fields (`encoders.structured`) it reads o_t through

@@ -31,13 +31,14 @@ def write(workdir: str, demos: Demonstration | None = None, numbers: list[int] |
                      "results and \"config\")")
   model = results.get("model", "php")
   flat = model != "php"
+  shown = f"flat {model[5:].upper()}"  # a flat baseline's name as the page shows it: flat LSTM, flat GRU
   run = None if flat else run_view.load(workdir)  # a hierarchy that cannot be read is refused
   title = f"{results.get('task', 'run')}: {workdir}"
   parts = [_summary(results), *_recipe(results), *_split_search(results), "<h2>Learning curves</h2>"]
-  curves = pictures.curves_figure(_metrics(workdir), f"flat {model[5:].upper()}" if flat else "every level at once")
+  curves = pictures.curves_figure(_metrics(workdir), shown if flat else "every level at once")
   parts.append(pictures.svg(curves) if curves else "<p>No training iterations were logged.</p>")
   if flat:
-    parts.append(f"<p>No call stack to show: a flat {model[5:].upper()} has none.</p>")
+    parts.append(f"<p>No call stack to show: a {shown} has none.</p>")
   else:
     parts += ["<h2>Call graph</h2>", _call_graph(run)]
     source = "its training demonstrations" if numbers is None else results["demos"]

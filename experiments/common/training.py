@@ -23,7 +23,7 @@ WAIT = flags.DEFINE_bool("wait", False, "If another run holds the workdir, wait 
 OVERWRITE = flags.DEFINE_bool("overwrite", False, "Start afresh in a workdir that holds another run (its "
                               "checkpoint, model, metrics and results are deleted); without it such a run is "
                               "resumed if its settings match, and refused if they do not.")
-MODEL = flags.DEFINE_enum("model", "php", ["php", *map(flat.model_name, flat.CELLS)],
+MODEL = flags.DEFINE_enum("model", "php", ["php", *flat.MODEL_CELLS],
                           "php: the hierarchy (--training says how); flat_lstm, flat_gru: a behaviour-cloning "
                           "baseline, an LSTM or a GRU over observations and previous actions.")
 FLAT_HIDDEN = flags.DEFINE_integer("flat_hidden", 128, "Hidden units of the flat baseline's LSTM or GRU.")
@@ -54,7 +54,7 @@ def flat_model() -> flat.FlatModel | None:
     return None
   if (RESTARTS.value or 1) > 1:
     raise UsageError(f"--restarts applies to PHP hierarchies (not --model={MODEL.value})")
-  return flat.FlatModel(MODEL.value.removeprefix("flat_"), FLAT_HIDDEN.value)
+  return flat.FlatModel(flat.MODEL_CELLS[MODEL.value], FLAT_HIDDEN.value)
 
 
 def run_resumable(body: Callable[[], object]) -> None:

@@ -14,7 +14,7 @@ from flax import nnx
 from php_jax import encoders
 from php_jax.data.files import WRITING, write_atomically
 from php_jax.envs import tasks
-from php_jax.flat import CELLS, FlatPolicy, model_name
+from php_jax.flat import MODEL_CELLS, FlatPolicy
 from php_jax.hierarchy import HierarchySpec
 from php_jax.model import PHPHierarchy
 from php_jax.training.storage import (CheckpointError, check_signed, named_arrays, read_json, restore_arrays,
@@ -26,7 +26,6 @@ OLDER_FILES = ("model.msgpack", "checkpoint.msgpack", "seeds_checkpoint.msgpack"
 
 MAX_CAPACITY = 4096  # counters per level a saved model may claim (a hierarchy file's bound too)
 MAX_SIZE = 1 << 20  # observation size, action factor size and procedures per level a saved model may claim
-FLAT_KINDS = {model_name(cell): cell for cell in CELLS}  # model.json's "kind" of a flat baseline → its cell
 
 
 def _save(workdir: str, model, architecture: dict) -> None:
@@ -124,7 +123,7 @@ def _architecture(path: str, architecture) -> tuple:
     raise CheckpointError(f"{path}: not a model description (needs a \"task\")")
   kind = architecture.get("kind", "php")
   hidden = architecture.get("hidden")
-  if kind in FLAT_KINDS and isinstance(hidden, int) and hidden > 0:
+  if kind in MODEL_CELLS and isinstance(hidden, int) and hidden > 0:
     return architecture["task"], kind, hidden, None
   tau = architecture.get("tau_in_termination")
   limit = architecture.get("tau_limit", [None] * len(tau) if isinstance(tau, list) else None)
@@ -166,9 +165,9 @@ def load_policy(workdir: str) -> tuple[str, PHPHierarchy | FlatPolicy]:
   check_signed(arch_path, architecture)
   named = restore_arrays(model_path, architecture.get("files"), arch_path)
   spec = _saved_spec(arch_path, architecture)
-  if kind in FLAT_KINDS:
+  if kind in MODEL_CELLS:
     def build():
-      return FlatPolicy(spec.obs_dim, spec.action_sizes, hidden, spec.observation, cell=FLAT_KINDS[kind],
+      return FlatPolicy(spec.obs_dim, spec.action_sizes, hidden, spec.observation, cell=MODEL_CELLS[kind],
                         rngs=nnx.Rngs(0))
   else:
     tau_in_termination, tau_limit = tau
