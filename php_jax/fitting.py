@@ -76,23 +76,46 @@ class IterationLoss(NamedTuple):
 
 def minibatched(loss_fn: Callable[..., jax.Array] | IterationLoss, batch_size: int, seed: int) -> IterationLoss:
   """loss_fn on a minibatch of its first argument, a list of buckets (pytrees whose leaves lead with the
-  bucket's B_b rows): each update draws, without replacement, round(batch_size · B_b / Σ B) rows (at least 1)
-  of every bucket, afresh from seed and the number of updates made before it, so a resumed fit draws what an
-  uninterrupted one would. The loss's own normalisation (a mean over the rows it is given) then makes it an
-  estimate of the full loss, and its gradient of the full gradient."""
+  bucket's B_b rows), drawn inside the compiled update (`batch_rows`). The loss's own normalisation (a mean
+  over the rows it is given) then makes it an estimate of the full loss, and its gradient of the full
+  gradient."""
   takes_iteration = isinstance(loss_fn, IterationLoss)
   fn = loss_fn.fn if takes_iteration else loss_fn
 
   def loss(model, iteration, buckets, *rest):
-    sizes = [jax.tree.leaves(bucket)[0].shape[0] for bucket in buckets]
-    key = jax.random.fold_in(jax.random.key(seed), iteration)
-    drawn = []
-    for index, (bucket, size) in enumerate(zip(buckets, sizes)):
-      count = min(size, max(1, round(batch_size * size / sum(sizes))))
-      rows = jax.random.choice(jax.random.fold_in(key, index), size, (count,), replace=False)
-      drawn.append(jax.tree.map(lambda x, rows=rows: x[rows], bucket))
+    rows = batch_rows([_rows(bucket) for bucket in buckets], batch_size, seed, iteration)
+    drawn = [jax.tree.map(lambda x, r=r: x[r], bucket) for bucket, r in zip(buckets, rows)]
     return fn(model, *((iteration,) if takes_iteration else ()), drawn, *rest)
   return IterationLoss(loss)
+
+
+def batch_rows(sizes: Sequence[int], batch_size: int, seed: int, iteration) -> list[jax.Array]:
+  """The rows an update draws from buckets of B_b = sizes[b] rows: round(batch_size · B_b / Σ B) (at least 1)
+  of every bucket, without replacement, afresh from seed and `iteration` ([] int, the number of updates made
+  before it), so that a resumed fit draws what an uninterrupted one would. [count_b] int32 per bucket."""
+  key = jax.random.fold_in(jax.random.key(seed), iteration)
+  return [jax.random.choice(jax.random.fold_in(key, index), size,
+                            (min(size, max(1, round(batch_size * size / sum(sizes)))),), replace=False)
+          for index, size in enumerate(sizes)]
+
+
+def host_minibatches(buckets: list, batch_size: int, seed: int) -> Callable[[int], list]:
+  """draw(iteration) → the minibatch of buckets (pytrees of arrays [B_b, ...], kept as host arrays) that update
+  `iteration` (the number made before it) takes: the rows `minibatched` would draw (`batch_rows`, computed on
+  the CPU, so a GPU is not waited for), gathered on the host. Only the drawn rows then go to the device."""
+  buckets = [jax.tree.map(np.asarray, bucket) for bucket in buckets]
+  cpu = jax.devices("cpu")[0]
+  rows = jax.jit(functools.partial(batch_rows, [_rows(bucket) for bucket in buckets], batch_size, seed))
+
+  def draw(iteration: int) -> list:
+    with jax.default_device(cpu):
+      drawn = [np.asarray(r) for r in rows(np.int32(iteration))]
+    return [jax.tree.map(lambda x, r=r: x[r], bucket) for bucket, r in zip(buckets, drawn)]
+  return draw
+
+
+def _rows(bucket: Any, axis: int = 0) -> int:
+  return jax.tree.leaves(bucket)[0].shape[axis]
 
 
 def _per_batch(loss_fn, schedule: Schedule, args: tuple, axis: int = 0):
@@ -100,7 +123,7 @@ def _per_batch(loss_fn, schedule: Schedule, args: tuple, axis: int = 0):
   `axis`), `minibatched`."""
   if not schedule.batch_size or not args:
     return loss_fn
-  rows = sum(jax.tree.leaves(bucket)[0].shape[axis] for bucket in args[0])
+  rows = sum(_rows(bucket, axis) for bucket in args[0])
   return loss_fn if schedule.batch_size >= rows else minibatched(loss_fn, schedule.batch_size, schedule.batch_seed)
 
 
@@ -108,12 +131,14 @@ def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array] | IterationLoss, sc
         hooks: Hooks = Hooks(), resume: Progress | None = None, args: tuple = (),
         mesh: Mesh | None = None) -> Progress:
   """Adam on loss_fn(model, *args) [] (an IterationLoss: also given the iteration), on every demonstration
-  or, with schedule.batch_size, on a minibatch of args[0]'s buckets (`minibatched`). Updates `model` in
+  or, with schedule.batch_size, on a minibatch of args[0]'s buckets (`batch_rows`). Updates `model` in
   place to the kept snapshot.
 
-  args (the data) follow the model into loss_fn: as constants of the compiled update for a full batch without
-  a mesh, else as its arguments (with a mesh, arrays split over it; then the parameters and optimizer state
-  are replicated on the mesh, and the model gets them back as arrays of the default device).
+  args (the data) follow the model into loss_fn. Without a mesh, give host arrays: a full batch becomes
+  constants of the compiled update, and minibatches are drawn on the host (`host_minibatches`), so the device
+  holds one minibatch at a time, never the whole set. With a mesh, give arrays split over it (then the
+  parameters and optimizer state are replicated on the mesh, minibatches are drawn inside the update
+  (`minibatched`), and the model gets its parameters back as arrays of the default device).
 
   At each evaluation (`Schedule`): hooks.on_eval(iteration, loss) may return a validation score (the
   snapshot with the highest score is kept, the latest or the earliest among equals as schedule.snapshot
@@ -125,13 +150,21 @@ def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array] | IterationLoss, sc
   progress = resume if resume is not None else Progress(0, params, optimizer.init(params), params, None, None,
                                                         [])
   per_batch = _per_batch(loss_fn, schedule, args)
-  step = _adam_step(graphdef, per_batch, optimizer)
-  if mesh is None and per_batch is loss_fn:  # the whole batch as constants, folded into the program by XLA
-    update = jax.jit(lambda params, opt_state: step(params, opt_state, rest, args))
-  else:  # as arguments: a constant would sit whole on one device, and a large set, of which each update
-    # reads a minibatch, would be copied into the program
-    update = functools.partial(jax.jit(lambda params, opt_state, args: step(params, opt_state, rest, args)),
-                               args=args)
+  if mesh is None and per_batch is not loss_fn:  # minibatches drawn on the host: the device holds one at a time
+    draw, others = host_minibatches(args[0], schedule.batch_size, schedule.batch_seed), jax.tree.map(
+        jnp.asarray, args[1:])
+    step = _adam_step(graphdef, loss_fn, optimizer)  # on the drawn buckets
+    drawn_step = jax.jit(lambda params, opt_state, args: step(params, opt_state, rest, args))
+
+    def update(params, opt_state, iteration):
+      return drawn_step(params, opt_state, (draw(iteration - 1), *others))
+  elif mesh is None:  # the whole batch as constants, folded into the program by XLA
+    step, constants = _adam_step(graphdef, per_batch, optimizer), jax.tree.map(jnp.asarray, args)
+    update = _ignoring_iteration(jax.jit(lambda params, opt_state: step(params, opt_state, rest, constants)))
+  else:  # as arguments, split over the mesh by the caller: a constant would sit whole on one device
+    step = _adam_step(graphdef, per_batch, optimizer)
+    update = _ignoring_iteration(functools.partial(
+        jax.jit(lambda params, opt_state, args: step(params, opt_state, rest, args)), args=args))
   [progress] = _iterate(_Loop(update, [model], mesh, lambda tree, s: tree),
                         sharding.replicate((progress.params, progress.opt_state), mesh), [progress], schedule,
                         hooks.for_models())
@@ -162,7 +195,8 @@ def fit_seeds(models: Sequence[nnx.Module], loss_fn: Callable[..., jax.Array], s
   update = jax.jit(jax.vmap(_adam_step(graphdef, loss_fn, optimizer)))
   state = sharding.replicate((_stack([p.params for p in progress]), _stack([p.opt_state for p in progress])), mesh)
   rest = sharding.replicate(rest, mesh)
-  return _iterate(_Loop(lambda params, opt_state: update(params, opt_state, rest, args), models, mesh, _unstack),
+  return _iterate(_Loop(_ignoring_iteration(lambda params, opt_state: update(params, opt_state, rest, args)), models,
+                        mesh, _unstack),
                   state, progress, schedule, hooks)
 
 
@@ -190,7 +224,8 @@ def _adam_step(graphdef: nnx.GraphDef, loss_fn: Callable[..., jax.Array] | Itera
 
 
 class _Loop(NamedTuple):
-  """What `_iterate` runs: update(params, opt_state) → (params, opt_state, loss(es)), the models it updates,
+  """What `_iterate` runs: update(params, opt_state, iteration) → (params, opt_state, loss(es)) of update number
+  `iteration` (from 1), the models it updates,
   their mesh, and part(tree, s): model s's share of params or opt_state."""
   update: Callable
   models: Sequence[nnx.Module]
@@ -207,7 +242,7 @@ def _iterate(loop: _Loop, state: tuple, progress: list[Progress], schedule: Sche
   on_eval, log, save = hooks
   last_save, wait = time.monotonic(), sharding.one_program_at_a_time(loop.mesh)
   for iteration in range(progress[0].iteration + 1, schedule.iterations + 1):
-    params, opt_state, losses = loop.update(params, opt_state)
+    params, opt_state, losses = loop.update(params, opt_state, iteration)
     if wait:
       jax.block_until_ready(losses)
     evaluate = iteration % schedule.eval_every == 0 or iteration == schedule.iterations
@@ -230,6 +265,11 @@ def _iterate(loop: _Loop, state: tuple, progress: list[Progress], schedule: Sche
   for model, p in zip(models, progress):
     nnx.update(model, sharding.unreplicate(p.best_params, loop.mesh))
   return progress
+
+
+def _ignoring_iteration(update: Callable) -> Callable:
+  """update(params, opt_state) as `_Loop.update`, for updates that do not depend on which one they are."""
+  return lambda params, opt_state, iteration: update(params, opt_state)
 
 
 def _advance(progress: Progress, iteration: int, params, opt_state, loss: float, score: float | None,

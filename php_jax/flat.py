@@ -159,7 +159,7 @@ def train(policy: FlatPolicy, demos: Demonstration, schedule: fitting.Schedule,
   """Behaviour cloning: Adam on −mean log p(demonstration) over every demonstration, or with
   schedule.batch_size a minibatch (`fitting.fit`: the snapshot with the best hooks.on_eval score is kept,
   else the final one). Updates `policy` in place. Returns a report."""
-  data = [(jnp.asarray(demos.observations), jnp.asarray(demos.actions), jnp.asarray(demos.length))]
+  data = [(np.asarray(demos.observations), np.asarray(demos.actions), np.asarray(demos.length))]
 
   def loss(model, buckets):
     [(observations, actions, length)] = buckets

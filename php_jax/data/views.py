@@ -163,6 +163,20 @@ def demonstration_buckets(demos: Demonstration, num_buckets: int | None,
   return [device_demonstrations(bucket, mesh) for bucket in length_buckets(demos, num_buckets)]
 
 
+def training_buckets(batch: Batch, num_buckets: int | None, mesh: Mesh | None = None) -> list:
+  """batch's `length_buckets` as one model's training takes them, annotations only on strong rows (a
+  Demonstration's bucket as (batch, real [B])): split over mesh's devices (`device_view`,
+  `device_demonstrations`), or without a mesh as host arrays, which `fitting.fit` places whole or draws its
+  minibatches from."""
+  buckets = length_buckets(batch, num_buckets)
+  if mesh is not None:
+    place = device_view if isinstance(batch, LevelView) else device_demonstrations
+    return [place(bucket, mesh) for bucket in buckets]
+  if isinstance(batch, LevelView):
+    return [strong_annotations_only(bucket) for bucket in buckets]
+  return [sharding.pad(strong_annotations_only(bucket), None) for bucket in buckets]
+
+
 def stack_seeds(buckets: list[list[LevelView]], mesh: Mesh | None = None) -> list[LevelView]:
   """Several seeds' length buckets (buckets[s][i]: seed s's bucket i, as `length_buckets` makes them; every
   seed with as many) → bucket i of every seed stacked [S, B_i, ...] as device arrays, with annotations only on

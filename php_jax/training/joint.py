@@ -140,7 +140,7 @@ def _fit(hierarchy: PHPHierarchy, demos: Demonstration, hinted: Demonstration | 
 
   def fit(data: Demonstration, iterations: int, resume: fitting.Progress | None) -> fitting.Progress:
     return fitting.fit(hierarchy, loss, config.schedule(iterations), hooks, resume,
-                       args=(views.demonstration_buckets(data, config.length_buckets, mesh),), mesh=mesh)
+                       args=(views.training_buckets(data, config.length_buckets, mesh),), mesh=mesh)
 
   if hinted is not None and (resume is None or resume.iteration < config.segment_iterations):
     resume = fit(hinted, config.segment_iterations, resume)

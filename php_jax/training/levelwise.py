@@ -77,7 +77,7 @@ class LevelFit:
     weights = [level_strong_weight(c, self.is_root) for c in self.configs]
     schedule = config.schedule(iterations)
     if not self.batched:
-      buckets = [views.device_view(b, mesh) for b in views.length_buckets(parts[0], config.length_buckets)]
+      buckets = views.training_buckets(parts[0], config.length_buckets, mesh)
       capacity = self.capacities[0]
       return [fitting.fit(self.models[0], lambda m, buckets: level_loss(m, buckets, capacity, weights[0]), schedule,
                           hooks.of_first_model(), resume and resume[0], args=(buckets,), mesh=mesh)]

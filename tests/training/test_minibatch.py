@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from php_jax import fitting
+from php_jax import fitting, sharding
 from php_jax.data import views
 from php_jax.envs import datasets, tasks
 from php_jax.training import checkpoint, joint, levelwise, networks, objective
@@ -41,6 +41,52 @@ def test_each_update_draws_distinct_rows_of_every_bucket_in_proportion_the_same_
   others = [_drawn(6, [10, 20, 2], iteration=i) for i in range(4, 12)] + [_drawn(6, [10, 20, 2], 3, seed=1)]
   assert any(o != drawn for o in others)
   assert [sorted(rows) for rows in _drawn(100, [3, 4], iteration=0)] == [[0, 1, 2], [100, 101, 102, 103]]
+
+
+def test_minibatches_drawn_on_the_host_are_the_rows_the_compiled_update_would_draw():
+  sizes = [10, 20, 2]
+  draw = fitting.host_minibatches([{"id": np.arange(size) + 100 * b} for b, size in enumerate(sizes)], 6, seed=4)
+  for iteration in (0, 1, 7):
+    assert [bucket["id"].tolist() for bucket in draw(iteration)] == _drawn(6, sizes, iteration, seed=4)
+
+
+def test_without_a_mesh_the_update_is_compiled_once_for_the_minibatch_and_never_sees_the_whole_set():
+  """fit draws on the host: the compiled update's data are the minibatch's rows alone, traced once over every
+  update; its result is that of drawing inside the update."""
+  data = [(np.linspace(-1, 1, 40, dtype=np.float32).reshape(20, 2), np.arange(20, dtype=np.float32))]
+  traced = []
+
+  def loss(model, buckets):
+    [(x, y)] = buckets
+    traced.append(x.shape)
+    return jnp.mean((model(x)[:, 0] - y) ** 2)
+  schedule = fitting.Schedule(12, 1e-2, 4, batch_size=5, batch_seed=3)
+  host = nnx.Linear(2, 1, rngs=nnx.Rngs(0))
+  fitting.fit(host, loss, schedule, fitting.Hooks(log=lambda row: None), args=(data,))
+  assert traced == [(5, 2)]
+  mesh = jax.sharding.Mesh(np.asarray(jax.devices()[:1]), (sharding.AXIS,))
+  inside = nnx.Linear(2, 1, rngs=nnx.Rngs(0))
+  fitting.fit(inside, loss, schedule, fitting.Hooks(log=lambda row: None), args=(sharding.put(data, mesh),),
+              mesh=mesh)
+  for a, b in zip(jax.tree.leaves(nnx.state(host)), jax.tree.leaves(nnx.state(inside))):
+    np.testing.assert_allclose(a, b, rtol=1e-6)
+
+
+def test_joint_training_on_minibatches_keeps_its_demonstrations_off_the_device():
+  demos = jax.tree.map(np.asarray, datasets.training_demos(NANOCRAFT, 2, 8, 8))  # as read from a file
+  whole = views.length_buckets(demos, 1)[0].observations.shape
+  before = {id(a) for a in jax.live_arrays()}  # the environments' own arrays (the data set they gave)
+  seen = []
+
+  def validate(hierarchy):
+    seen.append(any(a.shape == whole and id(a) not in before for a in jax.live_arrays()))
+    return 0.0
+  config = TrainConfig(iterations=4, learning_rate=1e-2, hidden=(8,), eval_every=2, training="joint", seed=2,
+                       length_buckets=1)
+  joint.train_joint(NANOCRAFT.spec, demos, dataclasses.replace(config, batch_size=3), validate, lambda row: None)
+  assert seen == [False, False]
+  joint.train_joint(NANOCRAFT.spec, demos, config, validate, lambda row: None)  # the full batch: all of it
+  assert seen[2:] == [True, True]
 
 
 def test_a_minibatch_loss_averaged_over_every_minibatch_is_the_full_loss():
