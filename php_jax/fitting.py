@@ -151,8 +151,8 @@ def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array] | IterationLoss, sc
                                                         [])
   per_batch = _per_batch(loss_fn, schedule, args)
   if mesh is None and per_batch is not loss_fn:  # minibatches drawn on the host: the device holds one at a time
-    draw, others = host_minibatches(args[0], schedule.batch_size, schedule.batch_seed), jax.tree.map(
-        jnp.asarray, args[1:])
+    draw = host_minibatches(args[0], schedule.batch_size, schedule.batch_seed)
+    others = jax.tree.map(jnp.asarray, args[1:])
     step = _adam_step(graphdef, loss_fn, optimizer)  # on the drawn buckets
     drawn_step = jax.jit(lambda params, opt_state, args: step(params, opt_state, rest, args))
 
@@ -224,9 +224,9 @@ def _adam_step(graphdef: nnx.GraphDef, loss_fn: Callable[..., jax.Array] | Itera
 
 
 class _Loop(NamedTuple):
-  """What `_iterate` runs: update(params, opt_state, iteration) → (params, opt_state, loss(es)) of update number
-  `iteration` (from 1), the models it updates,
-  their mesh, and part(tree, s): model s's share of params or opt_state."""
+  """What `_iterate` runs: update(params, opt_state, iteration) → (params, opt_state, loss(es)), `iteration`
+  counting updates from 1; the models it updates, their mesh, and part(tree, s): model s's share of params or
+  opt_state."""
   update: Callable
   models: Sequence[nnx.Module]
   mesh: Mesh | None
