@@ -39,8 +39,9 @@ from absl import app, flags
 from flax import nnx
 
 import php_jax
+from experiments.common import cli
 from php_jax import executor, fitting, sharding
-from php_jax.data import demo_files, shards, views
+from php_jax.data import demo_files, files, shards, views
 from php_jax.demos import Demonstration
 from php_jax.envs import datasets, tasks
 from php_jax.hierarchy import HierarchySpec
@@ -348,9 +349,12 @@ def bench_act():
   from php_jax.envs import gym  # gymnasium is an optional extra
   from php_jax.training import checkpoint
   if not (_POLICY.value and _ENV.value):
-    raise app.UsageError("--policy and --env are required for act")
-  _, policy = checkpoint.load_policy(_POLICY.value)
-  envs = gym.vector_env(gym.env_maker(_ENV.value), _NUM_ENVS.value)
+    cli.fail("--policy and --env are required for act")
+  try:
+    _, policy = checkpoint.load_policy(_POLICY.value)
+    envs = gym.vector_env(gym.env_maker(_ENV.value), _NUM_ENVS.value)
+  except (OSError, ValueError) as e:  # GymError and CheckpointError are ValueErrors
+    cli.fail(str(e))
   gym.act(policy, envs, _NUM_ENVS.value, seed=0)  # compiles the decisions
   start = time.perf_counter()
   episodes = gym.act(policy, envs, _EPISODES.value, seed=1)
@@ -448,24 +452,33 @@ def _fast_path_data() -> tuple[Demonstration, HierarchySpec, str]:
     num = _NUM_DEMOS.value or 300
     return babyai_like_demos(num), BABYAI_LIKE, f"{num} BabyAI-sized synthetic demonstrations"
   if not _HIERARCHY.value:
-    raise app.UsageError("fast_path with --demos needs --hierarchy")
+    cli.fail("fast_path with --demos needs --hierarchy")
+  demos, spec = _user_demonstrations()
+  return demos, spec, f"{len(demos.length)} demonstrations of {_DEMOS.value}"
+
+
+def _user_demonstrations() -> tuple[Demonstration, HierarchySpec]:
+  """--demos read with --hierarchy and, as fit reads them, the observation fields of --env; refused in one line
+  where they cannot be read."""
   try:
     spec = demo_files.read_hierarchy(_HIERARCHY.value).spec
     if _ENV.value and spec.observation is None:
       spec = dataclasses.replace(spec, observation=_env_fields(_ENV.value))
-    demos, spec = demo_files.read_demonstrations(_DEMOS.value, spec)
+    return demo_files.read_demonstrations(_DEMOS.value, spec)
   except demo_files.DemoFileError as e:
-    raise app.UsageError(str(e)) from None
-  return demos, spec, f"{len(demos.length)} demonstrations of {_DEMOS.value}"
+    cli.fail(str(e))
+  except ValueError as e:  # the environment's fields beside the hierarchy file's "observes"
+    cli.fail(f"--env={_ENV.value}: {e}")
 
 
 def _env_fields(env_id: str):
-  """The observation fields of env_id (`gym.env_observation_fields`); app.UsageError where it cannot be made."""
+  """The observation fields of env_id (`gym.env_observation_fields`); refused in one line where it cannot be
+  made."""
   from php_jax.envs import gym  # gymnasium is an optional extra
   try:
     return gym.env_observation_fields(env_id)
   except gym.GymError as e:
-    raise app.UsageError(f"--env={env_id}: {e}") from None
+    cli.fail(f"--env={env_id}: {e}")
 
 
 def _size(path: str) -> int:
@@ -506,11 +519,13 @@ def bench_many_demos():
   seconds per update and demonstration steps per second from its first evaluation to its last (the held-out
   replays at each evaluation included), its wall time, and the ratios to the first fit's."""
   if not (_DEMOS.value and _HIERARCHY.value):
-    raise app.UsageError("many_demos needs --demos and --hierarchy")
+    cli.fail("many_demos needs --demos and --hierarchy")
   if _ITERATIONS.value < 2 * TrainConfig().eval_every:
-    raise app.UsageError(f"many_demos times from a fit's first evaluation to its last: --iterations must be at least "
-                         f"{2 * TrainConfig().eval_every}")
-  batch, _ = demo_files.read_demonstrations(_DEMOS.value, demo_files.read_hierarchy(_HIERARCHY.value).spec)
+    cli.fail(f"many_demos times from a fit's first evaluation to its last: --iterations must be at least "
+             f"{2 * TrainConfig().eval_every}")
+  if not all(c.isdigit() and int(c) > 0 for c in _COPIES.value):
+    cli.fail(f"--copies must list positive integers; got {','.join(_COPIES.value)}")
+  batch, _ = _user_demonstrations()
   one, mean_length = list(shards.unpadded(batch, batch.strong)), float(np.mean(batch.length))
   print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}); {len(one)} demonstrations of "
         f"{_DEMOS.value} ({mean_length:.1f} steps on average), copied; fit --iterations={_ITERATIONS.value}")
@@ -555,8 +570,11 @@ def _seconds(fn, *args) -> float:
 
 def _task():
   if not _TASK.value:
-    raise app.UsageError("--task is required for rollout, train_step and scaling")
-  return tasks.get(_TASK.value)
+    cli.fail("--task is required for rollout, train_step and scaling")
+  try:
+    return tasks.get(_TASK.value)
+  except ValueError as e:
+    cli.fail(f"--task: {e}")
 
 
 def main(argv):
@@ -565,12 +583,16 @@ def main(argv):
               "demo_files": bench_demo_files, "fast_path": bench_fast_path,
               "many_demos": bench_many_demos}
   if len(argv) != 2 or argv[1] not in commands:
-    raise app.UsageError(f"usage: python -m experiments.benchmark {{{'|'.join(commands)}}} [--flags]")
+    cli.fail(f"usage: python -m experiments.benchmark {{{'|'.join(commands)}}} [--flags]")
+  try:
+    cli.check_outputs({"out": _OUT.value}, {"demos": _DEMOS.value, "hierarchy": _HIERARCHY.value})
+  except ValueError as e:
+    cli.fail(str(e))
+  cli.exit_on_interrupt("the benchmark stopped before its end; --out was not written")
   rows = commands[argv[1]]()
   if _OUT.value:
-    with open(_OUT.value, "w") as f:
-      json.dump(rows, f, indent=1)
+    files.write_atomically(_OUT.value, json.dumps(rows, indent=1).encode())
 
 
 if __name__ == "__main__":
-  app.run(main)
+  app.run(main, flags_parser=cli.parse_flags)

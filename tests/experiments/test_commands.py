@@ -8,6 +8,8 @@ import sys
 
 import pytest
 
+from tests import processes
+
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 
@@ -68,10 +70,20 @@ def test_fast_path_benchmark_times_a_users_demonstrations(tmp_path):
   assert len(rows) == 5 and rows[0]["speedup"] == 1.0 and all(r["ms"] > 0 for r in rows)
 
 
-def test_benchmark_rejects_unknown_command():
-  proc = subprocess.run([sys.executable, "-m", "experiments.benchmark", "nonsense"], capture_output=True,
-                        text=True, timeout=120, cwd=ROOT)
-  assert proc.returncode != 0 and "usage" in proc.stderr
+def test_benchmark_refuses_bad_commands_flags_and_files_in_one_line(tmp_path):
+  warehouse = ROOT / "examples" / "warehouse"
+  user_files = [f"--demos={warehouse / 'train.jsonl'}", f"--hierarchy={warehouse / 'warehouse.json'}"]
+  (tmp_path / "bad.jsonl").write_text("{not json\n")
+  processes.assert_refused([
+      (["experiments.benchmark", "nonsense"], "usage: python -m experiments.benchmark {estep|"),
+      (["experiments.benchmark", "estep", "--min_time=x"], "--min_time"),
+      (["experiments.benchmark", "rollout", "--task=nonsense"], "--task: "),
+      (["experiments.benchmark", "many_demos", *user_files, "--copies=1,ten"],
+       "--copies must list positive integers; got 1,ten"),
+      (["experiments.benchmark", "fast_path", f"--demos={tmp_path / 'bad.jsonl'}", user_files[1]], "bad.jsonl"),
+      (["experiments.benchmark", "fast_path", "--demos=/nonexistent.jsonl", user_files[1]], "/nonexistent.jsonl"),
+      (["experiments.benchmark", "estep", f"--out={tmp_path / 'missing' / 'out.json'}"], "does not exist"),
+  ], timeout=300)
 
 
 @pytest.mark.slow
