@@ -66,22 +66,36 @@ def main(argv):
       raise ValueError(f"--hierarchy={_HIERARCHY.value} has action factor sizes {list(spec.action_sizes)}; "
                        f"--env={environment_flags.ENV.value}'s {env.action_space} has "
                        f"{list(gym.action_sizes(env.action_space))}")
-    endings = []
-    with progress.counting(_EPISODES.value, "episodes") as on_episode:
-      def ended(ending: success.Ending) -> None:
-        endings.append(ending)
-        on_episode()
-
-      lines = gym.record(env, expert, _EPISODES.value, environment_flags.SEED.value,
-                         _ANNOTATED.value if annotate is None else annotate, spec, ended)
   except (OSError, ValueError) as e:  # GymError and DemoFileError are ValueErrors
     cli.fail(str(e))
-  with cli.output_errors("out", _OUT.value):
-    gym.write_demonstrations(_OUT.value, lines)
-  steps = sum(len(line["actions"]) for line in lines)
-  annotated = sum("stack" in line for line in lines)
-  print(f"{len(lines)} episodes ({annotated} annotated), {steps} steps -> {_OUT.value}")
+  endings, counts = [], {"steps": 0, "annotated": 0}
+
+  def ended(ending: success.Ending) -> None:
+    endings.append(ending)
+    on_episode()
+
+  def counted(lines):  # the recording's own failures told apart from --out's
+    try:
+      for line in lines:
+        counts["steps"] += len(line["actions"])
+        counts["annotated"] += "stack" in line
+        yield line
+    except (OSError, ValueError) as e:
+      raise _RecordingError(str(e)) from None
+
+  try:
+    with progress.counting(_EPISODES.value, "episodes") as on_episode, cli.output_errors("out", _OUT.value):
+      gym.write_demonstrations(_OUT.value, counted(gym.recorded(
+          env, expert, _EPISODES.value, environment_flags.SEED.value,
+          _ANNOTATED.value if annotate is None else annotate, spec, ended)))
+  except (_RecordingError, ValueError) as e:  # ValueError: episodes of other shapes than the first's
+    cli.fail(str(e))
+  print(f"{len(endings)} episodes ({counts['annotated']} annotated), {counts['steps']} steps -> {_OUT.value}")
   print("the expert: " + "\n".join(success.summary(rule, endings)))
+
+
+class _RecordingError(Exception):
+  """The recording failed (the expert, the environment, a stack), not the writing of --out."""
 
 
 def _annotate() -> list[int] | None:

@@ -29,7 +29,8 @@ def fail(message: str) -> NoReturn:
 def exit_on_interrupt(message: str) -> None:
   """From now on, SIGINT (Ctrl-C) or SIGTERM ends the command within moments, even inside a long compiled
   computation (which Python's own handling would wait out): "interrupted: message" on stderr, exit status 130.
-  A file being written (`files.write_atomically`) is first put in place. Call it from the main thread.
+  A file being written (`files.write_atomically`) is first put in place; one being filled from a stream
+  (`files.write_streamed`, `shards.write_shards`) is deleted. Call it from the main thread.
 
   The signals' handlers only wake a watcher thread through the wakeup fd, which the kernel-level handler
   writes to in whichever thread receives the signal; the watcher ends the process."""
@@ -42,6 +43,7 @@ def exit_on_interrupt(message: str) -> None:
   def watch():
     os.read(read, 1)
     with files.WRITING:
+      files.remove_partial()
       if sys.stdout.isatty():  # a live progress display hid the cursor
         print("\x1b[?25h", flush=True)
       print(f"interrupted: {message}", file=sys.stderr, flush=True)

@@ -4,12 +4,15 @@ from __future__ import annotations
 import contextlib
 import os
 import secrets
+import shutil
 import threading
+from typing import BinaryIO, Iterable
 
 import jax
 
 WRITING = threading.RLock()  # held while write_atomically or a whole checkpoint save writes (reentrant: a save
 # holds it around its own write_atomically calls); whoever ends the process waits for it
+PARTIAL: set[str] = set()  # temporary files and directories being filled from a stream; `remove_partial` deletes them
 
 
 def write_atomically(path: str, data: bytes) -> None:
@@ -21,22 +24,60 @@ def write_atomically(path: str, data: bytes) -> None:
   others hold the same data."""
   if jax.process_index() != 0:
     return
-  path = os.path.realpath(path)
-  directory = os.path.dirname(path)
   with WRITING:
-    os.makedirs(directory, exist_ok=True)
-    while True:  # O_CREAT | O_EXCL with mode 0o666: the kernel applies the umask, no need to read or change it
-      tmp = os.path.join(directory, f".{os.path.basename(path)}.{secrets.token_hex(6)}.tmp")
-      try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-        break
-      except FileExistsError:
-        continue
+    path, tmp, f = _temporary(path)
     try:
-      with os.fdopen(fd, "wb") as f:
+      with f:
         f.write(data)
       os.replace(tmp, path)
     except BaseException:
       with contextlib.suppress(OSError):
         os.unlink(tmp)
       raise
+
+
+def write_streamed(path: str, chunks: Iterable[bytes]) -> None:
+  """write_atomically for data made while it is written (chunks, a generator that may run for hours: a
+  recording): the temporary file is filled chunk by chunk while listed in PARTIAL, so that an interrupt
+  meanwhile ends the process at once and `remove_partial` deletes it; WRITING is held only for the rename."""
+  if jax.process_index() != 0:
+    return
+  path, tmp, f = _temporary(path)
+  PARTIAL.add(tmp)
+  try:
+    with f:
+      for chunk in chunks:
+        f.write(chunk)
+    with WRITING:
+      os.replace(tmp, path)
+      PARTIAL.discard(tmp)
+  except BaseException:
+    with contextlib.suppress(OSError):
+      os.unlink(tmp)
+    PARTIAL.discard(tmp)
+    raise
+
+
+def remove_partial() -> None:
+  """Deletes every temporary file and directory of PARTIAL (for whoever ends the process, holding WRITING)."""
+  for path in list(PARTIAL):
+    if os.path.isdir(path):
+      shutil.rmtree(path, ignore_errors=True)
+    else:
+      with contextlib.suppress(OSError):
+        os.unlink(path)
+    PARTIAL.discard(path)
+
+
+def _temporary(path: str) -> tuple[str, str, BinaryIO]:
+  """(path resolved through symbolic links, a new temporary file beside it, that file open for writing): mode
+  0o666 & ~umask (O_CREAT | O_EXCL: the kernel applies the umask), its folder made if missing."""
+  path = os.path.realpath(path)
+  directory = os.path.dirname(path)
+  os.makedirs(directory, exist_ok=True)
+  while True:
+    tmp = os.path.join(directory, f".{os.path.basename(path)}.{secrets.token_hex(6)}.tmp")
+    try:
+      return path, tmp, os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), "wb")
+    except FileExistsError:
+      continue

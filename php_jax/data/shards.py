@@ -106,34 +106,39 @@ def unpadded(batch: Demonstration, annotated) -> Iterator[Unpadded]:
 # Writing.
 
 def write_shards(path: str, demonstrations: Iterable[Unpadded], shard_size: int = SHARD_SIZE) -> None:
-  """Writes demonstrations as a set at path, shard_size to a shard, whole or not at all: into a fresh
-  directory beside path, renamed into place once complete; a set already at path is replaced, and anything
-  else there refused (FileExistsError). Holds files.WRITING meanwhile; if anything fails (KeyboardInterrupt
-  included) the fresh directory is removed. ValueError: no demonstrations, or ones of other shapes than the
-  first's. Of several processes (jax.distributed), only the first writes."""
+  """Writes demonstrations (an iterable: a generator may make them as they are written, holding one shard's
+  worth at a time) as a set at path, shard_size to a shard, whole or not at all: into a fresh directory beside
+  path, renamed into place once complete; a set already at path is replaced, and anything else there refused
+  (FileExistsError). The fresh directory is listed in files.PARTIAL while filled (an interrupt then deletes
+  it) and removed if anything fails (KeyboardInterrupt included); files.WRITING is held for the renames.
+  ValueError: no demonstrations, or ones of other shapes than the first's. Of several processes
+  (jax.distributed), only the first writes."""
   if not (isinstance(shard_size, int) and shard_size >= 1):
     raise ValueError(f"shard_size must be a positive integer; got {shard_size!r}")
   if jax.process_index() != 0:
     return
   path = os.path.realpath(path)
-  with files.WRITING:
-    if os.path.lexists(path) and not is_set(path):
-      raise FileExistsError(errno.EEXIST, "something that is not a demonstration set is there; not replaced", path)
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    fresh, entries = _fresh_directory(path, "tmp"), []
-    try:
-      shape = None
-      for number, chunk in enumerate(_chunks(demonstrations, shard_size)):
-        entry, shape = _write_shard(fresh, number, chunk, number * shard_size, shape)
-        entries.append(entry)
-      if shape is None:
-        raise ValueError("no demonstrations to write")
-      manifest = {"format": FORMAT, "version": VERSION, "observation_size": shape[0], "shards": entries}
-      _write_new(os.path.join(fresh, MANIFEST), (json.dumps(manifest, indent=1) + "\n").encode())
+  if os.path.lexists(path) and not is_set(path):
+    raise FileExistsError(errno.EEXIST, "something that is not a demonstration set is there; not replaced", path)
+  os.makedirs(os.path.dirname(path), exist_ok=True)
+  fresh, entries = _fresh_directory(path, "tmp"), []
+  files.PARTIAL.add(fresh)
+  try:
+    shape = None
+    for number, chunk in enumerate(_chunks(demonstrations, shard_size)):
+      entry, shape = _write_shard(fresh, number, chunk, number * shard_size, shape)
+      entries.append(entry)
+    if shape is None:
+      raise ValueError("no demonstrations to write")
+    manifest = {"format": FORMAT, "version": VERSION, "observation_size": shape[0], "shards": entries}
+    _write_new(os.path.join(fresh, MANIFEST), (json.dumps(manifest, indent=1) + "\n").encode())
+    with files.WRITING:
       _put_in_place(fresh, path)
-    except BaseException:
-      shutil.rmtree(fresh, ignore_errors=True)
-      raise
+      files.PARTIAL.discard(fresh)
+  except BaseException:
+    shutil.rmtree(fresh, ignore_errors=True)
+    files.PARTIAL.discard(fresh)
+    raise
 
 
 def _chunks(items: Iterable, size: int) -> Iterator[list]:

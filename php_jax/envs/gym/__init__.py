@@ -5,10 +5,11 @@ the environment and expert a command names (`loading`), an expert's episodes rec
 """
 from php_jax.envs.gym.acting import act, check_policy, policy_sizes, vector_env
 from php_jax.envs.gym.loading import DEFAULT_MAX_STEPS, env_maker, env_observation_fields, expert_maker
-from php_jax.envs.gym.recording import record, write_demonstrations
+from php_jax.envs.gym.recording import record, recorded, write_demonstrations
 from php_jax.envs.gym.spaces import (GymError, action_factors, action_sizes, env_actions, flatten_batch,
                                      flatten_observation, observation_fields, observation_size)
 
 __all__ = ["DEFAULT_MAX_STEPS", "GymError", "act", "action_factors", "action_sizes", "check_policy", "env_actions",
            "env_maker", "env_observation_fields", "expert_maker", "flatten_batch", "flatten_observation",
-           "observation_fields", "observation_size", "policy_sizes", "record", "vector_env", "write_demonstrations"]
+           "observation_fields", "observation_size", "policy_sizes", "record", "recorded", "vector_env",
+           "write_demonstrations"]

@@ -10,7 +10,7 @@ a binary set.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Iterable, Iterator
 from typing import Any
 
 import gymnasium
@@ -71,7 +71,16 @@ def _stack_spec(stacks: list, sizes: tuple[int, ...], episode: int) -> Hierarchy
 def record(env: gymnasium.Env, expert, episodes: int, seed: int, annotate: int | Collection[int] = 0,
            spec: HierarchySpec | None = None, on_episode: Callable[[success.Ending], None] | None = None
            ) -> list[dict]:
-  """The expert's episodes as demonstration lines (dicts in the demonstration file's format).
+  """The expert's episodes as demonstration lines (dicts in the demonstration file's format): `recorded`'s
+  lines, all of them."""
+  return list(recorded(env, expert, episodes, seed, annotate, spec, on_episode))
+
+
+def recorded(env: gymnasium.Env, expert, episodes: int, seed: int, annotate: int | Collection[int] = 0,
+             spec: HierarchySpec | None = None, on_episode: Callable[[success.Ending], None] | None = None
+             ) -> Iterator[dict]:
+  """The expert's episodes as demonstration lines (dicts in the demonstration file's format), one at a time as
+  each episode ends (`write_demonstrations` writes them as they come, holding one episode, or one shard).
 
   annotate: how many of the first episodes keep the stacks the expert gives, or which ones (their 0-based
   numbers, e.g. those `experiments.suggest` chose); the others are actions only. Every line is checked as the
@@ -88,7 +97,6 @@ def record(env: gymnasium.Env, expert, episodes: int, seed: int, annotate: int |
   sizes = action_sizes(env.action_space)
   limit = max_steps_of(env, None)
   keep = set(range(annotate) if isinstance(annotate, int) else annotate)
-  lines = []
   for episode in range(episodes):
     line, stacks, ending = _episode(env, expert, seed + episode, limit, episode)
     if episode in keep:
@@ -101,9 +109,8 @@ def record(env: gymnasium.Env, expert, episodes: int, seed: int, annotate: int |
       demo_files.parse_demonstration(line, check)
     except ValueError as e:
       raise GymError(f"episode {episode}: {e}") from None
-    lines.append(line)
     on_episode(ending)
-  return lines
+    yield line
 
 
 def _episode(env: gymnasium.Env, expert, seed: int, limit: int, episode: int
@@ -135,15 +142,23 @@ def _episode(env: gymnasium.Env, expert, seed: int, limit: int, episode: int
   return {"observations": observations, "actions": actions}, stacks, ending
 
 
-def write_demonstrations(path: str, lines: list[dict]) -> None:
-  """Writes `record`'s lines to path whole or not at all: a binary set (`php_jax.data.shards`) where path ends
-  in shards.SUFFIX, else JSON lines."""
+def write_demonstrations(path: str, lines: Iterable[dict], shard_size: int = shards.SHARD_SIZE) -> None:
+  """Writes demonstration lines (`record`'s, or `recorded`'s as they come) to path whole or not at all: a binary
+  set (`php_jax.data.shards`, shard_size demonstrations to a shard) where path ends in shards.SUFFIX, else JSON
+  lines."""
   if shards.write_as_binary(path):
-    frames = (frames for line in lines for frames in line.get("stack") or () if frames is not None)
-    depth = len(next(frames, ()))
-    shards.write_shards(path, (_arrays(line, depth) for line in lines))
+    shards.write_shards(path, _as_arrays(lines), shard_size)
   else:
-    files.write_atomically(path, "".join(json.dumps(line) + "\n" for line in lines).encode())
+    files.write_streamed(path, ((json.dumps(line) + "\n").encode() for line in lines))
+
+
+def _as_arrays(lines: Iterable[dict]) -> Iterator[shards.Unpadded]:
+  """lines as `_arrays`, each stack read at the depth of the first stack's first frame."""
+  depth = None
+  for line in lines:
+    if depth is None:
+      depth = next((len(frames) for frames in line.get("stack") or () if frames is not None), None)
+    yield _arrays(line, depth)
 
 
 def _arrays(line: dict, depth: int) -> shards.Unpadded:
