@@ -12,7 +12,9 @@ their call stacks (with --annotate instead: the episodes whose "index" its lines
 `experiments.suggest` writes them), the others are actions only. A stack that breaks the call-stack rules
 (or, with --hierarchy, names a procedure the hierarchy does not have) is refused naming the episode and
 step; every refusal is one line with exit status 2 and nothing written. --out's folder is made if missing;
-an --out ending in .shards is written as a binary set (a directory of shards, for large data sets).
+an --out ending in .shards is written as a binary set (a directory of shards, for large data sets). Each
+episode is written as it ends, into a temporary file put in place after the last, so memory holds one episode
+(or one shard), however many are recorded; interrupted, the command leaves nothing.
 
 The expert sees the environment's own observations (a dict stays a dict); the file holds them flattened
 (`gymnasium.spaces.flatten`). The closing lines say how the expert did: its success rate under --success
