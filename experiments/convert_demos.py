@@ -6,14 +6,14 @@ r"""Converts demonstrations between JSON lines and the binary format for large d
 --demos is read as every command reads demonstrations (a directory as a binary set, anything else as JSON
 lines) and checked against the hierarchy; --out is written as a binary set of --shard_size demonstrations a
 shard where it ends in .shards, else as JSON lines, whole or not at all (a set already there is replaced).
-Both read to the same arrays. A bad file or flag ends in one line and exit status 2, nothing written. The
-formats: docs/own-demonstrations.md.
+Both read to the same arrays. The demonstrations are converted as they are read, one line or one shard held at a
+time. A bad file or flag ends in one line and exit status 2, nothing written. The formats:
+docs/own-demonstrations.md.
 """
 from __future__ import annotations
 
 import os
 
-import numpy as np
 from absl import app, flags
 
 from experiments.common import cli
@@ -40,14 +40,26 @@ def main(argv):
   try:
     cli.check_outputs({"out": _OUT.value}, {"demos": _DEMOS.value, "hierarchy": _HIERARCHY.value}, demo_sets=True)
     hierarchy = demo_files.read_hierarchy(_HIERARCHY.value)
-    batch, _ = demo_files.read_demonstrations(_DEMOS.value, hierarchy.spec)
   except (OSError, ValueError) as e:  # DemoFileError is a ValueError
     cli.fail(str(e))
-  with cli.output_errors("out", _OUT.value):
-    demo_files.write_demonstrations(_OUT.value, batch, np.asarray(batch.strong), _SHARD_SIZE.value)
-  print(f"{len(batch.length)} demonstrations ({int(np.sum(batch.strong))} annotated), "
-        f"{int(np.sum(batch.length))} steps: {_DEMOS.value} ({size_in_bytes(_DEMOS.value):,} bytes) -> "
-        f"{_OUT.value} ({size_in_bytes(_OUT.value):,} bytes)")
+  counts = {"demonstrations": 0, "annotated": 0, "steps": 0}
+
+  def counted(demonstrations):
+    for one in demonstrations:
+      counts["demonstrations"] += 1
+      counts["annotated"] += one[2] is not None
+      counts["steps"] += len(one[1])
+      yield one
+
+  try:
+    with cli.output_errors("out", _OUT.value):
+      demo_files.write_unpadded(_OUT.value, counted(demo_files.iter_demonstrations(_DEMOS.value, hierarchy.spec)),
+                                _SHARD_SIZE.value)
+  except ValueError as e:  # DemoFileError: --demos is read as it is written
+    cli.fail(str(e))
+  print(f"{counts['demonstrations']} demonstrations ({counts['annotated']} annotated), {counts['steps']} steps: "
+        f"{_DEMOS.value} ({size_in_bytes(_DEMOS.value):,} bytes) -> {_OUT.value} ({size_in_bytes(_OUT.value):,} "
+        "bytes)")
 
 
 if __name__ == "__main__":

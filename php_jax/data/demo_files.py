@@ -36,14 +36,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+from collections.abc import Iterable, Iterator
 
 import numpy as np
 
 from php_jax import encoders
-from php_jax.data import json_lines, shards
+from php_jax.data import files, json_lines, shards
 from php_jax.data.demo_checks import (DemoFileError, action_error, check_stack, counter_error, fitted_spec,
                                       observation_size_error)
-from php_jax.data.files import write_atomically
 from php_jax.demos import UNKNOWN, Demonstration, compacted
 from php_jax.hierarchy import HierarchySpec
 
@@ -214,7 +214,7 @@ def _allowed_row(ops, level: int, spec: HierarchySpec, where: str) -> np.ndarray
 def write_hierarchy(path: str, spec: HierarchySpec) -> None:
   """Writes spec as a hierarchy file (the inverse of read_hierarchy, less the optional keys)."""
   obj = {"name": spec.name, "levels": [list(level) for level in spec.levels], "action_sizes": list(spec.action_sizes)}
-  write_atomically(path, (json.dumps(obj, indent=1) + "\n").encode())
+  files.write_atomically(path, (json.dumps(obj, indent=1) + "\n").encode())
 
 
 def parse_demonstration(obj, spec: HierarchySpec) -> tuple[np.ndarray, np.ndarray, np.ndarray | None,
@@ -305,12 +305,30 @@ def read_demonstrations(path: str, spec: HierarchySpec) -> tuple[Demonstration, 
   or naming the file if it holds no demonstration."""
   if shards.read_as_binary(path):
     return shards.read_demonstrations(path, spec)
-  parsed = []
+  parsed = list(_json_demonstrations(path, spec))
+  return _batch(parsed, spec.num_levels), fitted_spec(path, spec, parsed[0][0].shape[1])
+
+
+def iter_demonstrations(path: str, spec: HierarchySpec) -> Iterator[shards.Unpadded]:
+  """A file's demonstrations one at a time, without padding (`shards.Unpadded`: the stack None where not
+  annotated), checked as `read_demonstrations` checks them, holding one line (JSON lines) or one shard (a
+  binary set) at a time. Raises DemoFileError as `read_demonstrations` does, when it reaches the problem."""
+  demonstrations = (_json_demonstrations(path, spec) if not shards.read_as_binary(path) else
+                    (one for batch in shards.iter_shards(path, spec) for one in shards.unpadded(batch, batch.strong)))
+  for number, one in enumerate(demonstrations):
+    if not number:
+      fitted_spec(path, spec, one[0].shape[1])
+    yield one
+
+
+def _json_demonstrations(path: str, spec: HierarchySpec) -> Iterator[shards.Unpadded]:
+  """The JSON lines file's demonstrations as `parse_demonstration` gives them, one line at a time; DemoFileError
+  at the first bad line, or naming the file if it holds no demonstration."""
   try:
     f = open(path, "rb")
   except OSError as e:
     raise DemoFileError(f"{path}: cannot read demonstrations: {e.strerror}") from None
-  obs_dim = spec.obs_dim
+  obs_dim, count = spec.obs_dim, 0
   with f:
     for number, raw in json_lines.lines(f):
       try:
@@ -318,15 +336,14 @@ def read_demonstrations(path: str, spec: HierarchySpec) -> tuple[Demonstration, 
         if obs_dim and one[0].shape[1] != obs_dim:
           raise ValueError(f"observations have {one[0].shape[1]} numbers; expected {obs_dim} (as the first "
                            "demonstration's)")
-        obs_dim = one[0].shape[1]
-        parsed.append(one)
       except UnicodeDecodeError as e:
         raise DemoFileError(f"{path}:{number}: not UTF-8 text ({e.reason} at byte {e.start})") from None
       except ValueError as e:  # json_lines.JSONSyntaxError and JSONBoundsError included
         raise DemoFileError(f"{path}:{number}: malformed demonstration: {e}") from None
-  if not parsed:
+      obs_dim, count = one[0].shape[1], count + 1
+      yield one
+  if not count:
     raise DemoFileError(f"{path}: no demonstrations")
-  return _batch(parsed, spec.num_levels), fitted_spec(path, spec, obs_dim)
 
 
 def _batch(parsed: list, depth: int) -> Demonstration:
@@ -348,25 +365,33 @@ def _batch(parsed: list, depth: int) -> Demonstration:
 
 def demonstration_lines(batch: Demonstration, annotated) -> list[str]:
   """JSON lines of a batch [B, ...]; annotated [B] bool says which carry their "stack"."""
-  lines = []
-  obs, actions = np.asarray(batch.observations), np.asarray(batch.actions)
-  procs, taus = np.asarray(batch.procedures), np.asarray(batch.counters)
-  for b, n in enumerate(np.asarray(batch.length)):
-    line = {"observations": obs[b, :n + 1].astype(np.float32).tolist(), "actions": actions[b, :n].tolist()}
-    if annotated[b]:
-      line["stack"] = [[[int(h), int(tau)] if h != UNKNOWN else None for h, tau in zip(procs[b, t], taus[b, t])]
-                       for t in range(n)]
-    lines.append(json.dumps(line))
-  return lines
+  return [_line(*one) for one in shards.unpadded(batch, annotated)]
+
+
+def _line(observations: np.ndarray, actions: np.ndarray, procedures: np.ndarray | None,
+          counters: np.ndarray | None) -> str:
+  """One demonstration (`shards.Unpadded`) as a JSON line, its "stack" where procedures are given."""
+  line = {"observations": np.asarray(observations).astype(np.float32).tolist(),
+          "actions": np.asarray(actions).tolist()}
+  if procedures is not None:
+    line["stack"] = [[[int(h), int(tau)] if h != UNKNOWN else None for h, tau in zip(hs, taus)]
+                     for hs, taus in zip(procedures, counters)]
+  return json.dumps(line)
 
 
 def write_demonstrations(path: str, batch: Demonstration, annotated, shard_size: int = shards.SHARD_SIZE) -> None:
   """Writes a batch [B, ...] (annotated [B] bool: which carry their "stack") to path whole or not at all: a
   binary set of shard_size demonstrations a shard where path ends in shards.SUFFIX, else JSON lines."""
+  write_unpadded(path, shards.unpadded(batch, annotated), shard_size)
+
+
+def write_unpadded(path: str, demonstrations: Iterable[shards.Unpadded], shard_size: int = shards.SHARD_SIZE) -> None:
+  """`write_demonstrations` for demonstrations one at a time (`shards.Unpadded`, as `iter_demonstrations` gives
+  them), written as they come: one line, or one shard, held at a time."""
   if shards.write_as_binary(path):
-    shards.write_shards(path, shards.unpadded(batch, annotated), shard_size)
+    shards.write_shards(path, demonstrations, shard_size)
   else:
-    write_atomically(path, "".join(line + "\n" for line in demonstration_lines(batch, annotated)).encode())
+    files.write_streamed(path, ((_line(*one) + "\n").encode() for one in demonstrations))
 
 
 def read_indices(path: str, count: int) -> list[int]:

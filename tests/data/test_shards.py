@@ -92,6 +92,29 @@ def test_json_to_binary_to_json_reads_to_the_same_arrays(written, tmp_path):
              for n in os.listdir(out))
 
 
+def _file_bytes(path: str) -> dict[str, bytes]:
+  """{name: bytes} of a set's files, or {"": bytes} of a file."""
+  names = sorted(os.listdir(path)) if os.path.isdir(path) else [""]
+  return {name: open(os.path.join(path, name) if name else path, "rb").read() for name in names}
+
+
+def test_iter_demonstrations_converts_either_way_to_what_the_whole_read_writes(written, tmp_path):
+  """Demonstrations read and written one at a time (as convert_demos does) give the bytes that reading the whole
+  file and writing it gives, either way; a bad line met on the way leaves no output."""
+  path, batch, out = written
+  for source, target in ((out, "streamed.jsonl"), (path, "streamed.shards")):
+    whole_target = str(tmp_path / f"whole_{target}")
+    whole, _ = demo_files.read_demonstrations(source, SPEC)
+    demo_files.write_demonstrations(whole_target, whole, whole.strong, shard_size=2)
+    demo_files.write_unpadded(str(tmp_path / target), demo_files.iter_demonstrations(source, SPEC), shard_size=2)
+    assert _file_bytes(str(tmp_path / target)) == _file_bytes(whole_target)
+  bad = _json_file(tmp_path, [*LINES[:3], {"observations": [[0, 0, 0, 0]], "actions": [[9, 0]]}], "bad.jsonl")
+  for target in ("out.jsonl", "out.shards"):
+    with pytest.raises(demo_checks.DemoFileError, match="bad.jsonl:4: "):
+      demo_files.write_unpadded(str(tmp_path / target), demo_files.iter_demonstrations(bad, SPEC), shard_size=2)
+    assert not any(name.startswith((target, f".{target}")) for name in os.listdir(tmp_path))
+
+
 def _holds_each(dtype: np.dtype, values: np.ndarray) -> bool:
   """Whether every value, one at a time, comes back from dtype as the same float32 bits."""
   for x in values.ravel():
