@@ -468,7 +468,7 @@ def _user_demonstrations() -> tuple[Demonstration, HierarchySpec]:
   except demo_files.DemoFileError as e:
     cli.fail(str(e))
   except ValueError as e:  # the environment's fields beside the hierarchy file's "observes"
-    cli.fail(f"--env={_ENV.value}: {e}")
+    cli.fail(f"--env={_ENV.value}: {e}" if _ENV.value else str(e))
 
 
 def _env_fields(env_id: str):
@@ -588,8 +588,11 @@ def main(argv):
     cli.check_outputs({"out": _OUT.value}, {"demos": _DEMOS.value, "hierarchy": _HIERARCHY.value})
   except ValueError as e:
     cli.fail(str(e))
-  cli.exit_on_interrupt("the benchmark stopped before its end; --out was not written")
-  rows = commands[argv[1]]()
+  try:  # Ctrl-C unwinds, so that the temporary folders (many_demos' copies) are removed
+    rows = commands[argv[1]]()
+  except KeyboardInterrupt:
+    print("interrupted: the benchmark stopped before its end; --out was not written", file=sys.stderr)
+    sys.exit(130)
   if _OUT.value:
     files.write_atomically(_OUT.value, json.dumps(rows, indent=1).encode())
 

@@ -104,7 +104,10 @@ def host_minibatches(buckets: list, batch_size: int, seed: int) -> Callable[[int
   `iteration` (the number made before it) takes: the rows `minibatched` would draw (`batch_rows`, computed on
   the CPU, so a GPU is not waited for), gathered on the host. Only the drawn rows then go to the device."""
   buckets = [jax.tree.map(np.asarray, bucket) for bucket in buckets]
-  cpu = jax.devices("cpu")[0]
+  try:
+    cpu = jax.devices("cpu")[0]
+  except RuntimeError:  # JAX_PLATFORMS without cpu: the default device draws them
+    cpu = jax.devices()[0]
   rows = jax.jit(functools.partial(batch_rows, [_rows(bucket) for bucket in buckets], batch_size, seed))
 
   def draw(iteration: int) -> list:

@@ -21,9 +21,11 @@ from php_jax.training import checkpoint
 
 def fail(message: str) -> NoReturn:
   """Prints "error: message" to stderr, on one line (a newline inside it, say in a path, written as \\n), and
-  exits with status 2."""
-  print(f"error: {message}".replace("\r", "\\r").replace("\n", "\\n"), file=sys.stderr)
-  sys.exit(2)
+  exits with status 2. Holds files.WRITING meanwhile: where an interrupt is ending the process (and deleting a
+  partial file, which a write may then fail on), that ending is the one printed."""
+  with files.WRITING:
+    print(f"error: {message}".replace("\r", "\\r").replace("\n", "\\n"), file=sys.stderr)
+    sys.exit(2)
 
 
 def exit_on_interrupt(message: str) -> None:

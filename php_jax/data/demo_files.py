@@ -363,11 +363,6 @@ def _batch(parsed: list, depth: int) -> Demonstration:
                                  np.array([p is not None for _, _, p, _ in parsed])))
 
 
-def demonstration_lines(batch: Demonstration, annotated) -> list[str]:
-  """JSON lines of a batch [B, ...]; annotated [B] bool says which carry their "stack"."""
-  return [_line(*one) for one in shards.unpadded(batch, annotated)]
-
-
 def _line(observations: np.ndarray, actions: np.ndarray, procedures: np.ndarray | None,
           counters: np.ndarray | None) -> str:
   """One demonstration (`shards.Unpadded`) as a JSON line, its "stack" where procedures are given."""

@@ -42,8 +42,9 @@ def write_streamed(path: str, chunks: Iterable[bytes]) -> None:
   meanwhile ends the process at once and `remove_partial` deletes it; WRITING is held only for the rename."""
   if jax.process_index() != 0:
     return
-  path, tmp, f = _temporary(path)
-  PARTIAL.add(tmp)
+  with WRITING:  # an interrupt finds the file listed as soon as it exists
+    path, tmp, f = _temporary(path)
+    PARTIAL.add(tmp)
   try:
     with f:
       for chunk in chunks:

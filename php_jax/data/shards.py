@@ -121,8 +121,9 @@ def write_shards(path: str, demonstrations: Iterable[Unpadded], shard_size: int 
   if os.path.lexists(path) and not is_set(path):
     raise FileExistsError(errno.EEXIST, "something that is not a demonstration set is there; not replaced", path)
   os.makedirs(os.path.dirname(path), exist_ok=True)
-  fresh, entries = _fresh_directory(path, "tmp"), []
-  files.PARTIAL.add(fresh)
+  with files.WRITING:  # an interrupt finds the directory listed as soon as it exists
+    fresh, entries = _fresh_directory(path, "tmp"), []
+    files.PARTIAL.add(fresh)
   try:
     shape = None
     for number, chunk in enumerate(_chunks(demonstrations, shard_size)):
@@ -133,6 +134,9 @@ def write_shards(path: str, demonstrations: Iterable[Unpadded], shard_size: int 
     manifest = {"format": FORMAT, "version": VERSION, "observation_size": shape[0], "shards": entries}
     _write_new(os.path.join(fresh, MANIFEST), (json.dumps(manifest, indent=1) + "\n").encode())
     with files.WRITING:
+      if os.path.lexists(path) and not is_set(path):  # again: something may have come there meanwhile
+        raise FileExistsError(errno.EEXIST, "something that is not a demonstration set is there; not replaced",
+                              path)
       _put_in_place(fresh, path)
       files.PARTIAL.discard(fresh)
   except BaseException:

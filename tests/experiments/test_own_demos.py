@@ -120,7 +120,7 @@ def test_observation_size_must_match_the_spec(tmp_path):
 def test_exported_demonstrations_read_back_unchanged(tmp_path):
   batch = datasets.training_demos(NANOCRAFT, 3, 6, 2)
   path = tmp_path / "out.jsonl"
-  path.write_text("".join(line + "\n" for line in demo_files.demonstration_lines(batch, np.asarray(batch.strong))))
+  demo_files.write_demonstrations(str(path), batch, np.asarray(batch.strong))
   read, spec = demo_files.read_demonstrations(str(path), NANOCRAFT.spec)
   assert spec == NANOCRAFT.spec
   strong = np.asarray(batch.strong)
