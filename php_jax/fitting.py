@@ -153,21 +153,20 @@ def fit(model: nnx.Module, loss_fn: Callable[..., jax.Array] | IterationLoss, sc
   progress = resume if resume is not None else Progress(0, params, optimizer.init(params), params, None, None,
                                                         [])
   per_batch = _per_batch(loss_fn, schedule, args)
-  if mesh is None and per_batch is not loss_fn:  # minibatches drawn on the host: the device holds one at a time
+  drawn_on_host = mesh is None and per_batch is not loss_fn  # the device holds one minibatch at a time
+  step = _adam_step(graphdef, loss_fn if drawn_on_host else per_batch, optimizer)
+  on_data = jax.jit(lambda params, opt_state, args: step(params, opt_state, rest, args))
+  if drawn_on_host:
     draw = host_minibatches(args[0], schedule.batch_size, schedule.batch_seed)
     others = jax.tree.map(jnp.asarray, args[1:])
-    step = _adam_step(graphdef, loss_fn, optimizer)  # on the drawn buckets
-    drawn_step = jax.jit(lambda params, opt_state, args: step(params, opt_state, rest, args))
 
     def update(params, opt_state, iteration):
-      return drawn_step(params, opt_state, (draw(iteration - 1), *others))
+      return on_data(params, opt_state, (draw(iteration - 1), *others))
   elif mesh is None:  # the whole batch as constants, folded into the program by XLA
-    step, constants = _adam_step(graphdef, per_batch, optimizer), jax.tree.map(jnp.asarray, args)
+    constants = jax.tree.map(jnp.asarray, args)
     update = _ignoring_iteration(jax.jit(lambda params, opt_state: step(params, opt_state, rest, constants)))
   else:  # as arguments, split over the mesh by the caller: a constant would sit whole on one device
-    step = _adam_step(graphdef, per_batch, optimizer)
-    update = _ignoring_iteration(functools.partial(
-        jax.jit(lambda params, opt_state, args: step(params, opt_state, rest, args)), args=args))
+    update = _ignoring_iteration(functools.partial(on_data, args=args))
   [progress] = _iterate(_Loop(update, [model], mesh, lambda tree, s: tree),
                         sharding.replicate((progress.params, progress.opt_state), mesh), [progress], schedule,
                         hooks.for_models())

@@ -118,8 +118,7 @@ def write_shards(path: str, demonstrations: Iterable[Unpadded], shard_size: int 
   if jax.process_index() != 0:
     return
   path = os.path.realpath(path)
-  if os.path.lexists(path) and not is_set(path):
-    raise FileExistsError(errno.EEXIST, "something that is not a demonstration set is there; not replaced", path)
+  _refuse_other_than_a_set(path)
   os.makedirs(os.path.dirname(path), exist_ok=True)
   with files.WRITING:  # an interrupt finds the directory listed as soon as it exists
     fresh, entries = _fresh_directory(path, "tmp"), []
@@ -134,15 +133,19 @@ def write_shards(path: str, demonstrations: Iterable[Unpadded], shard_size: int 
     manifest = {"format": FORMAT, "version": VERSION, "observation_size": shape[0], "shards": entries}
     _write_new(os.path.join(fresh, MANIFEST), (json.dumps(manifest, indent=1) + "\n").encode())
     with files.WRITING:
-      if os.path.lexists(path) and not is_set(path):  # again: something may have come there meanwhile
-        raise FileExistsError(errno.EEXIST, "something that is not a demonstration set is there; not replaced",
-                              path)
+      _refuse_other_than_a_set(path)  # again: something may have come there meanwhile
       _put_in_place(fresh, path)
       files.PARTIAL.discard(fresh)
   except BaseException:
     shutil.rmtree(fresh, ignore_errors=True)
     files.PARTIAL.discard(fresh)
     raise
+
+
+def _refuse_other_than_a_set(path: str) -> None:
+  """FileExistsError where something other than a demonstration set is at path (a set there is replaced)."""
+  if os.path.lexists(path) and not is_set(path):
+    raise FileExistsError(errno.EEXIST, "something that is not a demonstration set is there; not replaced", path)
 
 
 def _chunks(items: Iterable, size: int) -> Iterator[list]:
