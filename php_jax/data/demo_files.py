@@ -330,7 +330,7 @@ def _json_demonstrations(path: str, spec: HierarchySpec) -> Iterator[shards.Unpa
     raise DemoFileError(f"{path}: cannot read demonstrations: {e.strerror}") from None
   obs_dim, count = spec.obs_dim, 0
   with f:
-    for number, raw in json_lines.lines(f):
+    for number, raw in _lines_read(f, path):
       try:
         one = parse_demonstration(json_lines.loads(raw), spec)
         if obs_dim and one[0].shape[1] != obs_dim:
@@ -344,6 +344,14 @@ def _json_demonstrations(path: str, spec: HierarchySpec) -> Iterator[shards.Unpa
       yield one
   if not count:
     raise DemoFileError(f"{path}: no demonstrations")
+
+
+def _lines_read(f, path: str) -> Iterator[tuple[int, bytes]]:
+  """`json_lines.lines(f)`, a read that fails mid-file (a disk error) raising DemoFileError naming path."""
+  try:
+    yield from json_lines.lines(f)
+  except OSError as e:
+    raise DemoFileError(f"{path}: cannot read demonstrations: {e.strerror or e}") from None
 
 
 def _batch(parsed: list, depth: int) -> Demonstration:

@@ -6,6 +6,7 @@ import hashlib
 import io
 import json
 import os
+import re
 import sys
 import zipfile
 
@@ -113,6 +114,35 @@ def test_iter_demonstrations_converts_either_way_to_what_the_whole_read_writes(w
     with pytest.raises(demo_checks.DemoFileError, match="bad.jsonl:4: "):
       demo_files.write_unpadded(str(tmp_path / target), demo_files.iter_demonstrations(bad, SPEC), shard_size=2)
     assert not any(name.startswith((target, f".{target}")) for name in os.listdir(tmp_path))
+
+
+def test_a_read_failing_mid_file_is_the_demonstrations_error_not_the_outputs(written, tmp_path, monkeypatch):
+  """A disk error met while reading JSON lines (after some demonstrations were converted) names the file read,
+  as a DemoFileError, and leaves no output; an error while writing stays an OSError for the writer to report."""
+  path = written[0]
+
+  def failing(lines):
+    def read(f):
+      for number, raw in lines(f):
+        if number == 3:
+          raise OSError(5, "Input/output error")
+        yield number, raw
+    return read
+  monkeypatch.setattr(demo_files.json_lines, "lines", failing(demo_files.json_lines.lines))
+  with pytest.raises(demo_checks.DemoFileError, match=f"^{re.escape(path)}: cannot read demonstrations: "
+                     "Input/output error$"):
+    demo_files.write_unpadded(str(tmp_path / "out.shards"), demo_files.iter_demonstrations(path, SPEC), shard_size=1)
+  assert not any("out.shards" in name for name in os.listdir(tmp_path))
+  with pytest.raises(demo_checks.DemoFileError, match=f"^{re.escape(path)}: cannot read demonstrations: "):
+    demo_files.read_demonstrations(path, SPEC)
+  monkeypatch.undo()
+
+  def full_disk(*args, **kwargs):
+    raise OSError(28, "No space left on device")
+  monkeypatch.setattr(shards, "_write_new", full_disk)
+  with pytest.raises(OSError, match="No space left") as raised:
+    demo_files.write_unpadded(str(tmp_path / "out.shards"), demo_files.iter_demonstrations(path, SPEC), shard_size=1)
+  assert not isinstance(raised.value, demo_checks.DemoFileError)
 
 
 def _holds_each(dtype: np.dtype, values: np.ndarray) -> bool:
