@@ -324,32 +324,29 @@ def iter_demonstrations(path: str, spec: HierarchySpec) -> Iterator[shards.Unpad
 def _json_demonstrations(path: str, spec: HierarchySpec) -> Iterator[shards.Unpadded]:
   """The JSON lines file's demonstrations as `parse_demonstration` gives them, one line at a time; DemoFileError
   at the first bad line, or naming the file if it holds no demonstration."""
-  try:
-    f = open(path, "rb")
-  except OSError as e:
-    raise DemoFileError(f"{path}: cannot read demonstrations: {e.strerror}") from None
   obs_dim, count = spec.obs_dim, 0
-  with f:
-    for number, raw in _lines_read(f, path):
-      try:
-        one = parse_demonstration(json_lines.loads(raw), spec)
-        if obs_dim and one[0].shape[1] != obs_dim:
-          raise ValueError(f"observations have {one[0].shape[1]} numbers; expected {obs_dim} (as the first "
-                           "demonstration's)")
-      except UnicodeDecodeError as e:
-        raise DemoFileError(f"{path}:{number}: not UTF-8 text ({e.reason} at byte {e.start})") from None
-      except ValueError as e:  # json_lines.JSONSyntaxError and JSONBoundsError included
-        raise DemoFileError(f"{path}:{number}: malformed demonstration: {e}") from None
-      obs_dim, count = one[0].shape[1], count + 1
-      yield one
+  for number, raw in _lines_read(path):
+    try:
+      one = parse_demonstration(json_lines.loads(raw), spec)
+      if obs_dim and one[0].shape[1] != obs_dim:
+        raise ValueError(f"observations have {one[0].shape[1]} numbers; expected {obs_dim} (as the first "
+                         "demonstration's)")
+    except UnicodeDecodeError as e:
+      raise DemoFileError(f"{path}:{number}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+    except ValueError as e:  # json_lines.JSONSyntaxError and JSONBoundsError included
+      raise DemoFileError(f"{path}:{number}: malformed demonstration: {e}") from None
+    obs_dim, count = one[0].shape[1], count + 1
+    yield one
   if not count:
     raise DemoFileError(f"{path}: no demonstrations")
 
 
-def _lines_read(f, path: str) -> Iterator[tuple[int, bytes]]:
-  """`json_lines.lines(f)`, a read that fails mid-file (a disk error) raising DemoFileError naming path."""
+def _lines_read(path: str) -> Iterator[tuple[int, bytes]]:
+  """`json_lines.lines` of the file at path; DemoFileError naming path where it cannot be opened, or a read
+  fails partway (a disk error)."""
   try:
-    yield from json_lines.lines(f)
+    with open(path, "rb") as f:
+      yield from json_lines.lines(f)
   except OSError as e:
     raise DemoFileError(f"{path}: cannot read demonstrations: {e.strerror or e}") from None
 
