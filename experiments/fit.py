@@ -41,24 +41,25 @@ _ENV = flags.DEFINE_string("env", None, "The Gymnasium environment the demonstra
                            "observations are read as numbers (or as the hierarchy file's \"observation\" says).")
 _VALIDATION_FRACTION = flags.DEFINE_float("validation_fraction", 0.1, "Share of --demos held out when "
                                           "--validation is not given (at least one demonstration).")
-DEFAULT_CAPACITY = 8
 _FIT_DEFAULTS = {"hidden": '64, or the hierarchy file\'s "hidden"', "tau_in_termination": "1 at every level",
                  "memory": "gru where the observation holds an image, else none",
                  "episode_end": "environment with --env (its episodes end where it ends them), else root",
-                 "min_capacity": f'{DEFAULT_CAPACITY} below the root where some demonstration is annotated, or the '
-                                 'hierarchy file\'s "capacity"'}
+                 "min_capacity": "where some demonstration is annotated, below the root: the longest annotated call "
+                                 "scaled by the longest demonstration over the longest annotated one, at most "
+                                 f"{recipe.SPARE_CAPACITY}; or the hierarchy file's \"capacity\""}
 config_flags.define_config_flags(lambda name, default: _FIT_DEFAULTS.get(name) or recipe.DEFAULT_TEXT.get(name)
                                  or config_flags.default_text(default))
 flags.adopt_module_key_flags(training)
 flags.adopt_module_key_flags(config_flags)
 
 
-def fit_overrides(hierarchy: demo_files.Hierarchy, annotated: bool, recorded_in_env: bool) -> dict:
-  """A hierarchy file's overrides of the training settings: one hidden layer of 64 (or the file's "hidden"),
-  ψ sees τ at every level, and below the root a counter capacity of at least the file's "capacity" (default
-  8 where some demonstration is annotated), more where an annotated call is longer: weak demonstrations may
-  hold longer calls than the few annotated ones. With nothing annotated and no "capacity", no least capacity:
-  a level is 8 counters wide, or as wide as the segmentation's longest call where it annotates it. Where the
+def fit_overrides(hierarchy: demo_files.Hierarchy, demos: Demonstration, recorded_in_env: bool) -> dict:
+  """A hierarchy file's overrides of the training settings for demos: one hidden layer of 64 (or the file's
+  "hidden"), ψ sees τ at every level, and below the root a counter capacity of at least the file's "capacity"
+  (where it gives none and some demonstration is annotated, `recipe.least_capacities`: the longest annotated
+  call with room for longer ones in proportion to the demonstrations' lengths), more where an annotated call
+  is longer. With nothing annotated and no "capacity", no least capacity: a level is 8 counters wide, or as
+  wide as the segmentation's longest call where it annotates it. Where the
   observation holds an image (a view, which seldom shows everything), a memory of the episode (gru). Where
   the demonstrations were recorded in a Gymnasium environment (--env), their ends are the environment's."""
   depth = hierarchy.spec.num_levels
@@ -67,9 +68,11 @@ def fit_overrides(hierarchy: demo_files.Hierarchy, annotated: bool, recorded_in_
     overrides["memory"] = "gru"
   if recorded_in_env:
     overrides["episode_end"] = "environment"
+  annotated = bool(np.any(demos.strong))
   if annotated or hierarchy.capacity:
-    least = hierarchy.capacity or (None,) * depth
-    overrides["min_capacity"] = (0,) + tuple(DEFAULT_CAPACITY if c is None else c for c in least[1:])
+    given = hierarchy.capacity or (None,) * depth
+    spare = recipe.least_capacities(demos, depth) if annotated else (recipe.SPARE_CAPACITY,) * depth
+    overrides["min_capacity"] = (0,) + tuple(s if c is None else c for c, s in zip(given[1:], spare[1:]))
   return overrides
 
 
@@ -106,7 +109,7 @@ def run() -> dict:
     raise config_flags.UsageError(str(e)) from None
   except ValueError as e:  # the environment's fields beside the hierarchy file's "observes"
     raise config_flags.UsageError(f"--env={_ENV.value}: {e}") from None
-  overrides = fit_overrides(hierarchy, bool(np.any(demos.strong)), bool(_ENV.value))
+  overrides = fit_overrides(hierarchy, demos, bool(_ENV.value))
   config = config_flags.config_from_flags(overrides)
   config_flags.check_levels(hierarchy.spec, config)
   try:

@@ -3,8 +3,8 @@ list of candidates of which the one most likely on held-out demonstrations is ke
 (`selection.train_and_choose`).
 
 What the demonstrations decide (`config.resolved`, for every candidate): the strong weight, the counter
-capacities (the longest annotated call), annealing and the segmentation's length without annotation. What
-they leave open, and so is contested:
+capacities (the longest annotated call; `fit` adds room for longer ones, `least_capacities`), annealing and the
+segmentation's length without annotation. What they leave open, and so is contested:
 - with some demonstration annotated, the training mode: level-wise with every operation allowed (the
   paper's), and joint with the call graph the annotation shows (`--call_graph=operations`). Measured: the
   first fails NanoCraft with 2 of 64 annotated where the second solves it, and segments Taxi's level 2 less
@@ -25,6 +25,7 @@ from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
 from php_jax.training import call_graph, segmentation
 from php_jax.training.config import TrainConfig, asks_joint, fields
+from php_jax.training.objective import counter_capacity
 
 RESTART_SEED_STRIDE = 1000  # restart r initialises from init_seed + r × this: other seeds' restarts differ
 MODE_CALL_GRAPH = {"levelwise": "all", "joint": "operations"}  # each mode's candidate call graph
@@ -85,6 +86,24 @@ def choose(spec: HierarchySpec, demos: Demonstration, config: TrainConfig, given
   if len(candidates) > 1:
     reasons.append("the candidate most likely on the held-out demonstrations is kept")
   return Recipe(tuple(candidates), tuple(reasons))
+
+
+SPARE_CAPACITY = 8  # the most counters `least_capacities` asks of a level whose calls are shorter
+
+
+def least_capacities(demos: Demonstration, num_levels: int, most: int = SPARE_CAPACITY) -> tuple[int, ...]:
+  """`fit`'s least counter capacity per level, root first (0: joint training scales the root's itself), where
+  some demonstration is annotated: each level's longest annotated call scaled by how much longer the longest
+  demonstration is than the longest annotated one (the root's rule, `joint.joint_capacity`), at most `most`
+  (which a level without an annotated call gets). The demonstrations without annotation may hold longer calls,
+  in proportion to their length; counters to spare beyond that let a procedure count out a run of actions
+  that the annotation shows it calling one at a time (NanoCraft: docs/training.md)."""
+  counters, strong, lengths = np.asarray(demos.counters), np.asarray(demos.strong), np.asarray(demos.length)
+  if not strong.any():
+    raise ValueError("least_capacities needs an annotated demonstration")
+  return (0,) + tuple(min(most, counter_capacity(counters[strong][..., level], most, 0, lengths.max(),
+                                                 lengths[strong].max()))
+                      for level in range(1, num_levels))
 
 
 FEW_ANNOTATED, RESTARTS_WHERE_FEW = 2, 2

@@ -48,14 +48,17 @@ def test_hierarchy_file_read_and_written(tmp_path):
   assert hierarchy.spec.name == "h" and hierarchy.capacity == (None, 4, 2) and hierarchy.hidden == (16,)
   demo_files.write_hierarchy(str(tmp_path / "n.json"), NANOCRAFT.spec)
   assert demo_files.read_hierarchy(str(tmp_path / "n.json")).spec == dataclasses.replace(NANOCRAFT.spec, obs_dim=0)
-  # fit's least capacities: the file's; else 8 below the root where something is annotated; else none. (In a
-  # process of its own: experiments.fit defines its flags on import.)
+  # fit's least capacities: the file's; else, where something is annotated, the annotated calls with room in
+  # proportion to the lengths (the warehouse's: 2 and 6 operations, demonstrations up to 1.43 times as long as
+  # the longest annotated one: 3, and 8 at most); else none. (In a process of its own: experiments.fit defines
+  # its flags on import.)
   check = (f"from experiments import fit; from php_jax.data import demo_files; read = demo_files.read_hierarchy; "
-           f"given, plain = read({str(tmp_path / 'h.json')!r}), read({str(tmp_path / 'n.json')!r}); "
-           "print(fit.fit_overrides(given, False, False).get('min_capacity'), fit.fit_overrides(plain, True, False).get("
-           "'min_capacity'), fit.fit_overrides(plain, False, False).get('min_capacity'))")
+           f"given, plain = read({str(tmp_path / 'h.json')!r}), read({str(WAREHOUSE / 'warehouse.json')!r}); "
+           f"demos, _ = demo_files.read_demonstrations({str(WAREHOUSE / 'train.jsonl')!r}, plain.spec); "
+           "weak = demos._replace(strong=demos.strong & False); least = lambda h, d: fit.fit_overrides(h, d, False)"
+           ".get('min_capacity'); print(least(given, weak), least(plain, demos), least(plain, weak))")
   proc = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True, timeout=300)
-  assert proc.stdout.split("\n")[-2] == "(0, 4, 2) (0, 8, 8) None", proc.stderr
+  assert proc.stdout.split("\n")[-2] == "(0, 4, 2) (0, 3, 8) None", proc.stderr
 
 
 @pytest.mark.parametrize("obj, message", [

@@ -75,6 +75,22 @@ def test_restarts_repeat_every_candidate_from_other_initialisations():
     recipe.choose(NANOCRAFT.spec, demos, TrainConfig(), frozenset(), restarts=0)
 
 
+def test_least_capacities_give_the_annotated_calls_room_in_proportion_to_the_lengths_at_most_the_spare():
+  demos = _demos([1] * 6, [1] * 9, [1] * 12, strong=[True, True, False])  # the longest, 12, is not annotated
+  counters = np.full((3, 12, 3), -1, np.int32)
+  counters[0, :6] = [[0, 2, 0]] * 6  # level 1's longest annotated call: 3 operations; level 2's: 1
+  counters[1, :9, 0], counters[1, :9, 1] = 0, np.arange(9) % 3
+  demos = demos._replace(counters=counters)
+  # 3 × 12 / 9 = 4 at level 1 and 1 × 12 / 9 → 2 at level 2; the root's is joint training's own (0)
+  assert recipe.least_capacities(demos, 3) == (0, 4, 2)
+  assert recipe.least_capacities(demos, 3, most=3) == (0, 3, 2)  # room capped, ...
+  assert recipe.least_capacities(demos._replace(length=np.array([6, 9, 40])), 3) == (0, 8, 5)
+  counters[:, :, 2] = -1  # a level no annotation shows gets the spare capacity
+  assert recipe.least_capacities(demos._replace(counters=counters), 3) == (0, 4, 8)
+  with pytest.raises(ValueError, match="needs an annotated demonstration"):
+    recipe.least_capacities(demos._replace(strong=np.zeros(3, bool)), 3)
+
+
 def test_a_score_ranks_what_is_explained_before_how_likely():
   assert selection.rank({selection.EXPLAINED: 3, selection.SCORE: -2.0}) > selection.rank(
       {selection.EXPLAINED: 2, selection.SCORE: -0.1})
