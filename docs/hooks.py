@@ -1,9 +1,9 @@
 """mkdocs hooks, and the writer of the pages' flag tables.
 
-RESULTS.md, BUILD.md and the figures in results/ become pages and files of the site. Pages link as the
-repository lays them out (docs/training.md to `../RESULTS.md`, RESULTS.md to `docs/training.md`), so that links
-work when read on the repository; the site moves RESULTS.md and BUILD.md beside the guides, and the hook
-rewrites those links to match. A flag table sits in its page between `<!-- flags: experiments.X -->` and
+RESULTS.md, BUILD.md, the examples' READMEs and the figures in results/ become pages and files of the site.
+Pages link as the repository lays them out (docs/training.md to `../RESULTS.md`, RESULTS.md to
+`docs/training.md`), so that links work when read on the repository; the site moves RESULTS.md and BUILD.md
+beside the guides and keeps the examples' READMEs under examples/, and the hook rewrites those links to match. A flag table sits in its page between `<!-- flags: experiments.X -->` and
 `<!-- end of flags -->`, written from the command itself (`--helpxml`) by `python docs/hooks.py`; the build
 fails where a table is not what the command says today. Every `python -m experiments.X --flag...` command in
 the pages and README.md, outside tables (BUILD.md's list commands that are refused), must name a command that
@@ -22,7 +22,7 @@ import xml.etree.ElementTree as ElementTree
 from mkdocs.structure.files import File
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-PAGES_FROM_ROOT = ("RESULTS.md", "BUILD.md")
+PAGES_FROM_ROOT = ("RESULTS.md", "BUILD.md", *sorted(glob.glob("examples/*/README.md", root_dir=ROOT)))
 _FLAG_TABLE = re.compile(r"^<!-- flags: (experiments\.\w+) -->\n(.*?)^<!-- end of flags -->$", re.M | re.S)
 _LINK = re.compile(r"(\]\()([^)\s#]+)((?:#[^)\s]*)?\))")
 _COMMAND = re.compile(r"python -m (experiments\.[a-z_]+)\b((?:[^\n`&;|]|\\\n)*)")
@@ -32,7 +32,7 @@ from experiments.common.flag_groups import GROUPS  # noqa: E402  (after the path
 
 
 def on_files(files, config):
-  """RESULTS.md, BUILD.md and results/ (their figures) from the repository's root."""
+  """RESULTS.md, BUILD.md, the examples' READMEs and results/ (the figures) from the repository's root."""
   site, urls = config["site_dir"], config["use_directory_urls"]
   for path in (*PAGES_FROM_ROOT, *sorted(glob.glob("results/**/*.png", root_dir=ROOT, recursive=True))):
     files.append(File(path, src_dir=ROOT, dest_dir=site, use_directory_urls=urls))
@@ -54,8 +54,9 @@ def on_page_markdown(markdown: str, page, config, files) -> str:
 
 def site_link(in_repository: str, in_site: str, target: str) -> str:
   """A relative link written in the repository file in_repository, as the same page at in_site must give it:
-  RESULTS.md, BUILD.md and results/ sit at the site's root beside the guides of docs/. Other links (to a
-  page beside it, or outside the repository's pages: a URL) are left as they are."""
+  RESULTS.md, BUILD.md and results/ sit at the site's root beside the guides of docs/, the examples' READMEs
+  under examples/. Other links (to a page beside it, or outside the repository's pages: a URL) are left as they
+  are."""
   if "://" in target or target.startswith("mailto:"):
     return target
   path = posixpath.normpath(posixpath.join(posixpath.dirname(in_repository), target))
