@@ -3,11 +3,12 @@
 RESULTS.md, BUILD.md, the examples' READMEs and the figures in results/ become pages and files of the site.
 Pages link as the repository lays them out (docs/training.md to `../RESULTS.md`, RESULTS.md to
 `docs/training.md`), so that links work when read on the repository; the site moves RESULTS.md and BUILD.md
-beside the guides and keeps the examples' READMEs under examples/, and the hook rewrites those links to match. A flag table sits in its page between `<!-- flags: experiments.X -->` and
-`<!-- end of flags -->`, written from the command itself (`--helpxml`) by `python docs/hooks.py`; the build
-fails where a table is not what the command says today. Every `python -m experiments.X --flag...` command in
-the pages and README.md, outside tables (BUILD.md's list commands that are refused), must name a command that
-exists and flags it defines, or the build fails."""
+beside the guides and keeps the examples' READMEs under examples/, and the hook rewrites those links to match.
+A flag table sits in its page between `<!-- flags: experiments.X -->` and `<!-- end of flags -->`, written from
+the command itself (`--helpxml`) by `python docs/hooks.py`; the build fails where a table is not what the
+command says today. Every `python -m experiments.X --flag...` command in the pages and README.md, outside
+tables (BUILD.md's list commands that are refused), must name a command that exists and flags it defines, or
+the build fails."""
 from __future__ import annotations
 
 import functools
