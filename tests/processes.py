@@ -31,13 +31,17 @@ def assert_refused(cases: Sequence[tuple[Sequence[str], str]], timeout: float = 
 
 def fit_recorded(folder, hierarchy: dict, lines: list[dict], *flags: str):
   """Writes hierarchy and `gym.record`'s lines into folder (a pathlib.Path) and runs `experiments.fit` on them
-  with flags, its workdir folder/run (without a report); asserts it succeeded and returns the workdir."""
+  with flags, its workdir folder/run (without a report); asserts it succeeded and returns the workdir. These fits
+  run hundreds of updates, whose running time outweighs their compiling: XLA optimizes them (the setting given
+  last in XLA_FLAGS wins over tests/conftest.py's)."""
   folder.mkdir(parents=True, exist_ok=True)
   (folder / "hierarchy.json").write_text(json.dumps(hierarchy))
   gym.write_demonstrations(str(folder / "demos.jsonl"), lines)
   proc = subprocess.run([sys.executable, "-m", "experiments.fit", f"--demos={folder / 'demos.jsonl'}",
                          f"--hierarchy={folder / 'hierarchy.json'}", f"--workdir={folder / 'run'}", "--noreport",
-                         *flags], capture_output=True, text=True, timeout=600)
+                         *flags], capture_output=True, text=True, timeout=600,
+                        env={**os.environ, "XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} "
+                                                        "--xla_backend_optimization_level=2"})
   assert proc.returncode == 0, proc.stderr
   return folder / "run"
 

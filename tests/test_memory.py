@@ -162,7 +162,7 @@ def test_an_environment_that_needs_remembering_is_learned_with_a_memory_alone(tm
   lines = gym.record(make_there_and_back(), ThereAndBackExpert(None), episodes=30, seed=0, annotate=6)
   run = processes.fit_recorded(tmp_path, HIERARCHY, lines, "--env=tests.test_memory:make_there_and_back",
                                f"--memory={memory}", "--training=joint", "--episode_end=root",
-                               "--iterations=300", "--eval_every=50",
+                               "--iterations=100", "--eval_every=50",
                                "--hidden=32", "--learning_rate=0.01")
   _, policy = checkpoint.load_policy(str(run))
   assert policy.memory == (64 if memory == "gru" else None)
