@@ -1,20 +1,21 @@
 """Pictures of what a run learned, as matplotlib figures: a demonstration's call stack as a timeline (one band
 per level, the supervisor's beside the decoded one, the elementary actions below), each level's posterior
-as a heat map, and learning curves; written as PNG or SVG, or inlined in a self-contained HTML page."""
+as a heat map, and learning curves; written as PNG or SVG, or inlined in a self-contained HTML page.
+matplotlib is imported when a picture is drawn, not with this module: the commands that import it start half
+a second sooner (a refusal, a run without a report)."""
 from __future__ import annotations
 
 import html
 import io
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
-import matplotlib
 import numpy as np
-from matplotlib.figure import Figure
-from matplotlib.patches import Rectangle
 
 from php_jax.data.call_tree import Call, level_calls
 
-_COLOURS = matplotlib.colormaps["tab10"]
+if TYPE_CHECKING:
+  from matplotlib.figure import Figure
+
 _UNKNOWN_COLOUR = "#d0d0d0"
 _MAX_ACTION_LABELS = 80  # longer demonstrations name their actions in the text trace only
 
@@ -39,6 +40,7 @@ def stack_figure(title: str, decoded: Call, procedure_name: Callable[[int, int],
   width = float(np.clip(4 + 0.12 * steps, 8, 22))
   heights = [0.45 * len(bands) + (0.6 if steps <= _MAX_ACTION_LABELS else 0.2)]
   heights += [0.3 * marginals[k].shape[1] + 0.5 for k in heat_levels]
+  from matplotlib.figure import Figure
   fig = Figure(figsize=(width, sum(heights) + 0.9), layout="constrained")
   axes = fig.subplots(len(heights), 1, sharex=True, height_ratios=heights, squeeze=False)[:, 0]
   fig.suptitle(title, fontsize=11)
@@ -50,10 +52,13 @@ def stack_figure(title: str, decoded: Call, procedure_name: Callable[[int, int],
 
 
 def _draw_bands(ax, bands, steps: int, width_inches: float, procedure_name, action_names) -> None:
+  import matplotlib
+  from matplotlib.patches import Rectangle
+  colours = matplotlib.colormaps["tab10"]
   inches_per_step = width_inches * 0.8 / max(steps, 1)
   for row, (_, calls) in enumerate(bands):
     for call in calls:
-      colour = _COLOURS(call.procedure % 10) if call.procedure >= 0 else _UNKNOWN_COLOUR
+      colour = colours(call.procedure % 10) if call.procedure >= 0 else _UNKNOWN_COLOUR
       ax.add_patch(Rectangle((call.start, row + 0.08), call.end - call.start, 0.84, facecolor=colour,
                              edgecolor="white", linewidth=1.2))
       name = procedure_name(call.level, call.procedure)
@@ -93,6 +98,7 @@ def curves_figure(rows: Sequence[dict], whole: str = "every level at once") -> F
   if not phases:
     return None
   order = sorted(phases, key=lambda p: -p if isinstance(p, int) else 0)
+  from matplotlib.figure import Figure
   fig = Figure(figsize=(min(4.2 * len(order), 16), 3.2), layout="constrained")
   axes = fig.subplots(1, len(order), squeeze=False)[0]
   for ax, phase in zip(axes, order):
@@ -123,6 +129,7 @@ def save(fig: Figure, path: str, title: str, text: str = "") -> bytes:
 
 def svg(fig: Figure) -> str:
   """The figure as an inline <svg> element (its text as text, in the reader's sans-serif font)."""
+  import matplotlib
   buffer = io.StringIO()
   with matplotlib.rc_context({"svg.fonttype": "none"}):
     fig.savefig(buffer, format="svg")
