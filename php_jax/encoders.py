@@ -211,6 +211,7 @@ class Encoder(nnx.Module):
             cells = cells * (1 + scale) + shift
           cells = jax.nn.relu(cells)
         parts.append(cells.reshape(cells.shape[0], -1))
+        parts.append(self._keypoints(cells))
       else:
         words_here = self._words(field, embedding, x)
         parts.append(words_here.reshape(words_here.shape[0], -1))
@@ -228,6 +229,18 @@ class Encoder(nnx.Module):
     """[N, length] word ids → [N, length, EMBED]: each position's word embedded, zeros where it pads."""
     words = jnp.clip(jnp.round(x).astype(jnp.int32), 0, field.vocab - 1)
     return embedding(words) * (words > 0)[..., None]
+
+  @staticmethod
+  def _keypoints(cells: jax.Array) -> jax.Array:
+    """Where each channel is strongest, as coordinates a network can compare: [N, H, W, K] → [N, 3K], per
+    channel the expected row and column in −1..1 under the softmax of its values over the cells (a spatial
+    softmax), and its largest value."""
+    n, h, w, k = cells.shape
+    weights = jax.nn.softmax(cells.reshape(n, h * w, k), axis=1)
+    rows, cols = jnp.meshgrid(jnp.linspace(-1.0, 1.0, h), jnp.linspace(-1.0, 1.0, w), indexing="ij")
+    row = jnp.einsum("npk,p->nk", weights, rows.reshape(-1))
+    col = jnp.einsum("npk,p->nk", weights, cols.reshape(-1))
+    return jnp.concatenate([row, col, jnp.max(cells.reshape(n, h * w, k), axis=1)], axis=1)
 
   @staticmethod
   def _matches(per_code: list[jax.Array], match: nnx.List, words: jax.Array) -> jax.Array:
