@@ -9,11 +9,7 @@ order, so that the shared encoder can treat each as what it is:
 - `Image(shape, codes)`: an H × W × C grid of integer codes, row-major (MiniGrid's cells are (object, colour,
   state) codes), each channel's code embedded, summed per cell, then two 3 × 3 convolutions, whose channels
   the observation's words (if it has any) scale and shift (FiLM, as BabyAI's models do: which cell matters
-  hangs on the mission). With words, each cell also gets, per channel, how well its code matches the word
-  that matches it best (a learned bilinear score, the most over the words): "the red ball" then marks the
-  cells whose colour is red and those whose object is a ball wherever either word stands, and the
-  convolutions learn their conjunction once for every colour and object, not for each pair the
-  demonstrations show;
+  hangs on the mission);
 - `Tokens(length, vocab)`: a text as word ids in 1..vocab−1 (0 pads), each position's word embedded.
 Between every two categorical fields of one size the encoder adds whether they are equal (and, both ordered,
 which is less), and where there are at most MAX_PAIRED categorical fields, the product of every two fields'
@@ -161,14 +157,11 @@ class Encoder(nnx.Module):
         else nnx.List([nnx.Embed(n, EMBED, rngs=rngs) for n in f.codes]) if isinstance(f, Image)
         else nnx.Embed(f.vocab, EMBED, rngs=rngs) if isinstance(f, Tokens) else None
         for f in self.fields])
-    text = sum(f.length * EMBED for f in self.fields if isinstance(f, Tokens))
-    self.matches = nnx.List([
-        nnx.List([nnx.Linear(EMBED, EMBED, use_bias=False, rngs=rngs) for _ in f.codes])
-        if isinstance(f, Image) and text else None for f in self.fields])
     self.convolutions = nnx.List([
-        nnx.List([nnx.Conv(EMBED + (len(f.codes) if text else 0), n, (3, 3), rngs=rngs) for n in CHANNELS[:1]]
+        nnx.List([nnx.Conv(EMBED, n, (3, 3), rngs=rngs) for n in CHANNELS[:1]]
                  + [nnx.Conv(a, b, (3, 3), rngs=rngs) for a, b in zip(CHANNELS[:-1], CHANNELS[1:])])
         if isinstance(f, Image) else None for f in self.fields])
+    text = sum(f.length * EMBED for f in self.fields if isinstance(f, Tokens))
     self.films = nnx.List([
         nnx.List([nnx.Linear(text, 2 * n, kernel_init=nnx.initializers.zeros, rngs=rngs) for n in CHANNELS])
         if isinstance(f, Image) and text else None for f in self.fields])
@@ -183,10 +176,10 @@ class Encoder(nnx.Module):
     starts = np.cumsum([0] + [f.entries for f in self.fields])
     words = [self._words(field, embedding, obs[:, a:b]) for field, embedding, a, b
              in zip(self.fields, self.embeddings, starts[:-1], starts[1:]) if isinstance(field, Tokens)]
-    text = jnp.concatenate([w.reshape(w.shape[0], -1) for w in words], axis=1) if words else None
+    text = jnp.concatenate(words, axis=1) if words else None
     parts, categorical = [], []
-    for field, embedding, convolution, film, match, start in zip(self.fields, self.embeddings, self.convolutions,
-                                                                 self.films, self.matches, starts):
+    for field, embedding, convolution, film, start in zip(self.fields, self.embeddings, self.convolutions,
+                                                          self.films, starts):
       x = obs[:, start:start + field.entries]
       if isinstance(field, Real):
         parts.append(x)
@@ -199,11 +192,8 @@ class Encoder(nnx.Module):
         categorical.append((field, x, value, embedded))
       elif isinstance(field, Image):
         codes = jnp.round(x).astype(jnp.int32).reshape(-1, *field.shape)
-        per_code = [embed(jnp.clip(codes[..., c], 0, n - 1)) for c, (embed, n) in
-                    enumerate(zip(embedding, field.codes))]
-        cells = sum(per_code)
-        if match is not None:
-          cells = jnp.concatenate([cells, self._matches(per_code, match, jnp.concatenate(words, axis=1))], -1)
+        cells = sum(embed(jnp.clip(codes[..., c], 0, n - 1)) for c, (embed, n) in
+                    enumerate(zip(embedding, field.codes)))
         for layer, conv in enumerate(convolution):
           cells = conv(cells)
           if film is not None:  # the text scales and shifts each channel (FiLM), as BabyAI's models do
@@ -211,10 +201,8 @@ class Encoder(nnx.Module):
             cells = cells * (1 + scale) + shift
           cells = jax.nn.relu(cells)
         parts.append(cells.reshape(cells.shape[0], -1))
-        parts.append(self._keypoints(cells))
       else:
-        words_here = self._words(field, embedding, x)
-        parts.append(words_here.reshape(words_here.shape[0], -1))
+        parts.append(self._words(field, embedding, x))
     for (a, xa, va, ea), (b, xb, vb, eb) in itertools.combinations(categorical, 2):
       if a.size == b.size:
         parts.append(jnp.sum(xa * xb, axis=1, keepdims=True))
@@ -226,33 +214,9 @@ class Encoder(nnx.Module):
 
   @staticmethod
   def _words(field: Tokens, embedding: nnx.Embed, x: jax.Array) -> jax.Array:
-    """[N, length] word ids → [N, length, EMBED]: each position's word embedded, zeros where it pads."""
+    """[N, length] word ids → [N, length · EMBED]: each position's word embedded, zeros where it pads."""
     words = jnp.clip(jnp.round(x).astype(jnp.int32), 0, field.vocab - 1)
-    return embedding(words) * (words > 0)[..., None]
-
-  @staticmethod
-  def _keypoints(cells: jax.Array) -> jax.Array:
-    """Where each channel is strongest, as coordinates a network can compare: [N, H, W, K] → [N, 3K], per
-    channel the expected row and column in −1..1 under the softmax of its values over the cells (a spatial
-    softmax), and its largest value."""
-    n, h, w, k = cells.shape
-    weights = jax.nn.softmax(cells.reshape(n, h * w, k), axis=1)
-    rows, cols = jnp.meshgrid(jnp.linspace(-1.0, 1.0, h), jnp.linspace(-1.0, 1.0, w), indexing="ij")
-    row = jnp.einsum("npk,p->nk", weights, rows.reshape(-1))
-    col = jnp.einsum("npk,p->nk", weights, cols.reshape(-1))
-    return jnp.concatenate([row, col, jnp.max(cells.reshape(n, h * w, k), axis=1)], axis=1)
-
-  @staticmethod
-  def _matches(per_code: list[jax.Array], match: nnx.List, words: jax.Array) -> jax.Array:
-    """Per cell and code channel c, the best score over the words of w · M_c · e_c(cell): per_code C × [N, H, W,
-    EMBED], words [N, L, EMBED] (zeros where they pad) → [N, H, W, C]; zeros where there are no words."""
-    present = jnp.any(words != 0, axis=-1)  # [N, L]
-    scores = []
-    for cells, project in zip(per_code, match):
-      score = jnp.einsum("nhwe,nle->nhwl", cells, project(words))
-      best = jnp.max(jnp.where(present[:, None, None, :], score, -jnp.inf), axis=-1)
-      scores.append(jnp.where(jnp.any(present, axis=-1)[:, None, None], best, 0.0))
-    return jnp.stack(scores, axis=-1)
+    return (embedding(words) * (words > 0)[..., None]).reshape(words.shape[0], -1)
 
 
 class History(nnx.Module):

@@ -88,29 +88,6 @@ def test_each_field_is_seen_as_what_it_is():
   assert any(np.array_equal(features[:, comparisons[i:i + 3]], wanted) for i in range(len(comparisons) - 2))
 
 
-def test_each_cell_gets_per_code_channel_its_best_match_over_the_words():
-  """The image's word–cell matches, against a loop over cells, channels and words: max over the words present
-  of w · M_c · e_c(code); zeros where no word is given; a padding word never counts."""
-  encoder = encoders.Encoder(FIELDS, 16, rngs=nnx.Rngs(5))
-  image, tokens = FIELDS[5], FIELDS[6]
-  x = observation(np.random.default_rng(6), 3)
-  x[1, -2:] = 0  # two padding words
-  x[2, -4:] = 0  # no words
-  codes = x[:, -4 - image.entries:-4].reshape(-1, *image.shape).astype(int)
-  words = x[:, -4:].astype(int)
-  per_code = [encoder.embeddings[5][c](jnp.asarray(codes[..., c])) for c in range(len(image.codes))]
-  embedded = encoders.Encoder._words(tokens, encoder.embeddings[6], jnp.asarray(x[:, -4:]))
-  got = np.asarray(encoders.Encoder._matches(per_code, encoder.matches[5], embedded))
-  want = np.zeros(got.shape, np.float32)
-  for n, h, w, c in np.ndindex(*got.shape):
-    cell = np.asarray(encoder.embeddings[5][c].embedding[...])[codes[n, h, w, c]]
-    projection = np.asarray(encoder.matches[5][c].kernel[...])
-    scores = [np.asarray(encoder.embeddings[6].embedding[...])[word] @ projection @ cell for word in words[n] if word]
-    want[n, h, w, c] = max(scores, default=0.0)
-  np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
-  assert not np.any(got[2])
-
-
 def test_a_hierarchy_with_fields_is_saved_and_loaded_with_them(tmp_path):
   spec = HierarchySpec("fields", (("root",), ("a", "b")), (3,), encoders.size(FIELDS), observation=FIELDS)
   model = PHPHierarchy(spec, hidden=(8,), rngs=nnx.Rngs(3))
