@@ -29,7 +29,8 @@ os.environ.update(JAX_COMPILATION_CACHE_DIR=CACHE, JAX_PERSISTENT_CACHE_MIN_COMP
                   JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
 # XLA compiles without LLVM's optimizations (in this process, whose backend starts after this, and in the
 # commands): on the CPU they take most of the compile time, which is most of the suite's time, and the tests'
-# programs are small. Settings given in XLA_FLAGS come after, so that they win. A worker has its parent's.
+# programs are small (`processes.fit_recorded`'s learning runs turn them back on). Settings given in XLA_FLAGS
+# come after, so that they win. A worker has its parent's.
 if not WORKER:
   os.environ["XLA_FLAGS"] = " ".join(filter(None, ["--xla_backend_optimization_level=0",
                                                    os.environ.get("XLA_FLAGS")]))
