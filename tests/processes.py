@@ -32,8 +32,8 @@ def assert_refused(cases: Sequence[tuple[Sequence[str], str]], timeout: float = 
 def fit_recorded(folder, hierarchy: dict, lines: list[dict], *flags: str):
   """Writes hierarchy and `gym.record`'s lines into folder (a pathlib.Path) and runs `experiments.fit` on them
   with flags, its workdir folder/run (without a report); asserts it succeeded and returns the workdir. These fits
-  run hundreds of updates, whose running time outweighs their compiling: XLA optimizes them (the setting given
-  last in XLA_FLAGS wins over tests/conftest.py's)."""
+  are learning runs, whose running time outweighs their compiling: XLA optimizes them (the setting given last
+  in XLA_FLAGS wins over tests/conftest.py's)."""
   folder.mkdir(parents=True, exist_ok=True)
   (folder / "hierarchy.json").write_text(json.dumps(hierarchy))
   gym.write_demonstrations(str(folder / "demos.jsonl"), lines)
