@@ -149,7 +149,7 @@ def test_a_finished_php_run_records_its_resolved_settings_and_is_not_trained_aga
                               extra=flat.extra)
   workdir = str(tmp_path / "weak")
   config = TrainConfig(iterations=2, eval_every=1, hidden=(4,), training="joint", split_iterations=2,
-                       split_hint_iterations=1)
+                       split_hint_iterations=0, length_buckets=1)
   first = run.train_and_evaluate(experiment, config, workdir, echo=lambda row: None)
   assert first["config"]["anneal_temperature"] == WEAK_ONLY_ANNEALING
   assert (first["config"]["segment_iterations"], first["config"]["split_rounds"]) == (1, DISCOVERY_SPLIT_ROUNDS)
