@@ -1,10 +1,11 @@
 """Settings for a pytest run: a persistent compilation cache in a fresh temporary directory, so that the many
 identical computations the training tests compile again (each training run jits its own closures) are
 compiled by XLA once per run, and removed at the end of the run; with pytest-xdist (`-n 2`), the workers
-share the cache of the process that started them. XLA without LLVM's optimizations. Also puts
-the checkout on the PYTHONPATH of the commands the tests run: experiments/ is not installed, and
-`python -m experiments.X` must find it whatever the working directory. With PHP_JAX_RECORD_REFUSALS set,
-every refusal a test's command gives is recorded (`tests.processes.record_refusal`)."""
+share the cache of the process that started them. XLA without LLVM's optimizations, with its older CPU
+fusion emitters. Also puts the checkout on the PYTHONPATH of the commands the tests run: experiments/ is not
+installed, and `python -m experiments.X` must find it whatever the working directory. With
+PHP_JAX_RECORD_REFUSALS set, every refusal a test's command gives is recorded
+(`tests.processes.record_refusal`)."""
 import os
 import pathlib
 import shutil
@@ -27,12 +28,13 @@ jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 # The commands the tests run share the cache: each compiles the same programs as the others.
 os.environ.update(JAX_COMPILATION_CACHE_DIR=CACHE, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
                   JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
-# XLA compiles without LLVM's optimizations (in this process, whose backend starts after this, and in the
-# commands): on the CPU they take most of the compile time, which is most of the suite's time, and the tests'
-# programs are small (`processes.fit_recorded`'s learning runs turn them back on). Settings given in XLA_FLAGS
-# come after, so that they win. A worker has its parent's.
+# XLA compiles without LLVM's optimizations and with its older CPU fusion emitters (in this process, whose
+# backend starts after this, and in the commands): compiling is most of the suite's time, and the two take a
+# third of it off; the tests' programs are small (`processes.fit_recorded`'s learning runs turn the
+# optimizations back on). Settings given in XLA_FLAGS come after, so that they win. A worker has its parent's.
 if not WORKER:
   os.environ["XLA_FLAGS"] = " ".join(filter(None, ["--xla_backend_optimization_level=0",
+                                                   "--xla_cpu_use_fusion_emitters=false",
                                                    os.environ.get("XLA_FLAGS")]))
 
 
