@@ -6,7 +6,7 @@ import pytest
 
 pytest.importorskip("minigrid")
 
-from examples.doorkey import doorkey  # noqa: E402
+from examples.doorkey import doorkey, failures  # noqa: E402
 from php_jax.data import demo_files  # noqa: E402
 from php_jax.envs import gym  # noqa: E402
 from php_jax.training import call_graph  # noqa: E402
@@ -42,3 +42,20 @@ def test_the_shortest_turns_face_the_target_and_go_round_walls():
   assert len(path) == 7 and path[0] == doorkey.LEFT  # ties: LEFT first, so round by the right-hand side
   with pytest.raises(ValueError, match="no path"):
     doorkey.shortest_turns(passable, (1, 1, 0), lambda p: p[:2] == (2, 2))
+
+
+def test_failures_counts_the_episodes_that_never_picked_up_the_key_and_where_each_ended():
+  level1 = ["get_key", "open_door", "reach_goal"]
+  walk, pickup, toggle = [[0, 0], [0, 0], [0, 2]], [[0, 0], [0, 1], [1, 0]], [[0, 1], [1, 0], [3, 5]]
+  episodes = [{"success": True, "stack": [walk, pickup, toggle]},
+              {"success": False, "stack": [walk, walk]},            # never picks the key up, ends in get_key
+              {"success": False, "stack": [walk, pickup, toggle]}]  # ends in open_door, toggling
+  assert failures.summarise(episodes, level1, pickup=1) == (
+      "failed 2/3; key never picked up 1; ends in get_key 1, open_door 1, reach_goal 0")
+
+
+def test_calls_of_splits_a_procedures_steps_into_its_calls():
+  step = lambda h, tau: [[0, 0], [0, 0], [h, tau]]
+  stacks = [[step(0, 0), step(0, 1), step(0, 2), step(0, 0), step(1, 0)], [step(1, 0), step(0, 0)]]
+  assert failures.calls_of(stacks, 0) == [3, 1, 1]
+  assert failures.calls_of(stacks, 1) == [1, 1]
