@@ -1,9 +1,10 @@
 r"""Where a DoorKey hierarchy's failures end: reads the call stacks of each measured run's failed episodes.
 
-  python examples/doorkey/failures.py --workdir=runs/doorkey8_measure
+  python examples/doorkey/failures.py --workdir=runs/doorkey8_measure [--sampled]
 
 One line per PHP run of examples/taxi/measure.py in the workdir (its episodes.jsonl, written by `act` taking
-the most likely decisions; flat baselines record no stacks and are skipped): the episodes that failed, how many
+the most likely decisions, or with --sampled its episodes_sampled.jsonl; flat baselines record no stacks and are
+skipped): the episodes that failed, how many
 of them never ran the procedure `pickup` (the key was never picked up), and which level-1 procedure was running
 at the last step; then, in the run's decoding of the 200 held-out episodes (decoded.jsonl), how many calls of
 `navigate_key` the expert's walks to the key were split into, and how many of those calls last one step (each
@@ -47,11 +48,13 @@ def calls_of(stacks: list[list], procedure: int) -> list[int]:
 def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--workdir", required=True, help="a workdir of examples/taxi/measure.py")
+  parser.add_argument("--sampled", action="store_true", help="the episodes acted with act --sample")
   args = parser.parse_args()
   with open(HIERARCHY) as f:
     levels = json.load(f)["levels"]
   level1, pickup, navigate_key = levels[1], levels[2].index("pickup"), levels[2].index("navigate_key")
-  for path in sorted(glob.glob(os.path.join(args.workdir, "*", "episodes.jsonl"))):
+  acted = "episodes_sampled.jsonl" if args.sampled else "episodes.jsonl"
+  for path in sorted(glob.glob(os.path.join(args.workdir, "*", acted))):
     with open(path) as f:
       episodes = [json.loads(line) for line in f]
     if not episodes or episodes[0]["stack"] is None:
