@@ -4,9 +4,8 @@ r"""Where a DoorKey hierarchy's failures end: reads the call stacks of each meas
 
 One line per PHP run of examples/taxi/measure.py in the workdir (its episodes.jsonl, written by `act` taking
 the most likely decisions, or with --sampled its episodes_sampled.jsonl; flat baselines record no stacks and are
-skipped): the episodes that failed, how many
-of them never ran the procedure `pickup` (the key was never picked up), and which level-1 procedure was running
-at the last step; then, in the run's decoding of the 200 held-out episodes (decoded.jsonl), how many calls of
+skipped): the episodes that failed, how many of them never ran the procedure `pickup` (the key was never picked
+up), and which level-1 procedure was running at the last step; then, in the run's decoding of the 200 held-out episodes (decoded.jsonl), how many calls of
 `navigate_key` the expert's walks to the key were split into, and how many of those calls last one step (each
 call's end is a step where `get_key` may return). Procedures are named by examples/doorkey/doorkey.json, which
 the annotated episodes pin the learned ones to.
@@ -18,6 +17,10 @@ import collections
 import glob
 import json
 import os
+
+import numpy as np
+
+from php_jax.data import call_tree
 
 HIERARCHY = os.path.join(os.path.dirname(__file__), "doorkey.json")
 
@@ -33,15 +36,13 @@ def summarise(episodes: list[dict], level1: list[str], pickup: int) -> str:
 
 
 def calls_of(stacks: list[list], procedure: int) -> list[int]:
-  """The lengths of the calls of level-2 `procedure` in decoded stacks ([T][level][h, tau] per episode): a call
-  starts where its counter is 0 and lasts while the procedure runs with counters above 0."""
+  """The lengths of the calls of level-2 `procedure` in decoded stacks ([T][level][h, tau] per episode), the
+  calls read as `call_tree.calls` reads them."""
   lengths = []
   for stack in stacks:
-    for (_, _, (h, tau)) in stack:
-      if h == procedure and tau == 0:
-        lengths.append(1)
-      elif h == procedure:
-        lengths[-1] += 1
+    frames = np.asarray(stack)
+    level2 = call_tree.level_calls(call_tree.calls(frames[..., 0], frames[..., 1]))[2]
+    lengths += [call.end - call.start for call in level2 if call.procedure == procedure]
   return lengths
 
 

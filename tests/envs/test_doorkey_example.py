@@ -55,7 +55,8 @@ def test_failures_counts_the_episodes_that_never_picked_up_the_key_and_where_eac
 
 
 def test_calls_of_splits_a_procedures_steps_into_its_calls():
-  step = lambda h, tau: [[0, 0], [0, 0], [h, tau]]
-  stacks = [[step(0, 0), step(0, 1), step(0, 2), step(0, 0), step(1, 0)], [step(1, 0), step(0, 0)]]
+  step = lambda call, h, tau: [[0, 0], [0, call], [h, tau]]  # a new call below when level 1's counter moves on
+  stacks = [[step(0, 0, 0), step(0, 0, 1), step(0, 0, 2), step(1, 0, 0), step(2, 1, 0)],
+            [step(0, 1, 0), step(1, 0, 0)]]
   assert failures.calls_of(stacks, 0) == [3, 1, 1]
   assert failures.calls_of(stacks, 1) == [1, 1]
