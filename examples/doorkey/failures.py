@@ -17,6 +17,7 @@ import collections
 import glob
 import json
 import os
+import sys
 
 import numpy as np
 
@@ -55,11 +56,16 @@ def main() -> None:
     levels = json.load(f)["levels"]
   level1, pickup, navigate_key = levels[1], levels[2].index("pickup"), levels[2].index("navigate_key")
   acted = "episodes_sampled.jsonl" if args.sampled else "episodes.jsonl"
+  runs = []
   for path in sorted(glob.glob(os.path.join(args.workdir, "*", acted))):
     with open(path) as f:
       episodes = [json.loads(line) for line in f]
-    if not episodes or episodes[0]["stack"] is None:
-      continue
+    if episodes and episodes[0]["stack"] is not None:
+      runs.append((path, episodes))
+  if not runs:
+    print(f"--workdir={args.workdir} holds no PHP run of examples/taxi/measure.py with an {acted}", file=sys.stderr)
+    sys.exit(2)
+  for path, episodes in runs:
     with open(os.path.join(os.path.dirname(path), "decoded.jsonl")) as f:
       walks = calls_of([json.loads(line)["stack"] for line in f], navigate_key)
     print(f"{os.path.basename(os.path.dirname(path))}: {summarise(episodes, level1, pickup)}; held out: "

@@ -1,6 +1,8 @@
 """examples/doorkey: the expert solves MiniGrid's DoorKey by its three-part hierarchy, and its stacks are ones
 the hierarchy file admits."""
 import json
+import subprocess
+import sys
 
 import pytest
 
@@ -60,3 +62,15 @@ def test_calls_of_splits_a_procedures_steps_into_its_calls():
             [step(0, 1, 0), step(1, 0, 0)]]
   assert failures.calls_of(stacks, 0) == [3, 1, 1]
   assert failures.calls_of(stacks, 1) == [1, 1]
+
+
+def test_failures_refuses_a_workdir_without_a_measured_hierarchy_in_one_line(tmp_path):
+  flat = tmp_path / "flat_lstm_d100_a3_s1"  # a flat baseline's run: no stacks to read
+  flat.mkdir()
+  (flat / "episodes.jsonl").write_text(json.dumps({"success": False, "stack": None}) + "\n")
+  for workdir in (tmp_path, tmp_path / "missing"):
+    proc = subprocess.run([sys.executable, "examples/doorkey/failures.py", f"--workdir={workdir}"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and not proc.stdout
+    assert proc.stderr.strip() == (
+        f"--workdir={workdir} holds no PHP run of examples/taxi/measure.py with an episodes.jsonl")
