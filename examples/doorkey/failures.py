@@ -2,9 +2,9 @@ r"""Where a DoorKey hierarchy's failures end: reads the call stacks of each meas
 
   python examples/doorkey/failures.py --workdir=runs/doorkey8_measure [--sampled]
 
-One line per PHP run of examples/taxi/measure.py in the workdir (its episodes.jsonl, written by `act` taking the
-most likely decisions, or with --sampled its episodes_sampled.jsonl; flat baselines record no stacks and are
-skipped): the episodes that failed, how many of them never ran the procedure `pickup` (the key was never picked
+One line per finished PHP run of examples/taxi/measure.py in the workdir (one whose row.json is written; a run
+stopped before its decoding is skipped), from its episodes.jsonl, written by `act` taking the most likely
+decisions, or with --sampled its episodes_sampled.jsonl (flat baselines record no stacks and are skipped): the episodes that failed, how many of them never ran the procedure `pickup` (the key was never picked
 up), and which level-1 procedure was running at the last step; then, in the run's decoding of the 200 held-out
 episodes (decoded.jsonl), how many calls of `navigate_key` the expert's walks to the key were split into, and
 how many of those calls last one step (each call's end is a step where `get_key` may return). Procedures are
@@ -58,7 +58,10 @@ def main() -> None:
   level1, pickup, navigate_key = levels[1], levels[2].index("pickup"), levels[2].index("navigate_key")
   acted = "episodes_sampled.jsonl" if args.sampled else "episodes.jsonl"
   runs = []
-  for path in sorted(glob.glob(os.path.join(args.workdir, "*", acted))):
+  for done in sorted(glob.glob(os.path.join(args.workdir, "*", "row.json"))):  # finished runs: decoded.jsonl too
+    path = os.path.join(os.path.dirname(done), acted)
+    if not os.path.exists(path):
+      continue
     with open(path) as f:
       episodes = [json.loads(line) for line in f]
     if episodes and episodes[0]["stack"] is not None:

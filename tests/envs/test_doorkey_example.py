@@ -65,9 +65,13 @@ def test_calls_of_splits_a_procedures_steps_into_its_calls():
 
 
 def test_failures_refuses_a_workdir_without_a_measured_hierarchy_in_one_line(tmp_path):
-  flat = tmp_path / "flat_lstm_d100_a3_s1"  # a flat baseline's run: no stacks to read
+  flat = tmp_path / "flat_lstm_d100_a3_s1"  # a flat baseline's finished run: no stacks to read
   flat.mkdir()
   (flat / "episodes.jsonl").write_text(json.dumps({"success": False, "stack": None}) + "\n")
+  (flat / "row.json").write_text("{}")
+  stopped = tmp_path / "php_d100_a3_s1"  # a PHP run stopped after acting, before decoding: no row.json
+  stopped.mkdir()
+  (stopped / "episodes.jsonl").write_text(json.dumps({"success": False, "stack": [[[0, 0], [0, 0], [0, 2]]]}) + "\n")
   for workdir in (tmp_path, tmp_path / "missing"):
     proc = subprocess.run([sys.executable, "examples/doorkey/failures.py", f"--workdir={workdir}"],
                           capture_output=True, text=True)
