@@ -3,12 +3,13 @@ r"""Where a DoorKey hierarchy's failures end: reads the call stacks of each meas
   python examples/doorkey/failures.py --workdir=runs/doorkey8_measure [--sampled]
 
 One line per finished PHP run of examples/taxi/measure.py in the workdir (one whose row.json is written; a run
-stopped before its decoding is skipped), from its episodes.jsonl, written by `act` taking the most likely
-decisions, or with --sampled its episodes_sampled.jsonl (flat baselines record no stacks and are skipped): the
-episodes that failed, how many of them never ran the procedure `pickup` (the key was never picked up), and which level-1 procedure was running at the last step; then, in the run's decoding of the 200 held-out
-episodes (decoded.jsonl), how many calls of `navigate_key` the expert's walks to the key were split into, and
-how many of those calls last one step (each call's end is a step where `get_key` may return). Procedures are
-named by examples/doorkey/doorkey.json, which the annotated episodes pin the learned ones to.
+stopped before its decoding is skipped), from its episodes.jsonl, written by `act` taking the most likely decisions,
+or with --sampled its episodes_sampled.jsonl (flat baselines record no stacks and are skipped): the episodes that
+failed, how many of them never ran the procedure `pickup` (the key was never picked up), and which level-1 procedure
+was running at the last step; then, in the run's decoding of the 200 held-out episodes (decoded.jsonl), how many
+calls of `navigate_key` the expert's walks to the key were split into, and how many of those calls last one step
+(each call's end is a step where `get_key` may return). Procedures are named by examples/doorkey/doorkey.json, which
+the annotated episodes pin the learned ones to.
 A workdir holding no PHP run is refused in one line, exit status 2.
 """
 from __future__ import annotations
