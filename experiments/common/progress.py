@@ -108,6 +108,13 @@ class TrainingProgress:
       self.console.print(f"resumed from the checkpoint: level {row['level']}{at}")
     elif "capacity" in row:
       self._phase(row.get("level", "joint"))
+      if row.get("unexplained"):
+        name = f"{self.candidate}: " if self.candidate else ""
+        self.console.print(
+            f"[yellow]warning:[/] {name}{row['unexplained']} training demonstrations fit no call stack within "
+            f"the counter capacities {row['capacity']} (root first) and the call graph: training leaves them out, "
+            "and the model will not act as they do. Allow more (--min_capacity, --call_graph=all), or annotate a "
+            "demonstration that shows what they do", highlight=False)
     elif "split_rounds" in row:
       self.tasks[(self.candidate, "split")] = self.progress.add_task("split search", total=row["split_rounds"],
                                                                      status="round 1 training its candidates")
@@ -148,8 +155,10 @@ class TrainingProgress:
     """A candidate's held-out score, or which candidate was kept."""
     scores = row.get("test", row)  # a candidate's test results are its score
     score = scores.get(selection.SCORE)
-    judged = (f"{scores.get(selection.EXPLAINED)} held-out demonstrations explained, log-likelihood per step "
-              + ("–" if score is None else f"{score:.4g}"))
+    training = scores.get(selection.TRAINING_EXPLAINED)
+    judged = (f"{scores.get(selection.EXPLAINED)} held-out"
+              + ("" if training is None else f" and {training} training") + " demonstrations explained, "
+              "log-likelihood per step " + ("–" if score is None else f"{score:.4g}"))
     if "chosen" in row:
       self.console.print(f"kept candidate {row['chosen']} ({judged})")
     else:

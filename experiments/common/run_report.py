@@ -126,11 +126,13 @@ def _recipe(results: dict) -> list[str]:
       f"<tr><td>{html.escape(str(c.get('name')))}{' (chosen)' if c.get('name') == recipe.get('chosen') else ''}"
       f"</td><td>{html.escape(json.dumps(c.get('settings')))}</td>"
       f"<td>{scores.get(c.get('name'), {}).get('held_out_explained', '–')}</td>"
+      f"<td>{scores.get(c.get('name'), {}).get('training_explained', '–')}</td>"
       f"<td>{_number(scores.get(c.get('name'), {}).get('held_out_log_likelihood_per_step'))}</td>"
       f"<td>{_number(scores.get(c.get('name'), {}).get('wall_seconds'))}</td></tr>"
       for c in recipe.get("candidates") or [])
   return [f"<h2>Recipe</h2><ul>{reasons}</ul><table><tr><th>candidate</th><th>settings</th>"
-          f"<th>held-out demonstrations explained (of {recipe.get('judged_on', '–')})</th><th>held-out "
+          f"<th>held-out demonstrations explained (of {recipe.get('judged_on', '–')})</th>"
+          f"<th>training demonstrations explained</th><th>held-out "
           f"log-likelihood per step</th><th>seconds</th></tr>{rows}</table>"]
 
 

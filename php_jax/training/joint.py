@@ -20,7 +20,8 @@ from php_jax.model import PHPHierarchy
 from php_jax.training import call_graph, segmentation, split_search
 from php_jax.training.config import ConfigError, TrainConfig, in_mode, prepare
 from php_jax.training.networks import make_hierarchy
-from php_jax.training.objective import annealed_temperature, counter_capacity, stack_loss
+from php_jax.training.objective import (annealed_temperature, counter_capacity, demonstration_log_likelihoods,
+                                        stack_loss)
 from php_jax.training.resume import CountedLog, read_training, restore_progress, resume_from, run_settings, write_training
 
 
@@ -45,6 +46,13 @@ def joint_capacity(demos: Demonstration, spec: HierarchySpec, config: TrainConfi
                for level in range(spec.num_levels))
 
 
+def unexplained(hierarchy: PHPHierarchy, capacity: tuple[int, ...], demos: Demonstration) -> int:
+  """How many of demos no call stack within capacity and the hierarchy's call graph explains, whatever its
+  weights: training leaves them out (their log-likelihood is −inf, the loss infinite), and the model cannot act
+  as they do."""
+  return int(np.sum(~np.isfinite(demonstration_log_likelihoods(hierarchy, capacity, demos))))
+
+
 def train_joint(spec: HierarchySpec, demos: Demonstration, config: TrainConfig,
                 validate: Callable[[PHPHierarchy], float] | None = None, log: Callable[[dict], None] = print,
                 checkpoint_path: str | None = None,
@@ -55,10 +63,10 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: TrainConfig,
   ConfigError if config.segment_rule does not apply to the actions). Then config.split_rounds rounds of the
   split search (`split_search`), judged on validation_demos (default: demos), each logged as
   {"split_search": entry}. Checkpoints and resumes as levelwise.train_hierarchy does (the same log protocol); a
-  checkpoint made with other settings raises CheckpointError. Returns the hierarchy and a report {capacity, losses,
-  best_iteration, validation, seconds, and split_search: the rounds' entries where there were any}; after a
-  split search, validation is the final hierarchy's score and best_iteration the snapshot the search started
-  from."""
+  checkpoint made with other settings raises CheckpointError. Returns the hierarchy and a report {capacity,
+  unexplained (`unexplained`, also in the first row logged), losses, best_iteration, validation, seconds, and
+  split_search: the rounds' entries where there were any}; after a split search, validation is the final
+  hierarchy's score and best_iteration the snapshot the search started from."""
   config = prepare(spec, demos, in_mode(config, "joint"))
   graph = call_graph.resolve(config.call_graph, demos, spec)
   for name in ("segment_iterations", "split_rounds"):
@@ -85,9 +93,11 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: TrainConfig,
     counted_log.resumed(resume_from(checkpoint_path, saved, settings, hierarchy))
     resume = restore_progress(checkpoint_path, saved, hierarchy) if saved[0]["progress"] else None
     report = saved[0]["report"] or None
+  left_out = unexplained(hierarchy, capacity, demos) if report is None else None
   if resume is None and report is None:
     padding = views.padding_fraction(views.length_buckets(demos, config.length_buckets))
-    counted_log({"training": "joint", "capacity": list(capacity), "padding": round(padding, 4)})
+    counted_log({"training": "joint", "capacity": list(capacity), "padding": round(padding, 4),
+                 "unexplained": left_out})
 
   def save(progress: fitting.Progress | None, report: dict | None = None) -> None:
     if checkpoint_path:
@@ -100,7 +110,8 @@ def train_joint(spec: HierarchySpec, demos: Demonstration, config: TrainConfig,
     progress = _fit(hierarchy, demos, hinted, capacity, config, resume,
                     fitting.Hooks((lambda it, loss: validate(hierarchy)) if validate else None, counted_log,
                                   save if checkpoint_path else None))
-    report = {"capacity": list(capacity), "losses": progress.losses, "best_iteration": progress.best_iteration,
+    report = {"capacity": list(capacity), "unexplained": left_out, "losses": progress.losses,
+              "best_iteration": progress.best_iteration,
               "validation": progress.best_score, "seconds": time.time() - start}
     if config.split_rounds:
       report["split_search"] = []

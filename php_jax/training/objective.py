@@ -129,6 +129,25 @@ def _stack_query(graphdef: nnx.GraphDef, state: nnx.State, capacity: tuple[int, 
       observations, actions, length)
 
 
+CHUNK = 64  # demonstrations whose log-likelihoods one compiled call of `demonstration_log_likelihoods` computes
+
+
+def demonstration_log_likelihoods(hierarchy: PHPHierarchy, capacity: tuple[int, ...],
+                                  demos: Demonstration) -> np.ndarray:
+  """[B] float64 log P(actions | observations) of each of demos under the whole hierarchy, the annotation
+  unused: −inf where no call stack within capacity and the hierarchy's call graph explains it (whatever the
+  weights). CHUNK at a time, the last chunk padded with copies of the last demonstration, so that one compiled
+  program serves every chunk."""
+  num = len(demos.length)
+  size = min(CHUNK, num)
+  out = []
+  for start in range(0, num, size):
+    part = views.select(demos, np.minimum(np.arange(start, start + size), num - 1))
+    out.append(np.asarray(jax.device_get(stack_query(hierarchy, capacity, stack_lattice.log_likelihood,
+                                                     part.observations, part.actions, part.length))))
+  return np.concatenate(out)[:num].astype(np.float64)
+
+
 def stack_log_likelihoods(hierarchy: PHPHierarchy, batch: Demonstration, capacity: tuple[int, ...],
                           temperature=1.0, call_penalty: tuple[float, ...] | None = None) -> jax.Array:
   """[B] log P(ζ_known, ξ) of each demonstration of batch under the whole hierarchy; with a posterior

@@ -2,10 +2,12 @@
 held-out demonstrations kept: its model, metrics and training summary become the run's, tested as a single
 run's would be, and results.json's "recipe" says what was tried and how each candidate scored.
 
-A candidate's score is judged on the experiment's validation demonstrations, actions only: first how many of
-them some call stack within its counter capacities explains (log P > −inf), then Σ log P(actions |
-observations) / Σ steps over those. Each candidate's run resumes and finishes as any run does, so a rerun
-after an interruption trains only what was left.
+A candidate's score is judged on the demonstrations by their actions alone: first how many of the held-out
+(validation) and training demonstrations some call stack within its counter capacities and call graph
+explains (log P > −inf: a candidate whose call graph, read off a few annotated demonstrations, forbids what
+others do cannot act as they do), then Σ log P(actions | observations) / Σ steps over the held-out ones
+explained. Each candidate's run resumes and finishes as any run does, so a rerun after an interruption trains
+only what was left.
 """
 from __future__ import annotations
 
@@ -15,12 +17,10 @@ import os
 import time
 from typing import Callable
 
-import jax
 import numpy as np
 
 from php_jax.data import files
 from php_jax.demos import Demonstration
-from php_jax.inference import stack_lattice
 from php_jax.model import PHPHierarchy
 from php_jax.training import checkpoint, objective, provenance, resume, storage
 from php_jax.training.config import TrainConfig, resolved
@@ -32,22 +32,29 @@ from php_jax.training.run import (METRICS_FILE, RESULTS_FILE, RUN_FILES, Experim
 CANDIDATES_DIR = "candidates"
 SCORE = "held_out_log_likelihood_per_step"
 EXPLAINED = "held_out_explained"
+TRAINING_EXPLAINED = "training_explained"
 
 
-def held_out_score(hierarchy: PHPHierarchy, capacity: tuple[int, ...], demos: Demonstration) -> dict:
+def held_out_score(hierarchy: PHPHierarchy, capacity: tuple[int, ...], demos: Demonstration,
+                   training: Demonstration | None = None) -> dict:
   """{EXPLAINED: how many of demos some stack within capacity explains, SCORE: Σ log P(actions | observations)
-  / Σ steps over those (None if none)}, the annotation unused."""
-  log_p = np.asarray(jax.device_get(objective.stack_query(hierarchy, capacity, stack_lattice.log_likelihood,
-                                                          demos.observations, demos.actions, demos.length)),
-                     np.float64)
+  / Σ steps over those (None if none)}, the annotation unused; with training demonstrations, also
+  {TRAINING_EXPLAINED: how many of them some stack explains}."""
+  log_p = objective.demonstration_log_likelihoods(hierarchy, capacity, demos)
   explained = np.isfinite(log_p)
   steps = float(np.sum(np.asarray(demos.length)[explained]))
-  return {EXPLAINED: int(explained.sum()), SCORE: float(np.sum(log_p[explained]) / steps) if steps else None}
+  score = {EXPLAINED: int(explained.sum()), SCORE: float(np.sum(log_p[explained]) / steps) if steps else None}
+  if training is not None:
+    score[TRAINING_EXPLAINED] = int(np.isfinite(objective.demonstration_log_likelihoods(
+        hierarchy, capacity, training)).sum())
+  return score
 
 
-def rank(score: dict) -> tuple:
-  """A candidate's test results as a sort key: more held-out demonstrations explained, then likelier."""
-  return (score[EXPLAINED], -np.inf if score[SCORE] is None else score[SCORE])
+def rank(score: dict, training: bool = True) -> tuple:
+  """A candidate's test results as a sort key: more demonstrations explained, held out and (with training)
+  training ones together, then likelier on the held-out ones."""
+  explained = score[EXPLAINED] + (score.get(TRAINING_EXPLAINED, 0) if training else 0)
+  return (explained, -np.inf if score[SCORE] is None else score[SCORE])
 
 
 def train_and_choose(experiment: Experiment, config: TrainConfig, recipe: Recipe, workdir: str,
@@ -77,7 +84,7 @@ def train_and_choose(experiment: Experiment, config: TrainConfig, recipe: Recipe
       run_dir = os.path.join(workdir, CANDIDATES_DIR, candidate.name)
 
       def judge(model, run_dir=run_dir):
-        return held_out_score(model, checkpoint.saved_capacity(run_dir), judged_on)
+        return held_out_score(model, checkpoint.saved_capacity(run_dir), judged_on, experiment.demos)
 
       results = train_and_evaluate(
           dataclasses.replace(experiment, test=judge, extra={**experiment.extra, "candidate": candidate.name}),
@@ -85,7 +92,8 @@ def train_and_choose(experiment: Experiment, config: TrainConfig, recipe: Recipe
           echo=lambda row, name=candidate.name: echo({"candidate": name, **row}))
       tried.append((candidate, results))
     start = time.time()
-    chosen, results = max(tried, key=lambda pair: rank(pair[1]["test"]))
+    counted = all(TRAINING_EXPLAINED in r["test"] for _, r in tried)  # not where an earlier php_jax judged some
+    chosen, results = max(tried, key=lambda pair: rank(pair[1]["test"], counted))
     echo({"chosen": chosen.name, **results["test"]})
     model = _adopt(os.path.join(workdir, CANDIDATES_DIR, chosen.name), workdir, experiment.name, results)
     echo({"phase": "testing"})

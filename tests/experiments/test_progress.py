@@ -100,14 +100,17 @@ def test_candidates_show_each_its_own_lines_its_score_and_the_one_kept():
       {"candidate": "levelwise", "test": {"held_out_explained": 6, "held_out_log_likelihood_per_step": -0.125},
        "wall_seconds": 9.0},
       {"candidate": "joint", "warning": "an operation may be locked out"},
-      {"candidate": "joint", "training": "joint", "capacity": [6, 8, 8], "seconds": 0.0},
+      {"candidate": "joint", "training": "joint", "capacity": [6, 8, 8], "unexplained": 3, "seconds": 0.0},
       {"candidate": "joint", "iteration": 20, "loss": 0.1, "seconds": 1.0},
-      {"candidate": "joint", "test": {"held_out_explained": 6, "held_out_log_likelihood_per_step": -0.003},
-       "wall_seconds": 12.0},
+      {"candidate": "joint", "test": {"held_out_explained": 6, "training_explained": 50,
+                                      "held_out_log_likelihood_per_step": -0.003}, "wall_seconds": 12.0},
       {"chosen": "joint", "held_out_explained": 6, "held_out_log_likelihood_per_step": -0.003},
       {"phase": "testing"},
       {"test": {"held_out_replayed": 1.0}, "wall_seconds": 23.0}])
   assert "levelwise: level 2 (1 of 3)" in text and "joint: every level at once" in text and "20/40" in text
   assert "candidate levelwise: 6 held-out demonstrations explained, log-likelihood per step -0.125" in text
+  assert "joint: 3 training demonstrations fit no call stack within the counter capacities [6, 8, 8]" in text
+  assert text.count("fit no call stack") == 1  # the level-wise candidate's rows give no count
+  assert "candidate joint: 6 held-out and 50 training demonstrations explained, log-likelihood per step -0.003" in text
   assert "kept candidate joint (6 held-out demonstrations explained, log-likelihood per step -0.003)" in text
   assert text.count("an operation may be locked out") == 1 and "23 s in all" in text

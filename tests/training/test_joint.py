@@ -24,7 +24,8 @@ def test_joint_training_lowers_the_loss_and_fits_annotated_demonstrations():
   hierarchy, report = joint.train_joint(NANOCRAFT.spec, batch, config, log=rows.append)
   losses = [loss for _, loss in report["losses"]]
   padding = views.padding_fraction(views.length_buckets(batch, 1))  # one bucket: every shorter one padded
-  assert rows[0] == {"training": "joint", "capacity": report["capacity"], "padding": round(padding, 4)} and padding > 0
+  assert rows[0] == {"training": "joint", "capacity": report["capacity"], "padding": round(padding, 4),
+                     "unexplained": 0} and padding > 0 and report["unexplained"] == 0
   assert losses[-1] < 0.5 * losses[0]
   assert report["capacity"][1:] == [int(np.max(np.asarray(batch.counters)[..., level])) + 1 for level in (1, 2)]
 

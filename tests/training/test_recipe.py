@@ -10,8 +10,9 @@ from flax import nnx
 from experiments.common import run_report
 from php_jax.envs import datasets, tasks
 from php_jax.hierarchy import HierarchySpec
-from php_jax.training import checkpoint, recipe, selection
+from php_jax.training import checkpoint, joint, objective, recipe, selection
 from php_jax.training.config import TrainConfig
+from php_jax.training.networks import make_hierarchy
 from php_jax.training.run import Experiment, WorkdirError
 from tests.training.test_segmentation import _demos  # actions-only demonstrations of one factor
 
@@ -98,6 +99,32 @@ def test_a_score_ranks_what_is_explained_before_how_likely():
       {selection.EXPLAINED: 3, selection.SCORE: -0.6})
   assert selection.rank({selection.EXPLAINED: 0, selection.SCORE: None}) < selection.rank(
       {selection.EXPLAINED: 1, selection.SCORE: -9.0})
+  # the training demonstrations explained count with the held-out ones, before how likely
+  fewer = {selection.EXPLAINED: 3, selection.TRAINING_EXPLAINED: 60, selection.SCORE: -0.001}
+  more = {selection.EXPLAINED: 3, selection.TRAINING_EXPLAINED: 90, selection.SCORE: -0.1}
+  assert selection.rank(fewer) < selection.rank(more)
+  assert selection.rank(fewer, training=False) > selection.rank(more, training=False)
+
+
+def test_the_training_demonstrations_a_call_graph_forbids_are_counted():
+  """A call graph read off a few annotated demonstrations can forbid what other demonstrations do (here the
+  lowest level's procedures take only actions 1 and 9): `held_out_score` counts the training demonstrations
+  some stack explains, whatever the weights, in chunks as in one."""
+  training, held_out = _demos([1, 1, 9], [1, 2, 9], [2, 9], [1, 9, 1, 9]), _demos([1, 9])
+  only = (None, None, (tuple(a == 1 for a in range(10)), tuple(a == 9 for a in range(10))))
+  for graph, explained in ((only, 2), (None, 4)):
+    hierarchy = make_hierarchy(SPEC, TrainConfig(hidden=(8,)), graph)
+    score = selection.held_out_score(hierarchy, (4, 4, 4), held_out, training)
+    assert score[selection.EXPLAINED] == 1 and score[selection.TRAINING_EXPLAINED] == explained
+    log_p = objective.demonstration_log_likelihoods(hierarchy, (4, 4, 4), training)
+    assert np.isfinite(log_p).sum() == explained and joint.unexplained(hierarchy, (4, 4, 4), training) == 4 - explained
+    chunked = objective.CHUNK
+    try:
+      objective.CHUNK = 3  # a chunk and a padded one
+      np.testing.assert_allclose(objective.demonstration_log_likelihoods(hierarchy, (4, 4, 4), training), log_p,
+                                 rtol=1e-6)
+    finally:
+      objective.CHUNK = chunked
 
 
 def _experiment(demos):
