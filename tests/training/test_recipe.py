@@ -106,7 +106,7 @@ def test_a_score_ranks_what_is_explained_before_how_likely():
   assert selection.rank(fewer, training=False) > selection.rank(more, training=False)
 
 
-def test_the_training_demonstrations_a_call_graph_forbids_are_counted():
+def test_the_training_demonstrations_a_call_graph_forbids_are_counted(monkeypatch):
   """A call graph read off a few annotated demonstrations can forbid what other demonstrations do (here the
   lowest level's procedures take only actions 1 and 9): `held_out_score` counts the training demonstrations
   some stack explains, whatever the weights, in chunks as in one."""
@@ -118,13 +118,10 @@ def test_the_training_demonstrations_a_call_graph_forbids_are_counted():
     assert score[selection.EXPLAINED] == 1 and score[selection.TRAINING_EXPLAINED] == explained
     log_p = objective.demonstration_log_likelihoods(hierarchy, (4, 4, 4), training)
     assert np.isfinite(log_p).sum() == explained and joint.unexplained(hierarchy, (4, 4, 4), training) == 4 - explained
-    chunked = objective.CHUNK
-    try:
-      objective.CHUNK = 3  # a chunk and a padded one
+    with monkeypatch.context() as patched:
+      patched.setattr(objective, "CHUNK", 3)  # a chunk and a padded one
       np.testing.assert_allclose(objective.demonstration_log_likelihoods(hierarchy, (4, 4, 4), training), log_p,
                                  rtol=1e-6)
-    finally:
-      objective.CHUNK = chunked
 
 
 def _experiment(demos):
