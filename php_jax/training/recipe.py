@@ -8,9 +8,7 @@ segmentation's length without annotation. What they leave open, and so is contes
 - with some demonstration annotated, the training mode: level-wise with every operation allowed (the
   paper's), and joint with the call graph the annotation shows (`--call_graph=operations`). Measured: the
   first fails NanoCraft with 2 of 64 annotated where the second solves it, and segments Taxi's level 2 less
-  well with 16 of 64 (RESULTS.md). A few annotated demonstrations may not show every call the others make:
-  where that graph leaves some training demonstration unexplained, joint training takes the next wider one
-  that explains them (`joint_call_graph`);
+  well with 16 of 64 (RESULTS.md);
 - with nothing annotated (joint training), where the segmentation starts from: each rule of
   `segmentation.RULES` that applies to the actions, and none. A rule can mislead (the successors rule on
   addition), so none is always a candidate.
@@ -25,22 +23,17 @@ import numpy as np
 
 from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
-from php_jax.training import call_graph, joint, segmentation
-from php_jax.training.config import TrainConfig, asks_joint, fields, prepare
-from php_jax.training.networks import make_hierarchy
+from php_jax.training import call_graph, segmentation
+from php_jax.training.config import TrainConfig, asks_joint, fields
 from php_jax.training.objective import counter_capacity
 
 RESTART_SEED_STRIDE = 1000  # restart r initialises from init_seed + r × this: other seeds' restarts differ
 MODE_CALL_GRAPH = {"levelwise": "all", "joint": "operations"}  # each mode's candidate call graph
-WIDER_CALL_GRAPHS = ("operations", "calls", "all")  # joint training's, narrowest first (`joint_call_graph`)
-WIDER_WORDS = {"calls": "the calls the annotation shows and any elementary action",
-               "all": "every operation the hierarchy allows"}
 SEGMENTATION_SETTINGS = ("segment_rule", "segment_iterations", "split_rounds")
 UNSEGMENTED = "unsegmented"
 DEFAULT_TEXT = {  # the defaults the recipe chooses, as the commands' --help states them
     "training": "the recipe's: with annotation both are tried, without it joint",
-    "call_graph": "the recipe's: all for level-wise training, operations for joint training (wider where that "
-                  "leaves a demonstration unexplained)",
+    "call_graph": "the recipe's: all for level-wise training, operations for joint training",
     "segment_rule": "the recipe's: without annotation, each rule that applies is tried, and none"}
 
 
@@ -83,12 +76,6 @@ def choose(spec: HierarchySpec, demos: Demonstration, config: TrainConfig, given
                + (f"{mode} training, as asked" if mode else
                   "level-wise training (the paper's) and joint training with the call graph the annotation shows "
                   "are both tried")]
-    if "joint" in modes and "call_graph" not in given:
-      graph, reason = joint_call_graph(spec, demos, config)
-      if reason:
-        candidates = [dataclasses.replace(c, settings={**c.settings, "call_graph": graph})
-                      if c.settings["training"] == "joint" else c for c in candidates]
-        reasons.append(reason)
   else:
     candidates, reasons = _discovery_candidates(spec, demos, given, mode)
   if restarts > 1:
@@ -128,38 +115,6 @@ def restarts_where_unset(num_annotated: int) -> int:
   settle on a worse explanation that another initialisation avoids, and the held-out likelihood tells them
   apart (NanoCraft with 1 or 2 of 64 annotated: docs/training.md, the recipe)."""
   return RESTARTS_WHERE_FEW if 1 <= num_annotated <= FEW_ANNOTATED else 1
-
-
-def joint_call_graph(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> tuple[str, str | None]:
-  """The call graph of joint training on demos [B, ...] where none is asked for: the first of
-  WIDER_CALL_GRAPHS under which some call stack within the joint run's capacities explains every demonstration
-  that the widest explains, whatever the weights (`joint.unexplained`); and, where that is not the annotation's
-  (operations), the reason in words (else None). The annotated demonstrations show only the calls they make:
-  with 3 of 100 Taxi episodes annotated, Get may be shown navigating to two landmarks of four, and a third of
-  the other episodes fit no call stack."""
-  try:
-    config = prepare(spec, demos, dataclasses.replace(config, training="joint"))
-  except ValueError:  # the run itself says what is wrong
-    return WIDER_CALL_GRAPHS[0], None
-  capacity, num = joint.joint_capacity(demos, spec, config), len(demos.length)
-  unexplained = {}
-  for name in WIDER_CALL_GRAPHS:
-    try:
-      graph = call_graph.resolve(name, demos, spec)
-    except ValueError:  # some step fits no chain of calls the graph allows
-      unexplained[name] = None
-      continue
-    unexplained[name] = joint.unexplained(make_hierarchy(spec, config, graph), capacity, demos)
-    if not unexplained[name]:
-      break
-  chosen = min(unexplained, key=lambda name: (num + 1 if unexplained[name] is None else unexplained[name],
-                                              WIDER_CALL_GRAPHS.index(name)))
-  if chosen == WIDER_CALL_GRAPHS[0]:
-    return chosen, None
-  shown = unexplained[WIDER_CALL_GRAPHS[0]]
-  return chosen, ("the call graph the annotation shows leaves "
-                  + ("some demonstration's steps" if shown is None else f"{shown} of {num} demonstrations")
-                  + f" unexplained: joint training allows {WIDER_WORDS[chosen]} (call_graph={chosen})")
 
 
 def _fixed_mode(config: TrainConfig, given, annotated: bool) -> str | None:

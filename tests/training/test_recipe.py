@@ -8,8 +8,6 @@ import pytest
 from flax import nnx
 
 from experiments.common import run_report
-from php_jax.data import views
-from php_jax.demos import UNKNOWN, Demonstration
 from php_jax.envs import datasets, tasks
 from php_jax.hierarchy import HierarchySpec
 from php_jax.training import checkpoint, joint, objective, recipe, selection
@@ -44,41 +42,6 @@ def test_with_annotation_both_modes_are_tried_each_with_its_call_graph():
   # a call graph asked for is kept by both modes
   both = recipe.choose(NANOCRAFT.spec, demos, TrainConfig(call_graph="calls"), {"call_graph"})
   assert [c.settings for c in both.candidates] == [{"training": "levelwise"}, {"training": "joint"}]
-
-
-def _annotated(rows, stacks):
-  """Demonstrations of SPEC with one action factor; stacks: per demonstration, None (actions only) or per step
-  ((root, level 1, level 2 procedure), (their counters))."""
-  width = max(map(len, rows))
-  actions = np.zeros((len(rows), width, 1), np.int32)
-  procedures = np.full((len(rows), width, 3), UNKNOWN, np.int32)
-  counters = procedures.copy()
-  for b, (row, stack) in enumerate(zip(rows, stacks)):
-    actions[b, :len(row), 0] = row
-    for t, (procs, taus) in enumerate(stack or ()):
-      procedures[b, t], counters[b, t] = procs, taus
-  return Demonstration(np.zeros((len(rows), width + 1, 2), np.float32), actions, procedures, counters,
-                       np.array([len(r) for r in rows]), np.array([s is not None for s in stacks]))
-
-
-def test_joint_training_widens_the_annotations_call_graph_until_it_explains_every_demonstration():
-  """Annotated: the root calls a, which calls c twice, each taking 1; and the root calls b, which calls d twice,
-  each taking 2. With the root calling once, the actions-only [1, 2] and [2, 1] need a procedure that takes both
-  actions: the annotation's operations explain 4 of 6, its calls (any action) all of them."""
-  a_c = ((0, 0, 0), (0, 0, 0)), ((0, 0, 0), (0, 1, 0))
-  b_d = ((0, 1, 1), (0, 0, 0)), ((0, 1, 1), (0, 1, 0))
-  demos = _annotated([[1, 1], [2, 2], [1, 2], [2, 1], [1, 1], [2, 2]], [a_c, b_d, None, None, None, None])
-  graph, reason = recipe.joint_call_graph(SPEC, demos, TrainConfig(hidden=(8,)))
-  assert graph == "calls" and "leaves 2 of 6 demonstrations unexplained" in reason
-  chosen = recipe.choose(SPEC, demos, TrainConfig(hidden=(8,)), frozenset())
-  assert [c.settings for c in chosen.candidates] == [{"training": "levelwise", "call_graph": "all"},
-                                                      {"training": "joint", "call_graph": "calls"}]
-  assert reason in chosen.reasons
-  # where the annotation's graph explains them all, or a graph is asked for, joint training keeps it
-  assert recipe.joint_call_graph(SPEC, views.select(demos, [0, 1, 4, 5]), TrainConfig(hidden=(8,))) == (
-      "operations", None)
-  asked = recipe.choose(SPEC, demos, TrainConfig(hidden=(8,), call_graph="operations"), {"call_graph"})
-  assert asked.candidates[1].settings == {"training": "joint"}
 
 
 @pytest.mark.parametrize("rows, names", [
