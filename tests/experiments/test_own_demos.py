@@ -357,3 +357,33 @@ def test_export_demos_writes_the_training_set_of_train(tmp_path):
   batch = datasets.training_demos(NANOCRAFT, 3, 6, 2)
   np.testing.assert_array_equal(read.actions, np.asarray(batch.actions))
   np.testing.assert_array_equal(read.strong, np.asarray(batch.strong))
+
+
+@pytest.mark.slow
+def test_train_and_fit_on_its_exported_files_give_the_same_numbers(tmp_path):
+  """`fit`, given the files `export_demos` writes for a task and the settings the task states (NanoCraft's:
+  32 hidden units, joint training with the annotated call graph, no least capacity, one initialisation), trains
+  exactly what `train --task` trains: the same candidates, losses, capacities and validation choice."""
+  common = ["--seed=3", "--iterations=10", "--eval_every=5"]
+  exports = [["experiments.export_demos", "--task=nanocraft", "--num_demos=6", "--num_strong=2", "--seed=3",
+              f"--out={tmp_path / 'train.jsonl'}", f"--hierarchy_out={tmp_path / 'h.json'}"],
+             ["experiments.export_demos", "--task=nanocraft", "--split=validation", "--num_demos=4", "--seed=3",
+              f"--out={tmp_path / 'validation.jsonl'}"]]
+  assert all(_run(*command).returncode == 0 for command in exports)
+  train, fit = processes.run_all([[sys.executable, "-m", *command] for command in [
+      ["experiments.train", "--task=nanocraft", "--num_demos=6", "--num_strong=2", "--num_validation=4",
+       f"--workdir={tmp_path / 'train'}", *common],
+      ["experiments.fit", f"--demos={tmp_path / 'train.jsonl'}", f"--hierarchy={tmp_path / 'h.json'}",
+       f"--validation={tmp_path / 'validation.jsonl'}", f"--workdir={tmp_path / 'fit'}", "--hidden=32",
+       "--tau_in_termination=1,1,1", "--training=joint", "--call_graph=operations", "--min_capacity=0,0,0",
+       "--restarts=1", *common]]], capture_output=True, text=True, timeout=600)
+  assert train.returncode == 0 and fit.returncode == 0, train.stderr[-2000:] + fit.stderr[-2000:]
+
+  def numbers(run):
+    rows = [json.loads(line) for line in (tmp_path / run / "metrics.jsonl").read_text().splitlines()]
+    results = json.loads((tmp_path / run / "results.json").read_text())
+    scores = [{k: v for k, v in s.items() if k != "wall_seconds"} for s in results["recipe"].get("scores", [])]
+    return ([{k: v for k, v in row.items() if k not in ("seconds", "validation")} for row in rows],
+            results["recipe"]["candidates"], scores)
+
+  assert numbers("train") == numbers("fit")
