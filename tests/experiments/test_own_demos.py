@@ -363,7 +363,8 @@ def test_export_demos_writes_the_training_set_of_train(tmp_path):
 def test_train_and_fit_on_its_exported_files_give_the_same_numbers(tmp_path):
   """`fit`, given the files `export_demos` writes for a task and the settings the task states (NanoCraft's:
   32 hidden units, joint training with the annotated call graph, no least capacity, one initialisation), trains
-  exactly what `train --task` trains: the same candidates, losses, capacities and validation choice."""
+  exactly what `train --task` trains: the same candidates, capacities and losses. (What validation measures differs:
+  the task's success against held-out replay.)"""
   common = ["--seed=3", "--iterations=10", "--eval_every=5"]
   exports = [["experiments.export_demos", "--task=nanocraft", "--num_demos=6", "--num_strong=2", "--seed=3",
               f"--out={tmp_path / 'train.jsonl'}", f"--hierarchy_out={tmp_path / 'h.json'}"],
