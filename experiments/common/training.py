@@ -86,5 +86,6 @@ def train_php(experiment: run.Experiment, config, given, echo, restarts: int = 1
   """Trains experiment's PHP hierarchy in --workdir by the recipe (`php_jax.training.recipe`) for config,
   whose settings named in `given` were asked for, each candidate from --restarts initialisations (unset: from
   `restarts`); returns its results.json."""
-  chosen = recipe.choose(experiment.spec, experiment.demos, config, given, RESTARTS.value or restarts)
+  chosen = recipe.choose(experiment.spec, experiment.demos, config, given, RESTARTS.value or restarts,
+                         experiment.numbers)
   return selection.train_and_choose(experiment, config, chosen, WORKDIR.value, OVERWRITE.value, WAIT.value, echo)

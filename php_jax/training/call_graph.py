@@ -43,9 +43,21 @@ def from_annotation(demos: Demonstration, spec: HierarchySpec, actions: bool = T
 
 
 def check(demos: Demonstration, spec: HierarchySpec, graph: tuple) -> None:
-  """Raises ValueError naming the first demonstration and step that no chain of calls within graph fits: one
-  from the root down to a lowest procedure that may take the step's elementary action, through the
-  procedures the step's (complete, partial or absent) annotation names."""
+  """Raises ValueError naming the first demonstration and step that no chain of calls within graph fits
+  (`first_unfit`)."""
+  unfit = first_unfit(demos, spec, graph)
+  if unfit:
+    n, t, level = unfit
+    raise ValueError(f"demonstration {n}, step {t}: no chain of calls that the call graph allows fits its "
+                     f"annotation and elementary action (at level {level}); allow more operations (the "
+                     "hierarchy's \"calls\", or call_graph=all)")
+
+
+def first_unfit(demos: Demonstration, spec: HierarchySpec, graph: tuple) -> tuple[int, int, int] | None:
+  """(demonstration, step, level) of the first step that no chain of calls within graph fits: one from the
+  root down to a lowest procedure that may take the step's elementary action, through the procedures the
+  step's (complete, partial or absent) annotation names; level: where the chain breaks. None where every
+  step fits."""
   strong = np.asarray(demos.strong)[:, None, None]
   procs = np.where(strong, np.asarray(demos.procedures), UNKNOWN)  # [B, T, d]
   actions = np.asarray(demos.actions)                              # [B, T, F]
@@ -66,10 +78,8 @@ def check(demos: Demonstration, spec: HierarchySpec, graph: tuple) -> None:
         start += size
     stuck = np.argwhere(~reachable.any(axis=-1) & ~padding)
     if stuck.size:
-      n, t = stuck[0]
-      raise ValueError(f"demonstration {n}, step {t}: no chain of calls that the call graph allows fits its "
-                       f"annotation and elementary action (at level {level}); allow more operations (the "
-                       "hierarchy's \"calls\", or call_graph=all)")
+      return int(stuck[0][0]), int(stuck[0][1]), level
+  return None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -135,12 +145,18 @@ def restricts(graph: tuple | None) -> bool:
   return any(g is not None for g in graph or ())
 
 
-def resolve(name: str, demos: Demonstration, spec: HierarchySpec) -> tuple:
+def named(name: str, demos: Demonstration, spec: HierarchySpec) -> tuple:
   """The call graph `name` (one of CALL_GRAPHS) asks for, for training on demos, within the one spec declares
-  (`spec.allowed_ops`); ValueError as `check`."""
+  (`spec.allowed_ops`), unchecked."""
   graph = spec.allowed_ops or (None,) * spec.num_levels
   if name != "all":
     graph = intersect(graph, from_annotation(demos, spec, actions=name == "operations"))
+  return graph
+
+
+def resolve(name: str, demos: Demonstration, spec: HierarchySpec) -> tuple:
+  """`named`'s call graph, checked against every step of demos; ValueError as `check`."""
+  graph = named(name, demos, spec)
   if restricts(graph):
     check(demos, spec, graph)
   return graph

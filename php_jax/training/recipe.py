@@ -6,9 +6,9 @@ What the demonstrations decide (`config.resolved`, for every candidate): the str
 capacities (the longest annotated call; `fit` adds room for longer ones, `least_capacities`), annealing and the
 segmentation's length without annotation. What they leave open, and so is contested:
 - with some demonstration annotated, the training mode: level-wise with every operation allowed (the
-  paper's), and joint with the call graph the annotation shows (`--call_graph=operations`). Measured: the
-  first fails NanoCraft with 2 of 64 annotated where the second solves it, and segments Taxi's level 2 less
-  well with 16 of 64 (RESULTS.md);
+  paper's), and joint with the call graph the annotation shows (`--call_graph=operations`), unless that graph
+  leaves a step of some training demonstration to no procedure. Measured: the first fails NanoCraft with 2 of
+  64 annotated where the second solves it, and segments Taxi's level 2 less well with 16 of 64 (RESULTS.md);
 - with nothing annotated (joint training), where the segmentation starts from: each rule of
   `segmentation.RULES` that applies to the actions, and none. A rule can mislead (the successors rule on
   addition), so none is always a candidate.
@@ -18,6 +18,7 @@ initialisations (`TrainConfig.init_seed`).
 from __future__ import annotations
 
 import dataclasses
+from typing import Sequence
 
 import numpy as np
 
@@ -33,7 +34,8 @@ SEGMENTATION_SETTINGS = ("segment_rule", "segment_iterations", "split_rounds")
 UNSEGMENTED = "unsegmented"
 DEFAULT_TEXT = {  # the defaults the recipe chooses, as the commands' --help states them
     "training": "the recipe's: with annotation both are tried, without it joint",
-    "call_graph": "the recipe's: all for level-wise training, operations for joint training",
+    "call_graph": "the recipe's: all for level-wise training, operations for joint training (where that leaves "
+                  "a training step to no procedure, joint training is not tried, or if asked for, calls or all)",
     "segment_rule": "the recipe's: without annotation, each rule that applies is tried, and none"}
 
 
@@ -61,21 +63,17 @@ class Recipe:
 
 
 def choose(spec: HierarchySpec, demos: Demonstration, config: TrainConfig, given: frozenset[str] | set[str],
-           restarts: int = 1) -> Recipe:
+           restarts: int = 1, numbers: Sequence[int] | None = None) -> Recipe:
   """The recipe for training spec's hierarchy on demos from config, whose settings named in `given` were
   asked for (by a flag, a task or a hierarchy file) and are kept; restarts ≥ 1: initialisations of each
-  candidate. Raises ValueError if restarts < 1."""
+  candidate; numbers: each demonstration's number where the reasons name one (None: its index). Raises
+  ValueError if restarts < 1."""
   if not (isinstance(restarts, int) and restarts >= 1):
     raise ValueError(f"restarts must be a positive integer; got {restarts!r}")
   num_strong, num = int(np.sum(demos.strong)), len(demos.length)
   mode = _fixed_mode(config, given, num_strong > 0)
   if num_strong:
-    modes = [mode] if mode else ["levelwise", "joint"]
-    candidates = [Candidate(m, _mode_settings(m, given)) for m in modes]
-    reasons = [f"{num_strong} of {num} demonstrations are annotated: "
-               + (f"{mode} training, as asked" if mode else
-                  "level-wise training (the paper's) and joint training with the call graph the annotation shows "
-                  "are both tried")]
+    candidates, reasons = _annotated_candidates(spec, demos, given, mode, numbers)
   else:
     candidates, reasons = _discovery_candidates(spec, demos, given, mode)
   if restarts > 1:
@@ -128,6 +126,44 @@ def _fixed_mode(config: TrainConfig, given, annotated: bool) -> str | None:
   if any(f.name in given and getattr(config, f.name) != f.default for f in fields() if f.metadata["levelwise_only"]):
     return "levelwise"
   return None if annotated else "joint"
+
+
+def _annotated_candidates(spec: HierarchySpec, demos: Demonstration, given, mode: str | None,
+                          numbers) -> tuple[list[Candidate], list[str]]:
+  """The candidates with some demonstration annotated: the training modes. Joint training's call graph, the
+  one the annotation shows, can leave a step of a demonstration to no procedure (an action value that a few
+  annotated demonstrations never show the procedure that takes its other values taking: addition's write of
+  a 0). Contested, that candidate would explain fewer demonstrations than level-wise training and lose
+  (`selection.rank`), so it is not trained; asked for, it gets the narrowest call graph that fits every step."""
+  stated = f"{int(np.sum(demos.strong))} of {len(demos.length)} demonstrations are annotated: "
+  unfit = None if "call_graph" in given else _unfit_step(MODE_CALL_GRAPH["joint"], demos, spec, numbers)
+  if mode == "joint" and unfit:
+    graph = next((g for g in call_graph.CALL_GRAPHS[::-1] if not _unfit_step(g, demos, spec, numbers)), "all")
+    return [Candidate(mode, {"training": mode, "call_graph": graph})], [
+        stated + f"joint training, as asked, with call graph {graph}: with the one the annotation shows "
+        f"({MODE_CALL_GRAPH['joint']}), {unfit}"]
+  if mode:
+    return [Candidate(mode, _mode_settings(mode, given))], [stated + f"{mode} training, as asked"]
+  if unfit:
+    return [Candidate("levelwise", _mode_settings("levelwise", given))], [
+        stated + "level-wise training (the paper's); joint training is not tried: with the call graph the "
+        f"annotation shows, {unfit}"]
+  graphs = ("both with the call graph asked for" if "call_graph" in given else
+            "every operation allowed in the first, the call graph the annotation shows in the second")
+  return [Candidate(m, _mode_settings(m, given)) for m in ("levelwise", "joint")], [
+      stated + f"level-wise training (the paper's) and joint training are both tried, {graphs}"]
+
+
+def _unfit_step(graph: str, demos: Demonstration, spec: HierarchySpec, numbers) -> str | None:
+  """Where call graph `graph` (one of call_graph.CALL_GRAPHS) leaves a step of demos to no procedure, in words
+  (demonstrations named by numbers, else by their index); None where it fits every step."""
+  allowed = call_graph.named(graph, demos, spec)
+  unfit = call_graph.restricts(allowed) and call_graph.first_unfit(demos, spec, allowed)
+  if not unfit:
+    return None
+  n, t, level = unfit
+  return (f"no chain of calls fits demonstration {n if numbers is None else numbers[n]}'s step {t} (it breaks at "
+          f"level {level})")
 
 
 def _mode_settings(mode: str, given) -> dict:

@@ -10,10 +10,11 @@ from flax import nnx
 from experiments.common import run_report
 from php_jax.envs import datasets, tasks
 from php_jax.hierarchy import HierarchySpec
-from php_jax.training import checkpoint, joint, objective, recipe, selection
+from php_jax.training import call_graph, checkpoint, joint, objective, recipe, selection
 from php_jax.training.config import TrainConfig
 from php_jax.training.networks import make_hierarchy
 from php_jax.training.run import Experiment, WorkdirError
+from tests import processes
 from tests.training.test_segmentation import _demos  # actions-only demonstrations of one factor
 
 NANOCRAFT = tasks.get("nanocraft")
@@ -42,6 +43,32 @@ def test_with_annotation_both_modes_are_tried_each_with_its_call_graph():
   # a call graph asked for is kept by both modes
   both = recipe.choose(NANOCRAFT.spec, demos, TrainConfig(call_graph="calls"), {"call_graph"})
   assert [c.settings for c in both.candidates] == [{"training": "levelwise"}, {"training": "joint"}]
+
+
+def test_joint_training_is_not_tried_where_the_annotations_call_graph_leaves_a_step_to_no_procedure():
+  """Addition, 3 of 160 annotated (seed 1): the three never show `write` writing a 0, which demonstration 13
+  writes first; joint training with that call graph could not explain it, so only level-wise training is
+  tried, and joint training asked for gets the narrowest graph that fits (the calls shown, every action)."""
+  addition = tasks.get("addition")
+  demos = datasets.training_demos(addition, 1, 160, 3)
+  with pytest.raises(ValueError, match="demonstration 13, step 0"):
+    call_graph.resolve("operations", demos, addition.spec)
+  chosen = recipe.choose(addition.spec, demos, TrainConfig(), frozenset(), numbers=range(100, 260))
+  assert [(c.name, c.settings) for c in chosen.candidates] == [
+      ("levelwise", {"training": "levelwise", "call_graph": "all"})]
+  assert "joint training is not tried" in chosen.reasons[0] and "demonstration 113's step 0" in chosen.reasons[0]
+  joint_asked = recipe.choose(addition.spec, demos, TrainConfig(training="joint"), {"training"})
+  assert joint_asked.candidates == (recipe.Candidate("joint", {"training": "joint", "call_graph": "calls"}),)
+  assert "with call graph calls" in joint_asked.reasons[0]
+  given = recipe.choose(addition.spec, demos, TrainConfig(call_graph="calls"), {"call_graph"})
+  assert _names(given) == ["levelwise", "joint"] and "the call graph asked for" in given.reasons[0]
+
+
+def test_train_refuses_a_call_graph_that_leaves_a_step_to_no_procedure(tmp_path):
+  processes.assert_refused([(["experiments.train", "--task=addition", "--num_strong=3", "--seed=1",
+                              "--call_graph=operations", f"--workdir={tmp_path / 'run'}"],
+                             "--call_graph=operations: demonstration 13, step 0: no chain of calls")])
+  assert not (tmp_path / "run").exists()
 
 
 @pytest.mark.parametrize("rows, names", [
