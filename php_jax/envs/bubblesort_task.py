@@ -103,12 +103,12 @@ TASK = Task(
     # level 1's only whether an operation is reset's first (so they behave the same on arrays of any length).
     # The calls grow with the array, beyond the longest annotated one when few arrays are annotated: level 1's
     # (reset makes n of them, 9 in the training set) and the root's (bubble and reset in turn, 2(n − 1): 16),
-    # which a joint run without annotation has no annotated call to size from. Every call the successors
-    # segmentation starts is the supervisor's; it misses only the lshift after dece (RESULTS.md). Level-wise
-    # where some array is annotated: joint training solves it too, at about 4.6× the time (RESULTS.md).
+    # which a joint run without annotation has no annotated call to size from. Without annotation the recipe
+    # finds the successors segmentation from the actions (RESULTS.md). Level-wise where some array is
+    # annotated: joint training solves it too, at about 4.6× the time (RESULTS.md).
     defaults=TrainingDefaults(num_demos=128, num_demos_fixed=True, hidden=(64,),
                               tau_in_termination=(False, False, True), tau_limit=(0, 1, None),
                               min_capacity=(16, 9, 3), test_lengths=(20, 50, 100, 200), num_test=100,
-                              iterations=1000, learning_rate=1e-2, segment_rule="successors",
+                              iterations=1000, learning_rate=1e-2,
                               training="levelwise"),
     action_name=action_name)

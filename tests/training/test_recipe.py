@@ -198,6 +198,16 @@ def test_the_candidate_most_likely_on_held_out_demonstrations_is_kept_and_become
   assert results["recipe"]["chosen"] == "trained" and len(results["recipe"]["scores"]) == 3
 
 
+def test_bubble_sort_states_no_segmentation_and_the_recipe_finds_its_rule_in_the_actions():
+  bubblesort = tasks.get("bubblesort")
+  overrides = bubblesort.defaults.overrides(False)
+  assert "segment_rule" not in overrides
+  demos = datasets.training_demos(bubblesort, 1, 128, 0)
+  chosen = recipe.choose(bubblesort.spec, demos, TrainConfig(**overrides), set(overrides))
+  assert _names(chosen) == ["successors", "unsegmented"]
+  assert "the loops segmentation does not apply" in chosen.reasons[0]
+
+
 def test_a_tasks_mode_applies_where_some_demonstration_is_annotated():
   """Addition states level-wise training (it is measured, and joint costs 8×), for annotated training sets
   only: without annotation its mode is joint and the segmentation is contested."""
