@@ -136,12 +136,15 @@ def _annotated_candidates(spec: HierarchySpec, demos: Demonstration, given, mode
   a 0). Contested, that candidate would explain fewer demonstrations than level-wise training and lose
   (`selection.rank`), so it is not trained; asked for, it gets the narrowest call graph that fits every step."""
   stated = f"{int(np.sum(demos.strong))} of {len(demos.length)} demonstrations are annotated: "
-  unfit = None if "call_graph" in given else _unfit_step(MODE_CALL_GRAPH["joint"], demos, spec, numbers)
+  joint_graph = MODE_CALL_GRAPH["joint"]
+  unfit = (None if "call_graph" in given or mode == "levelwise" else
+           _unfit_step(joint_graph, demos, spec, numbers))
   if mode == "joint" and unfit:
-    graph = next((g for g in call_graph.CALL_GRAPHS[::-1] if not _unfit_step(g, demos, spec, numbers)), "all")
+    wider = call_graph.CALL_GRAPHS[:call_graph.CALL_GRAPHS.index(joint_graph)][::-1]  # calls, then all
+    graph = next((g for g in wider if not _unfit_step(g, demos, spec, numbers)), "all")
     return [Candidate(mode, {"training": mode, "call_graph": graph})], [
         stated + f"joint training, as asked, with call graph {graph}: with the one the annotation shows "
-        f"({MODE_CALL_GRAPH['joint']}), {unfit}"]
+        f"({joint_graph}), {unfit}"]
   if mode:
     return [Candidate(mode, _mode_settings(mode, given))], [stated + f"{mode} training, as asked"]
   if unfit:
