@@ -27,7 +27,7 @@ from php_jax import encoders
 from php_jax.data import demo_files, views
 from php_jax.demos import Demonstration
 from php_jax.envs import gym, replay
-from php_jax.training import call_graph, recipe
+from php_jax.training import recipe
 from php_jax.training.run import Experiment, train_and_evaluate
 
 _DEMOS = flags.DEFINE_string("demos", None, "Training demonstrations: JSON lines, or a binary set (a directory).")
@@ -112,10 +112,7 @@ def run() -> dict:
   overrides = fit_overrides(hierarchy, demos, bool(_ENV.value))
   config = config_flags.config_from_flags(overrides)
   config_flags.check_levels(hierarchy.spec, config)
-  try:
-    call_graph.resolve(config.call_graph, demos, spec)
-  except ValueError as e:  # demonstrations are numbered from 0 in the file's order
-    raise config_flags.UsageError(f"--demos={_DEMOS.value}: {e}") from None
+  config_flags.check_call_graph(config, demos, spec, f"--demos={_DEMOS.value}")
   shown = run_report.drawn_demonstrations(demos)  # the report's, kept so that it need not read the file again
   shown_demos = views.select(demos, shown)
   try:

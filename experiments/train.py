@@ -26,7 +26,7 @@ from absl import app, flags
 from experiments.common import cli, config_flags, progress, training
 from php_jax.data import demo_files
 from php_jax.envs import datasets, evaluation, tasks
-from php_jax.training import call_graph, levelwise, recipe
+from php_jax.training import levelwise, recipe
 from php_jax.training.run import Experiment, train_and_evaluate, train_and_evaluate_seeds
 from php_jax.training.config import TrainConfig
 
@@ -102,10 +102,7 @@ def run(task_name: str) -> dict:
   flat = training.flat_model()
   if SEEDS.value is None:
     experiment = _experiment(task_name, task, config.seed, num_demos, num_test, lengths, annotated)
-    try:
-      call_graph.resolve(config.call_graph, experiment.demos, task.spec)
-    except ValueError as e:
-      raise config_flags.UsageError(f"--call_graph={config.call_graph}: {e}") from None
+    config_flags.check_call_graph(config, experiment.demos, task.spec, f"--call_graph={config.call_graph}")
     with progress.shown(config, None if flat else task.spec.num_levels, workdir) as echo:
       if flat:
         results = train_and_evaluate(experiment, config, workdir, overwrite, flat, wait, echo)

@@ -7,6 +7,7 @@ from typing import Callable
 
 from absl import flags
 
+from php_jax.training import call_graph
 from php_jax.training import config as config_lib
 
 
@@ -78,6 +79,15 @@ def check_levels(spec, config: config_lib.TrainConfig) -> None:
     config_lib.check_levels(spec, config)
   except config_lib.ConfigError as e:
     raise UsageError(f"--{e.field}: {e.message}") from None
+
+
+def check_call_graph(config: config_lib.TrainConfig, demos, spec, where: str) -> None:
+  """Refuses a --call_graph that leaves some step of demos to no procedure (`call_graph.resolve`): a
+  UsageError starting with where (the demonstrations' flag, or the call graph's)."""
+  try:
+    call_graph.resolve(config.call_graph, demos, spec)
+  except ValueError as e:  # demonstrations are numbered from 0 in their order
+    raise UsageError(f"{where}: {e}") from None
 
 
 def _parse(field, value):
