@@ -96,10 +96,6 @@ class PHPLevel(nnx.Module):
       state every network reads beside the encoding; None: none.
     end_given: a demonstration's end is the environment's, not a return of the level's frames: the lattice
       takes their stop after the last action as given (probability 1) instead of learning it.
-    action_sizes: the elementary action factors' sizes, for an action head (`action_log_probs`): a linear
-      layer on the level's features that predicts each step's elementary action, whichever procedure takes
-      it, trained beside the procedures so that the level's encoding learns what the actions hang on; not
-      used to act. None: no head.
   Raises ValueError naming the argument: num_procs < 1, obs_dim < 0, no op_sizes or one < 1, a hidden size
   < 1, tau_limit < 0, allowed_ops of another shape, observes not one entry per procedure or naming an
   entry outside 0..obs_dim−1, a trunk < 1 or beside observes (a shared encoding sees every entry), fields
@@ -111,7 +107,7 @@ class PHPLevel(nnx.Module):
                allowed_ops: tuple[tuple[bool, ...], ...] | None = None,
                observes: tuple[tuple[int, ...] | None, ...] | None = None, trunk: int | None = None,
                fields: tuple[encoders.Field, ...] | None = None, history: encoders.History | None = None,
-               end_given: bool = False, action_sizes: tuple[int, ...] | None = None, *, rngs: nnx.Rngs):
+               end_given: bool = False, *, rngs: nnx.Rngs):
     check_size("num_procs", num_procs)
     check_size("obs_dim", obs_dim, 0)
     if not _check_sizes("op_sizes", op_sizes):
@@ -147,8 +143,6 @@ class PHPLevel(nnx.Module):
     features = (obs_dim if trunk is None else trunk) + (0 if history is None else history.width)
     self.operation = ProcedureMLPs(num_procs, features, tuple(hidden), sum(op_sizes), observes=mask, rngs=rngs)
     self.termination = ProcedureMLPs(num_procs, features, tuple(hidden), 1, observes=mask, rngs=rngs)
-    self.action_sizes = None if action_sizes is None else _check_sizes("action_sizes", action_sizes)
-    self.action_head = None if action_sizes is None else nnx.Linear(features, sum(action_sizes), rngs=rngs)
 
   def stop_log_probs(self, features: jax.Array, tau: jax.Array, length: jax.Array) -> tuple[jax.Array, jax.Array]:
     """(log ψ(1), log ψ(0)) [T, K, M] after each of a demonstration's T operations, from the features after
@@ -183,15 +177,6 @@ class PHPLevel(nnx.Module):
       raise ValueError("a level with a history reads observations with its state: act through "
                        "PHPHierarchy.recall(memory)")
     return jnp.concatenate([encoded, state[None]], axis=1)
-
-  def action_log_probs(self, features: jax.Array, actions: jax.Array) -> jax.Array:
-    """The action head's log p(a_n | features_n) [N] of elementary actions [N, F] (a product over factors)."""
-    logits = self.action_head(features)
-    total, start = 0.0, 0
-    for f, size in enumerate(self.action_sizes):
-      part = jax.nn.log_softmax(logits[:, start:start + size], axis=-1)
-      total, start = total + jnp.take_along_axis(part, actions[:, f:f + 1], axis=1)[:, 0], start + size
-    return total
 
   def op_log_probs(self, obs: jax.Array, tau: jax.Array) -> list[jax.Array]:
     """Per factor f: [N, K, M, op_sizes[f]] log-probabilities (the factorized action head). obs: features
@@ -271,7 +256,7 @@ class PHPHierarchy(nnx.Module):
 
   def __init__(self, spec: HierarchySpec, hidden=(64, 64), tau_in_termination=None, sample: bool = False,
                tau_limit=None, allowed_ops=None, trunk: int | None = None, memory: int | None = None,
-               end_given: bool = False, action_head: bool = False, *, rngs: nnx.Rngs):
+               end_given: bool = False, *, rngs: nnx.Rngs):
     """tau_in_termination, tau_limit, allowed_ops: per level, root first (PHPLevel); None: τ everywhere,
     unlimited, every operation allowed. Each procedure's networks see the observation entries spec.observes
     gives it (every entry where it gives none); trunk: each level's shared encoding width (PHPLevel), which
@@ -280,8 +265,7 @@ class PHPHierarchy(nnx.Module):
     each level's history of what was observed (`encoders.History`), None: none. With a memory the executor
     carries its state (`initial_memory`, `remember`) and asks the hierarchy bound to it (`recall`); end_given:
     its demonstrations end where their environment ended them, so the return after the last action is given,
-    not learned (PHPLevel), and a replayed demonstration need not end with the root returning (`replay`);
-    action_head: each level has one (PHPLevel), for training only."""
+    not learned (PHPLevel), and a replayed demonstration need not end with the root returning (`replay`)."""
     if not isinstance(spec, HierarchySpec):
       raise ValueError(f"spec must be a HierarchySpec; got {spec!r}")
     tau_in_termination = tau_in_termination or (True,) * spec.num_levels
@@ -305,7 +289,7 @@ class PHPHierarchy(nnx.Module):
     self.levels = nnx.List([
         PHPLevel(spec.num_procs(i), spec.obs_dim, spec.op_sizes(i), hidden, tau_in_termination[i], tau_limit[i],
                  allowed_ops[i], observes[i], trunk, spec.observation if trunk else None, history(), end_given,
-                 spec.action_sizes if action_head else None, rngs=rngs)
+                 rngs=rngs)
         for i in range(spec.num_levels)])
 
   @property
@@ -313,11 +297,6 @@ class PHPHierarchy(nnx.Module):
     """The width of each level's history (`encoders.History`); None without a memory."""
     history = self.levels[0].history
     return None if history is None else history.width
-
-  @property
-  def action_head(self) -> bool:
-    """Whether its levels have action heads (PHPLevel.action_sizes)."""
-    return self.levels[0].action_head is not None
 
   @property
   def end_given(self) -> bool:

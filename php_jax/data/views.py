@@ -37,8 +37,6 @@ class LevelView(NamedTuple):
       strong view are UNKNOWN and summed over by the lattice.
     real: [B] bool False on the copies that pad a batch, which the loss weighs 0: to a multiple of the
       device count (`device_view`), or to the largest of several seeds' batches (`stack_seeds`).
-    elementary: [B, T, F] int32 the elementary action taken at each operation's start (at the lowest level,
-      the operations themselves), for the level's action head (`PHPLevel.action_log_probs`).
   """
   observations: np.ndarray
   actions: np.ndarray
@@ -48,7 +46,6 @@ class LevelView(NamedTuple):
   times: np.ndarray
   strong: np.ndarray
   real: np.ndarray
-  elementary: np.ndarray
 
 
 def select(batch: Batch, rows: np.ndarray) -> Batch:
@@ -216,14 +213,12 @@ def _pad(view: LevelView, size: int, width: int) -> LevelView:
 
   return view._replace(observations=steps(view.observations, 0), actions=steps(view.actions, 0),
                        procedures=steps(view.procedures, UNKNOWN), counters=steps(view.counters, UNKNOWN),
-                       times=steps(view.times, -1), real=view.real & (np.arange(size) < count),
-                       elementary=steps(view.elementary, 0))
+                       times=steps(view.times, -1), real=view.real & (np.arange(size) < count))
 
 
 def _pack(demos: Demonstration, level: int, times: list[np.ndarray], actions: list[np.ndarray]) -> LevelView:
   """Pads per-demonstration operation lists into a LevelView whose annotation is read at `level`."""
-  obs, procs, taus, elementary = (np.asarray(x) for x in (demos.observations, demos.procedures, demos.counters,
-                                                           demos.actions))
+  obs, procs, taus = (np.asarray(x) for x in (demos.observations, demos.procedures, demos.counters))
   strong, lengths = np.asarray(demos.strong), np.asarray(demos.length)
   num_demos, width = len(times), max(1, max(len(t) for t in times))
   num_factors = actions[0].shape[1] if actions[0].ndim == 2 else 1
@@ -233,8 +228,7 @@ def _pack(demos: Demonstration, level: int, times: list[np.ndarray], actions: li
       procedures=np.full((num_demos, width), UNKNOWN, np.int32),
       counters=np.full((num_demos, width), UNKNOWN, np.int32),
       length=np.array([len(t) for t in times], np.int32),
-      times=np.full((num_demos, width), -1, np.int32), strong=strong.copy(), real=np.ones(num_demos, bool),
-      elementary=np.zeros((num_demos, width, elementary.shape[-1]), np.int32))
+      times=np.full((num_demos, width), -1, np.int32), strong=strong.copy(), real=np.ones(num_demos, bool))
   for b, (t, a) in enumerate(zip(times, actions)):
     # A level's annotation is usable when the levels below are annotated throughout: only then are its
     # operations (their calls) the annotated ones.
@@ -244,7 +238,6 @@ def _pack(demos: Demonstration, level: int, times: list[np.ndarray], actions: li
     view.observations[b, n] = obs[b, lengths[b]]
     view.actions[b, :n] = a.reshape(n, num_factors)
     view.times[b, :n] = t
-    view.elementary[b, :n] = elementary[b, t]
     if strong[b]:
       view.procedures[b, :n] = procs[b, t, level]
       view.counters[b, :n] = taus[b, t, level]

@@ -61,7 +61,6 @@ def save_hierarchy(workdir: str, task_name: str, hierarchy: PHPHierarchy, hidden
                              **({"trunk": trunk_width(hierarchy)} if trunk_width(hierarchy) else {}),
                              **({"memory": hierarchy.memory} if hierarchy.memory else {}),
                              **({"end_given": True} if hierarchy.end_given else {}),
-                             **({"action_head": True} if hierarchy.action_head else {}),
                              **({"capacity": list(capacity)} if capacity else {})})
 
 
@@ -181,15 +180,14 @@ def load_policy(workdir: str) -> tuple[str, PHPHierarchy | FlatPolicy]:
       if not (width is None or (isinstance(width, int) and not isinstance(width, bool) and 1 <= width <= MAX_SIZE)):
         raise CheckpointError(f"{arch_path}: \"{key}\" must be an integer in 1..{MAX_SIZE}; got {str(width)[:80]}")
 
-    end_given, action_head = architecture.get("end_given", False), architecture.get("action_head", False)
-    for key, value in (("end_given", end_given), ("action_head", action_head)):
-      if not isinstance(value, bool):
-        raise CheckpointError(f"{arch_path}: \"{key}\" must be true or false; got {str(value)[:80]}")
+    end_given = architecture.get("end_given", False)
+    if not isinstance(end_given, bool):
+      raise CheckpointError(f"{arch_path}: \"end_given\" must be true or false; got {str(end_given)[:80]}")
 
     def build():
       return PHPHierarchy(spec, hidden=hidden, tau_in_termination=tau_in_termination, tau_limit=tau_limit,
                           allowed_ops=allowed_ops, trunk=trunk, memory=memory, end_given=end_given,
-                          action_head=action_head, rngs=nnx.Rngs(0))
+                          rngs=nnx.Rngs(0))
   model = nnx.eval_shape(build)  # its shapes only: every parameter comes from the file (and no state but them)
   nnx.update(model, restore_named(nnx.state(model, nnx.Param), named, model_path))
   return task_name, model

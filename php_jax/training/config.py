@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from php_jax import encoders, fitting
+from php_jax import fitting
 from php_jax.data import views
 from php_jax.demos import Demonstration
 from php_jax.demos import validate as validate_demos
@@ -71,13 +71,6 @@ class TrainConfig:
       "depends on what was observed, never on the call stack; joint training only, and each update runs a "
       "sequential pass over every demonstration); none: the networks see the current observation alone.",
       "str", MEMORIES, joint_off=("none",))
-  action_head: float = _setting(
-      0.0, "Weight of the action heads' loss. Each level gets a head on its shared encoding that predicts the "
-      "elementary action taken at each of the level's steps (jointly: every step; level-wise: each step where "
-      "one of its operations starts), whichever procedure takes it, trained beside the hierarchy so that the "
-      "encoding learns what the actions hang on (a decision that a procedure meets at a few steps, such as "
-      "Taxi's pickup where the passenger waits, is then learned from all of them); not used to act; needs a "
-      "shared encoding (--trunk, or structured observation fields); 0: none.", "float")
   episode_end: str = _setting(
       "root", "How a demonstration ends. root: its root returns after the last action, and training teaches every "
       "frame to stop there (the paper's programs, which end by returning); environment: its environment ended it "
@@ -207,8 +200,6 @@ class TrainConfig:
         raise ConfigError(name, f"must be a positive finite number; got {value!r}")
     if not (_is_number(self.weight_decay) and self.weight_decay >= 0):
       raise ConfigError("weight_decay", f"must be a finite number ≥ 0; got {self.weight_decay!r}")
-    if not (_is_number(self.action_head) and self.action_head >= 0):
-      raise ConfigError("action_head", f"must be a finite number ≥ 0; got {self.action_head!r}")
     if self.anneal_temperature is not None and not (_is_number(self.anneal_temperature)
                                                     and self.anneal_temperature >= 1):
       raise ConfigError("anneal_temperature", f"must be a finite number ≥ 1; got {self.anneal_temperature!r}")
@@ -272,9 +263,6 @@ def check_levels(spec: HierarchySpec, config: TrainConfig) -> None:
   if config.trunk is not None and spec.observes is not None:
     raise ConfigError("trunk", "the hierarchy gives its procedures different observation entries (\"observes\"), "
                       "which one shared encoding cannot respect: drop one or the other")
-  if config.action_head and config.trunk is None and not encoders.structured(spec.observation):
-    raise ConfigError("action_head", "needs a shared encoding for its head to train: give --trunk=WIDTH, or "
-                      "observation fields (categories, images, words) in the hierarchy file")
   if config.call_penalty is not None and (len(config.call_penalty) != spec.num_levels or config.call_penalty[0]):
     raise ConfigError("call_penalty", f"needs one value per level, root first, the root's 0 (it has no stand-in "
                       f"root); got {list(config.call_penalty)} for {spec.num_levels} levels")
@@ -299,8 +287,8 @@ def prepare(spec: HierarchySpec, demos: Demonstration, config: TrainConfig) -> T
 def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, flat: bool = False) -> TrainConfig:
   """config with the settings that follow the demonstrations resolved where unset (as results.json and a
   checkpoint record them): the balanced strong weight (`balanced_strong_weight`); the training mode
-  (`training_mode`; levelwise for a flat baseline, which has no levels, no memory of a PHP level's (its
-  recurrent cell is its own) and no action heads); and for a PHP trained jointly on
+  (`training_mode`; levelwise for a flat baseline, which has no levels, and no memory of a PHP level's: its
+  recurrent cell is its own); and for a PHP trained jointly on
   demonstrations none of which is annotated, WEAK_ONLY_ANNEALING (else 1: none) and, where spec declares no
   call graph (which says itself which procedure takes which operation) and config.segment_rule applies to
   their actions (`segmentation.read_rule`), the segmentation for half the iterations (else 0), and
@@ -309,7 +297,7 @@ def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, fla
   strong = np.asarray(demos.strong)
   strong_weight = balanced_strong_weight(strong) if config.strong_weight is None else config.strong_weight
   training = training_mode(config, bool(strong.any())) if not flat else config.training or "levelwise"
-  memory, action_head = ("none", 0.0) if flat else (config.memory, config.action_head)
+  memory = "none" if flat else config.memory
   weak_only = not flat and training == "joint" and not strong.any()
   rule = (segmentation.read_rule(demos, config.segment_rule)
           if weak_only and not call_graph.restricts(spec.allowed_ops)
@@ -319,7 +307,7 @@ def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, fla
     return default if value is None else value
 
   return dataclasses.replace(
-      config, strong_weight=strong_weight, training=training, memory=memory, action_head=action_head,
+      config, strong_weight=strong_weight, training=training, memory=memory,
       anneal_temperature=unset_or(config.anneal_temperature, WEAK_ONLY_ANNEALING if weak_only else 1.0),
       segment_iterations=unset_or(config.segment_iterations, config.iterations // 2 if rule else 0),
       split_rounds=unset_or(config.split_rounds, DISCOVERY_SPLIT_ROUNDS if rule and rule.name == "loops" else 0),

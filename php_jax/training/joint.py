@@ -142,14 +142,12 @@ def _fit(hierarchy: PHPHierarchy, demos: Demonstration, hinted: Demonstration | 
   if config.anneal_temperature != 1:  # the loss logged while T > 1 is the tempered one
     def tempered(h, iteration, buckets):
       temperature = annealed_temperature(config.anneal_temperature, iteration, config.iterations)
-      return stack_loss(h, buckets, capacity, config.strong_weight, temperature, config.call_penalty,
-                        action_head=config.action_head)
+      return stack_loss(h, buckets, capacity, config.strong_weight, temperature, config.call_penalty)
 
     loss = fitting.IterationLoss(tempered)
   else:
     def loss(h, buckets):
-      return stack_loss(h, buckets, capacity, config.strong_weight, call_penalty=config.call_penalty,
-                        action_head=config.action_head)
+      return stack_loss(h, buckets, capacity, config.strong_weight, call_penalty=config.call_penalty)
 
   def fit(data: Demonstration, iterations: int, resume: fitting.Progress | None) -> fitting.Progress:
     return fitting.fit(hierarchy, loss, config.schedule(iterations), hooks, resume,

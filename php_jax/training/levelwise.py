@@ -79,15 +79,14 @@ class LevelFit:
     if not self.batched:
       buckets = views.training_buckets(parts[0], config.length_buckets, mesh)
       capacity = self.capacities[0]
-      return [fitting.fit(self.models[0], lambda m, buckets: level_loss(
-          m, buckets, capacity, weights[0], action_head=config.action_head), schedule, hooks.of_first_model(),
-          resume and resume[0], args=(buckets,), mesh=mesh)]
+      return [fitting.fit(self.models[0], lambda m, buckets: level_loss(m, buckets, capacity, weights[0]), schedule,
+                          hooks.of_first_model(), resume and resume[0], args=(buckets,), mesh=mesh)]
     buckets = views.stack_seeds([views.length_buckets(p, config.length_buckets) for p in parts], mesh)
     weights, used = sharding.replicate((np.asarray(weights, np.float32), np.asarray(self.capacities, np.int32)),
                                        mesh)
     largest = max(self.capacities)
     return fitting.fit_seeds(self.models, lambda model, buckets, weight, used_capacity: level_loss(
-        model, buckets, largest, weight, used_capacity, config.action_head), schedule, hooks, resume, args=(buckets, weights, used),
+        model, buckets, largest, weight, used_capacity), schedule, hooks, resume, args=(buckets, weights, used),
         mesh=mesh, batch_seeds=[c.network_seed for c in self.configs])
 
 

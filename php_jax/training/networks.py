@@ -15,7 +15,7 @@ def make_hierarchy(spec: HierarchySpec, config: TrainConfig, graph: tuple | None
   return PHPHierarchy(spec, hidden=config.hidden, tau_in_termination=config.tau_in_termination,
                       tau_limit=config.tau_limit, allowed_ops=graph, trunk=config.trunk,
                       memory=encoders.DEFAULT_WIDTH if config.memory == "gru" else None,
-                      end_given=config.episode_end == "environment", action_head=bool(config.action_head),
+                      end_given=config.episode_end == "environment",
                       rngs=nnx.Rngs(config.network_seed))
 
 

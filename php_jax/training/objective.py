@@ -80,22 +80,11 @@ def view_log_likelihoods(model: LevelModel, batch: views.LevelView, capacity: in
 
 
 def level_loss(model: LevelModel, buckets: list[views.LevelView], capacity: int, strong_weight: float,
-               used_capacity=None, action_head: float = 0.0) -> jax.Array:
-  """[] weighted negative log-likelihood of the real views of every length bucket (`weighted_nll`), plus
-  action_head times the level's action head's loss where it is not 0: −Σ log p(elementary action) over each
-  view's operations, per view. used_capacity: as in `lattice_inputs`."""
-  loss = weighted_nll(((view_log_likelihoods(model, batch, capacity, used_capacity), batch.real, batch.strong)
+               used_capacity=None) -> jax.Array:
+  """[] weighted negative log-likelihood of the real views of every length bucket (`weighted_nll`).
+  used_capacity: as in `lattice_inputs`."""
+  return weighted_nll(((view_log_likelihoods(model, batch, capacity, used_capacity), batch.real, batch.strong)
                        for batch in buckets), strong_weight)
-  if not action_head:
-    return loss
-
-  def head(view):
-    steps = jnp.arange(view.elementary.shape[0]) < view.length
-    return jnp.sum(jnp.where(steps, model.php.action_log_probs(model.php.encode(view.observations[:-1]),
-                                                               view.elementary), 0.0))
-
-  return loss + action_head * weighted_nll(((jax.vmap(head)(batch), batch.real, batch.strong) for batch in buckets),
-                                           1.0)
 
 
 def stack_inputs(hierarchy: PHPHierarchy, capacity: tuple[int, ...], observations: jax.Array, actions: jax.Array,
@@ -171,28 +160,12 @@ def stack_log_likelihoods(hierarchy: PHPHierarchy, batch: Demonstration, capacit
 
 
 def stack_loss(hierarchy: PHPHierarchy, buckets: list[tuple[Demonstration, jax.Array]], capacity: tuple[int, ...],
-               strong_weight: float, temperature=1.0, call_penalty: tuple[float, ...] | None = None,
-               action_head: float = 0.0) -> jax.Array:
+               strong_weight: float, temperature=1.0, call_penalty: tuple[float, ...] | None = None) -> jax.Array:
   """[] weighted negative log-likelihood (`weighted_nll`) of the real demonstrations of every bucket
   (batch, real [B]) under the whole hierarchy, tempered at a posterior temperature [] other than 1, with a
-  prior cost per call (`stack_inputs`) where call_penalty is given; plus action_head times the levels' action
-  heads' loss (`action_head_loss`) where it is not 0."""
-  loss = weighted_nll(((stack_log_likelihoods(hierarchy, batch, capacity, temperature, call_penalty), real,
+  prior cost per call (`stack_inputs`) where call_penalty is given."""
+  return weighted_nll(((stack_log_likelihoods(hierarchy, batch, capacity, temperature, call_penalty), real,
                         batch.strong) for batch, real in buckets), strong_weight)
-  return loss + action_head * action_head_loss(hierarchy, buckets) if action_head else loss
-
-
-def action_head_loss(hierarchy: PHPHierarchy, buckets: list[tuple[Demonstration, jax.Array]]) -> jax.Array:
-  """[] −Σ_levels Σ_t log p(a_t | o_0..o_t) of the levels' action heads (`PHPLevel.action_log_probs`), per real
-  demonstration of buckets (batch, real [B]), as `stack_loss` counts them; every demonstration weighs the same
-  (joint training's; `level_loss` has level-wise training's)."""
-  def one(observations, actions, length):
-    steps = jnp.arange(actions.shape[0]) < length
-    return sum(jnp.sum(jnp.where(steps, php.action_log_probs(php.features(observations, actions)[:-1], actions),
-                                 0.0)) for php in hierarchy.levels)
-
-  return weighted_nll(((jax.vmap(one)(batch.observations, batch.actions, batch.length), real, batch.strong)
-                       for batch, real in buckets), 1.0)
 
 
 def annealed_temperature(start: float, iteration: jax.Array, iterations: int) -> jax.Array:

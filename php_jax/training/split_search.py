@@ -146,8 +146,7 @@ def train_candidates(candidates: list[PHPHierarchy], first_data: list[Demonstrat
   """Trains every candidate config.split_iterations on demos as one vmapped program, candidate i's first
   config.split_hint_iterations on first_data[i] (demos, or its hinted demonstrations); in place."""
   def loss(hierarchy, buckets):
-    return objective.stack_loss(hierarchy, buckets, capacity, config.strong_weight, call_penalty=config.call_penalty,
-                                action_head=config.action_head)
+    return objective.stack_loss(hierarchy, buckets, capacity, config.strong_weight, call_penalty=config.call_penalty)
 
   def stacked(data: list[Demonstration]):
     return jax.tree.map(lambda *leaves: jnp.stack(leaves),

@@ -55,7 +55,7 @@ def test_bucket_count_is_the_fewest_from_4_to_8_that_pad_at_most_a_quarter(lengt
   assert all(_padding(lengths, c) > views.MOST_PADDING for c in range(views.LEAST_BUCKETS, count))
   assert count == views.MOST_BUCKETS or _padding(lengths, count) <= views.MOST_PADDING
   assert len(views.length_buckets(views.LevelView(*[np.zeros((len(lengths), 1))] * 4, lengths, *[np.zeros(
-      len(lengths))] * 3, np.zeros((len(lengths), 1))), None)) == min(count, len(lengths))
+      len(lengths))] * 3), None)) == min(count, len(lengths))
 
 
 def test_lengths_spread_far_get_more_buckets_and_a_run_records_how_many():
