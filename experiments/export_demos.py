@@ -29,7 +29,8 @@ _SIZE = flags.DEFINE_integer("size", None, "test: problem size (digits, array le
 _SEED = flags.DEFINE_integer("seed", 0, "Seed (the training command's --seed for the same data).")
 _OUT = flags.DEFINE_string("out", None, "Output demonstration file: JSON lines, or a binary set where it ends in "
                            ".shards.")
-_HIERARCHY_OUT = flags.DEFINE_string("hierarchy_out", None, "Also write the task's hierarchy file here.")
+_HIERARCHY_OUT = flags.DEFINE_string("hierarchy_out", None, "Also write the task's hierarchy file here, with the "
+                                      "counter settings the task states (what its demonstrations cannot show).")
 
 
 def main(argv):
@@ -72,7 +73,8 @@ def main(argv):
     demo_files.write_demonstrations(_OUT.value, batch, annotated)
   if _HIERARCHY_OUT.value:
     with cli.output_errors("hierarchy_out", _HIERARCHY_OUT.value):
-      demo_files.write_hierarchy(_HIERARCHY_OUT.value, task.spec)
+      demo_files.write_hierarchy(_HIERARCHY_OUT.value, task.spec, task.defaults.tau_in_termination,
+                                 task.defaults.tau_limit)
   print(f"{task.name}: {len(problems)} {_SPLIT.value} demonstrations ({int(annotated.sum())} annotated) -> "
         f"{_OUT.value}")
 

@@ -41,7 +41,9 @@ _ENV = flags.DEFINE_string("env", None, "The Gymnasium environment the demonstra
                            "observations are read as numbers (or as the hierarchy file's \"observation\" says).")
 _VALIDATION_FRACTION = flags.DEFINE_float("validation_fraction", 0.1, "Share of --demos held out when "
                                           "--validation is not given (at least one demonstration).")
-_FIT_DEFAULTS = {"hidden": '64, or the hierarchy file\'s "hidden"', "tau_in_termination": "1 at every level",
+_FIT_DEFAULTS = {"hidden": '64, or the hierarchy file\'s "hidden"',
+                 "tau_in_termination": '1 at every level, or the hierarchy file\'s "tau_in_termination"',
+                 "tau_limit": 'the hierarchy file\'s "tau_limit", else none',
                  "memory": "gru where the observation holds an image, else none",
                  "episode_end": "environment with --env (its episodes end where it ends them), else root",
                  "min_capacity": "where some demonstration is annotated, below the root: the longest annotated call "
@@ -55,7 +57,8 @@ flags.adopt_module_key_flags(config_flags)
 
 def fit_overrides(hierarchy: demo_files.Hierarchy, demos: Demonstration, recorded_in_env: bool) -> dict:
   """A hierarchy file's overrides of the training settings for demos: one hidden layer of 64 (or the file's
-  "hidden"), ψ sees τ at every level, and below the root a counter capacity of at least the file's "capacity"
+  "hidden"), ψ sees τ at every level (or where the file's "tau_in_termination" says), the file's "tau_limit"
+  where it gives one, and below the root a counter capacity of at least the file's "capacity"
   (where it gives none and some demonstration is annotated, `recipe.least_capacities`: the longest annotated
   call with room for longer ones in proportion to the demonstrations' lengths), more where an annotated call
   is longer. With nothing annotated and no "capacity", no least capacity: a level is 8 counters wide, or as
@@ -63,7 +66,10 @@ def fit_overrides(hierarchy: demo_files.Hierarchy, demos: Demonstration, recorde
   observation holds an image (a view, which seldom shows everything), a memory of the episode (gru). Where
   the demonstrations were recorded in a Gymnasium environment (--env), their ends are the environment's."""
   depth = hierarchy.spec.num_levels
-  overrides = {"hidden": hierarchy.hidden or (64,), "tau_in_termination": (True,) * depth}
+  overrides = {"hidden": hierarchy.hidden or (64,),
+               "tau_in_termination": hierarchy.tau_in_termination or (True,) * depth}
+  if hierarchy.tau_limit is not None:
+    overrides["tau_limit"] = hierarchy.tau_limit
   if any(isinstance(field, encoders.Image) for field in hierarchy.spec.observation or ()):
     overrides["memory"] = "gru"
   if recorded_in_env:

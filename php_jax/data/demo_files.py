@@ -17,6 +17,10 @@ one JSON object:
    "capacity": [null, 8, 3],                  optional: per level, root first, the least counter capacity
                                               below the root (`experiments.fit`'s default: 8)
    "hidden": [64],                            optional: hidden layer sizes of every network
+   "tau_in_termination": [false, true, true], optional: per level, root first, whether the termination
+                                              network sees the counter (`--tau_in_termination`)
+   "tau_limit": [0, 1, null],                 optional: per level, root first, the networks see
+                                              min(counter, limit), null: the counter (`--tau_limit`)
    "calls": [null, {"p1": ["q1", "q2"]},      optional: per level, root first, null or which operations
              {"q1": [0, 1]}]}                 procedures may take: callees by name, or at the lowest level
                                               each action factor's values (ints where there is one factor);
@@ -47,8 +51,8 @@ from php_jax.data.demo_checks import (DemoFileError, action_error, check_stack, 
 from php_jax.demos import UNKNOWN, Demonstration, compacted
 from php_jax.hierarchy import HierarchySpec
 
-HIERARCHY_KEYS = ("levels", "action_sizes", "name", "capacity", "hidden", "calls", "observes", "action_names",
-                  "observation")
+HIERARCHY_KEYS = ("levels", "action_sizes", "name", "capacity", "hidden", "tau_in_termination", "tau_limit", "calls",
+                  "observes", "action_names", "observation")
 DEMONSTRATION_KEYS = ("observations", "actions", "stack")
 MAX_COUNT = 64
 MAX_SIZE = 4096
@@ -63,11 +67,17 @@ class Hierarchy:
     capacity: per level, root first, the least counter capacity (None where derived); None: derived.
     hidden: hidden layer sizes of every network; None: the default.
     action_names: per action factor, the names of its values; None: not named.
+    tau_in_termination: per level, root first, whether the termination network sees the counter; None: the
+      default.
+    tau_limit: per level, root first, the least of the counter and this that the networks see (None: the
+      counter); None: the default.
   """
   spec: HierarchySpec
   capacity: tuple[int | None, ...] | None
   hidden: tuple[int, ...] | None
   action_names: tuple[tuple[str, ...], ...] | None = None
+  tau_in_termination: tuple[bool, ...] | None = None
+  tau_limit: tuple[int | None, ...] | None = None
 
 
 def _is_int(x) -> bool:
@@ -122,6 +132,15 @@ def _hierarchy(obj, default_name: str) -> Hierarchy:
                                  and all(map(_is_size, hidden))):
     raise ValueError(f'"hidden" must list positive layer sizes (at most {MAX_SIZE}, at most {MAX_COUNT} layers); '
                      f'got {json_lines.shown(hidden)}')
+  tau_in_termination, tau_limit = obj.get("tau_in_termination"), obj.get("tau_limit")
+  if tau_in_termination is not None and not (isinstance(tau_in_termination, list) and len(tau_in_termination)
+                                             == len(levels) and all(isinstance(v, bool) for v in tau_in_termination)):
+    raise ValueError(f'"tau_in_termination" must give one true or false per level, root first ({len(levels)}); '
+                     f'got {json_lines.shown(tau_in_termination)}')
+  if tau_limit is not None and not (isinstance(tau_limit, list) and len(tau_limit) == len(levels) and all(
+      v is None or _is_int(v) and 0 <= v <= MAX_SIZE for v in tau_limit)):
+    raise ValueError(f'"tau_limit" must give one integer (0 to {MAX_SIZE}) or null per level, root first '
+                     f'({len(levels)}); got {json_lines.shown(tau_limit)}')
   spec = HierarchySpec(name, tuple(tuple(level) for level in levels), tuple(sizes), 0)
   if obj.get("calls") is not None:
     spec = dataclasses.replace(spec, allowed_ops=_declared_calls(obj["calls"], spec))
@@ -136,7 +155,9 @@ def _hierarchy(obj, default_name: str) -> Hierarchy:
     raise ValueError(f'"action_names" must give, per action factor ({len(sizes)}), one non-empty name for each '
                      f'of its values ({json_lines.shown(sizes)}); got {json_lines.shown(names)}')
   return Hierarchy(spec, tuple(capacity) if capacity else None, tuple(hidden) if hidden else None,
-                   tuple(map(tuple, names)) if names else None)
+                   tuple(map(tuple, names)) if names else None,
+                   None if tau_in_termination is None else tuple(tau_in_termination),
+                   None if tau_limit is None else tuple(tau_limit))
 
 
 def action_namer(action_names: tuple[tuple[str, ...], ...] | None):
@@ -211,9 +232,13 @@ def _allowed_row(ops, level: int, spec: HierarchySpec, where: str) -> np.ndarray
   return np.concatenate([np.isin(np.arange(n), v) for v, n in zip(values, sizes)])
 
 
-def write_hierarchy(path: str, spec: HierarchySpec) -> None:
-  """Writes spec as a hierarchy file (the inverse of read_hierarchy, less the optional keys)."""
-  obj = {"name": spec.name, "levels": [list(level) for level in spec.levels], "action_sizes": list(spec.action_sizes)}
+def write_hierarchy(path: str, spec: HierarchySpec, tau_in_termination: tuple[bool, ...] | None = None,
+                    tau_limit: tuple[int | None, ...] | None = None) -> None:
+  """Writes spec as a hierarchy file (the inverse of read_hierarchy, less the optional keys but the counter's
+  settings where given)."""
+  obj = {"name": spec.name, "levels": [list(level) for level in spec.levels], "action_sizes": list(spec.action_sizes),
+         **({"tau_in_termination": list(tau_in_termination)} if tau_in_termination is not None else {}),
+         **({"tau_limit": list(tau_limit)} if tau_limit is not None else {})}
   files.write_atomically(path, (json.dumps(obj, indent=1) + "\n").encode())
 
 

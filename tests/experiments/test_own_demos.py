@@ -43,11 +43,22 @@ GOOD = {"observations": [[0.0], [1.0], [2.0]], "actions": [[1], [2]],
 
 def test_hierarchy_file_read_and_written(tmp_path):
   hierarchy = demo_files.read_hierarchy(_hierarchy(tmp_path, {
-      "levels": [["r"], ["a", "b"], ["x"]], "action_sizes": [2, 3], "capacity": [None, 4, 2], "hidden": [16]}))
+      "levels": [["r"], ["a", "b"], ["x"]], "action_sizes": [2, 3], "capacity": [None, 4, 2], "hidden": [16],
+      "tau_in_termination": [False, True, True], "tau_limit": [0, None, 2]}))
   assert hierarchy.spec.levels == (("r",), ("a", "b"), ("x",)) and hierarchy.spec.action_sizes == (2, 3)
   assert hierarchy.spec.name == "h" and hierarchy.capacity == (None, 4, 2) and hierarchy.hidden == (16,)
+  assert hierarchy.tau_in_termination == (False, True, True) and hierarchy.tau_limit == (0, None, 2)
   demo_files.write_hierarchy(str(tmp_path / "n.json"), NANOCRAFT.spec)
-  assert demo_files.read_hierarchy(str(tmp_path / "n.json")).spec == dataclasses.replace(NANOCRAFT.spec, obs_dim=0)
+  written = demo_files.read_hierarchy(str(tmp_path / "n.json"))
+  assert written.spec == dataclasses.replace(NANOCRAFT.spec, obs_dim=0) and written.tau_limit is None
+  bubblesort = tasks.get("bubblesort")  # an exported task's file states the counter settings the task states
+  proc = subprocess.run([sys.executable, "-m", "experiments.export_demos", "--task=bubblesort", "--split=test",
+                         "--num_demos=2", f"--out={tmp_path / 'b.jsonl'}", f"--hierarchy_out={tmp_path / 'b.json'}"],
+                        capture_output=True, text=True, timeout=300)
+  assert proc.returncode == 0, proc.stderr
+  exported = demo_files.read_hierarchy(str(tmp_path / "b.json"))
+  assert (exported.tau_in_termination, exported.tau_limit) == (bubblesort.defaults.tau_in_termination,
+                                                               bubblesort.defaults.tau_limit)
   # fit's least capacities: the file's; else, where something is annotated, the annotated calls with room in
   # proportion to the lengths (the warehouse's: 2 and 6 operations, demonstrations up to 1.43 times as long as
   # the longest annotated one: 3, and 8 at most); else none. (In a process of its own: experiments.fit defines
@@ -56,9 +67,12 @@ def test_hierarchy_file_read_and_written(tmp_path):
            f"given, plain = read({str(tmp_path / 'h.json')!r}), read({str(WAREHOUSE / 'warehouse.json')!r}); "
            f"demos, _ = demo_files.read_demonstrations({str(WAREHOUSE / 'train.jsonl')!r}, plain.spec); "
            "weak = demos._replace(strong=demos.strong & False); least = lambda h, d: fit.fit_overrides(h, d, False)"
-           ".get('min_capacity'); print(least(given, weak), least(plain, demos), least(plain, weak))")
+           ".get('min_capacity'); print(least(given, weak), least(plain, demos), least(plain, weak)); "
+           "tau = lambda h: [fit.fit_overrides(h, demos, False).get(k) for k in ('tau_in_termination', 'tau_limit')]; "
+           "print(tau(given), tau(plain))")
   proc = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True, timeout=300)
-  assert proc.stdout.split("\n")[-2] == "(0, 4, 2) (0, 3, 8) None", proc.stderr
+  assert proc.stdout.split("\n")[-3:-1] == [
+      "(0, 4, 2) (0, 3, 8) None", "[(False, True, True), (0, None, 2)] [(True, True, True), None]"], proc.stderr
 
 
 @pytest.mark.parametrize("obj, message", [
@@ -69,6 +83,11 @@ def test_hierarchy_file_read_and_written(tmp_path):
     ({"levels": [["r"], ["a"]], "action_sizes": [0]}, "action_sizes"),
     ({"levels": [["r"], ["a"]], "action_sizes": [2], "capacity": [1]}, "capacity"),
     ({"levels": [["r"], ["a"]], "action_sizes": [2], "hidden": [-1]}, "hidden"),
+    ({"levels": [["r"], ["a"]], "action_sizes": [2], "tau_in_termination": [1, 0]},
+     '"tau_in_termination" must give one true or false per level, root first \\(2\\)'),
+    ({"levels": [["r"], ["a"]], "action_sizes": [2], "tau_limit": [0]},
+     '"tau_limit" must give one integer \\(0 to 4096\\) or null per level'),
+    ({"levels": [["r"], ["a"]], "action_sizes": [2], "tau_limit": [0, -1]}, "tau_limit"),
     ({"levels": [["r"], ["a"]], "action_sizes": [2], "levles": 1}, "unknown key 'levles'"),
 ])
 def test_bad_hierarchy_files_are_refused_naming_the_file(tmp_path, obj, message):
