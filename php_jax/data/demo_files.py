@@ -69,8 +69,7 @@ class Hierarchy:
     action_names: per action factor, the names of its values; None: not named.
     tau_in_termination: per level, root first, whether the termination network sees the counter; None: the
       default.
-    tau_limit: per level, root first, the least of the counter and this that the networks see (None: the
-      counter); None: the default.
+    tau_limit: per level, root first, the networks see min(τ, limit) (None: τ itself); None: the default.
   """
   spec: HierarchySpec
   capacity: tuple[int | None, ...] | None
