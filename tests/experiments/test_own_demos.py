@@ -306,6 +306,8 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
   observing = tmp_path / "observing.json"  # the warehouse's hierarchy, each procedure seeing its own entries
   observing.write_text(json.dumps({**json.loads((WAREHOUSE / "warehouse.json").read_text()), "observes": [
       {"fulfil": [0, 1]}, {"fetch": [0, 1], "deliver": [0, 3]}, {"go_left": [0], "go_right": [0, 1]}]}))
+  counting = tmp_path / "counting.json"  # the warehouse's hierarchy, one counter limit short
+  counting.write_text(json.dumps({**json.loads((WAREHOUSE / "warehouse.json").read_text()), "tau_limit": [0, 1]}))
   fitted = tmp_path / "fitted"  # what segmentation reads first of a fit run's workdir
   fitted.mkdir()
   (fitted / "results.json").write_text(json.dumps({"task": "warehouse", "model": "php", "hierarchy": hierarchy,
@@ -359,10 +361,13 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
       (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={hierarchy}",
         f"--workdir={tmp_path / 'w15'}", "--model=flat_gru", "--restarts=2"),
        "--restarts applies to PHP hierarchies (not --model=flat_gru)"),
+      (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={counting}",
+        f"--workdir={tmp_path / 'w16'}"), f"{counting}: \"tau_limit\" must give one integer (0 to 4096) or null per "
+       "level, root first (3); got [0, 1]"),
   ]
   # Run at the same time, each with its own workdir.
   processes.assert_refused(cases)
-  assert not any((tmp_path / f"w{i}").exists() for i in range(1, 16)) and not (tmp_path / "o.jsonl").exists()
+  assert not any((tmp_path / f"w{i}").exists() for i in range(1, 17)) and not (tmp_path / "o.jsonl").exists()
   assert not (tmp_path / "o.txt").exists()
 
 
