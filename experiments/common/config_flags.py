@@ -48,7 +48,7 @@ def default_text(value, overrides: dict[str, object] | None = None) -> str:
 def config_from_flags(overrides: dict, flag_values: flags.FlagValues = flags.FLAGS) -> config_lib.TrainConfig:
   """The TrainConfig the flags ask for: each field from its flag where given, else from overrides (a task's or
   a hierarchy file's), else TrainConfig's default. Raises UsageError naming the flag of a value that is not
-  allowed, or of a level-wise setting given to a joint run."""
+  allowed, or of a level-wise setting given to a joint run or beside a setting of joint training only."""
   values = dict(overrides)
   for field in config_lib.fields():
     value = flag_values[field.name].value
@@ -64,6 +64,13 @@ def config_from_flags(overrides: dict, flag_values: flags.FlagValues = flags.FLA
   if config.training == "joint" and given:
     raise UsageError(joint_refusal(f"--{given[0]}: applies to level-wise training only", flag_values)
                      + f" or drop --{given[0]}")
+  joint_on = [f for f in config_lib.fields() if config_lib.asks_joint(config, f)]
+  if config.training is None and given and joint_on:
+    field = joint_on[0]
+    setting = (f"--{field.name}={flag_values[field.name].value}" if flag_values[field.name].present else
+               f"{field.name} {getattr(config, field.name)} (this command's default here)")
+    raise UsageError(f"--{given[0]}: applies to level-wise training only, and {setting} to joint training only: "
+                     f"drop one of them, or give --training")
   return config
 
 

@@ -76,11 +76,21 @@ def test_flags_override_the_task_which_overrides_the_defaults():
      "--split_hint_iterations: must be at most --split_iterations (40); got 50"),
     (["--training=levelwise", "--split_rounds=2"], "--split_rounds: applies to joint training only"),
     (["--training=levelwise", "--segment_iterations=10"], "--segment_iterations: applies to joint training only"),
+    (["--strong_warmup=100", "--anneal_temperature=2"],
+     "--strong_warmup: applies to level-wise training only, and --anneal_temperature=2.0 to joint training only: "
+     "drop one of them, or give --training"),
 ])
 def test_bad_flags_are_refused_naming_the_flag(argv, message):
   with pytest.raises(config_flags.UsageError) as refused:
     config_flags.config_from_flags({}, _flags(*argv))
   assert str(refused.value).startswith(message), str(refused.value)
+
+
+def test_a_level_wise_flag_beside_a_commands_joint_default_is_refused_naming_both():
+  with pytest.raises(config_flags.UsageError, match=r"^--root: applies to level-wise training only, and memory gru "
+                     r"\(this command's default here\) to joint training only: drop one of them, or give --training"):
+    config_flags.config_from_flags({"memory": "gru"}, _flags("--root=mlp"))
+  assert config_flags.config_from_flags({"memory": "gru"}, _flags("--root=mlp", "--memory=none")).root == "mlp"
 
 
 def test_config_errors_name_the_field():
