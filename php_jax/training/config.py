@@ -124,7 +124,8 @@ class TrainConfig:
   training: str | None = _setting(
       None, "levelwise: one level at a time from the lowest, a stand-in root for the levels above (the paper); "
       "joint: every level at once by exact inference over the whole call stack. A trainer given none trains "
-      "jointly where no demonstration is annotated and no level-wise setting is given, else level-wise.", "str",
+      "jointly where a setting of joint training only is on, or where no demonstration is annotated and no "
+      "level-wise setting is given; else level-wise.", "str",
       TRAININGS)
   anneal_temperature: float | None = _setting(
       None, "Joint training: the posterior temperature T ≥ 1 at the first iteration (deterministic annealing): "
@@ -148,8 +149,8 @@ class TrainConfig:
       "procedure that two callers share (or that the root calls at two of its counters) a copy for one of them, "
       "in place of the least-used procedure of its level; every candidate and the unchanged hierarchy train "
       "--split_iterations more, and the one most likely on the validation demonstrations is kept; a round "
-      f"that keeps the unchanged one ends the search. unset: {DISCOVERY_SPLIT_ROUNDS} where "
-      "--segment_iterations is on by default with --segment_rule=loops, else 0.", "int", joint_off=(None, 0))
+      f"that keeps the unchanged one ends the search. unset: {DISCOVERY_SPLIT_ROUNDS} where the loops segmentation "
+      "guides training (--segment_rule=loops, --segment_iterations above 0), else 0.", "int", joint_off=(None, 0))
   split_iterations: int = _setting(150, "Adam iterations each candidate of a split-search round trains.", "int",
                                    joint_off=(150,))
   split_hint_iterations: int = _setting(
@@ -292,7 +293,7 @@ def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, fla
   demonstrations none of which is annotated, WEAK_ONLY_ANNEALING (else 1: none) and, where spec declares no
   call graph (which says itself which procedure takes which operation) and config.segment_rule applies to
   their actions (`segmentation.read_rule`), the segmentation for half the iterations (else 0), and
-  DISCOVERY_SPLIT_ROUNDS of the split search where that rule is "loops" (else 0); the batch size
+  DISCOVERY_SPLIT_ROUNDS of the split search where that rule is "loops" and guides training (else 0); the batch size
   (`batch_size_for`); the length buckets (`views.bucket_count` of the demonstrations' lengths)."""
   strong = np.asarray(demos.strong)
   strong_weight = balanced_strong_weight(strong) if config.strong_weight is None else config.strong_weight
@@ -306,11 +307,13 @@ def resolved(config: TrainConfig, demos: Demonstration, spec: HierarchySpec, fla
   def unset_or(value, default):
     return default if value is None else value
 
+  segment_iterations = unset_or(config.segment_iterations, config.iterations // 2 if rule else 0)
   return dataclasses.replace(
       config, strong_weight=strong_weight, training=training, memory=memory,
       anneal_temperature=unset_or(config.anneal_temperature, WEAK_ONLY_ANNEALING if weak_only else 1.0),
-      segment_iterations=unset_or(config.segment_iterations, config.iterations // 2 if rule else 0),
-      split_rounds=unset_or(config.split_rounds, DISCOVERY_SPLIT_ROUNDS if rule and rule.name == "loops" else 0),
+      segment_iterations=segment_iterations,
+      split_rounds=unset_or(config.split_rounds, DISCOVERY_SPLIT_ROUNDS
+                            if rule and rule.name == "loops" and segment_iterations else 0),
       batch_size=batch_size_for(config, len(strong)),
       length_buckets=config.length_buckets or views.bucket_count(demos.length))
 

@@ -76,6 +76,8 @@ def test_runs_without_annotation_train_jointly_and_anneal_by_default():
   assert discovery(datasets.training_demos(bubblesort, 1, 4, 0), successors, bubblesort.spec) == (
       unset.iterations // 2, 0)
   assert discovery(weak, dataclasses.replace(unset, split_rounds=0)) == (unset.iterations // 2, 0)
+  assert discovery(weak, dataclasses.replace(unset, segment_iterations=0)) == (0, 0)  # no segmentation, no search
+  assert discovery(weak, dataclasses.replace(unset, segment_iterations=10)) == (10, DISCOVERY_SPLIT_ROUNDS)
   declared = dataclasses.replace(NANOCRAFT.spec, allowed_ops=(None, None, ((True,) * 5,) * 6))
   assert discovery(weak, unset, declared) == (0, 0)  # a declared call graph says who takes what
   assert mode(mixed, dataclasses.replace(unset, split_rounds=1)) == ("joint", 1)  # a joint-only setting
