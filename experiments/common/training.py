@@ -29,9 +29,9 @@ MODEL = flags.DEFINE_enum("model", "php", ["php", *flat.MODEL_CELLS],
 FLAT_HIDDEN = flags.DEFINE_integer("flat_hidden", 128, "Hidden units of the flat baseline's LSTM or GRU.")
 flags.DEFINE_alias("lstm_hidden", "flat_hidden")
 RESTARTS = flags.DEFINE_integer("restarts", None, "Train each of the recipe's candidates from this many "
-                                "initialisations and keep the one most likely on the held-out demonstrations "
-                                "(docs/training.md, the recipe). Default: 1; fit: 2 where one or two "
-                                "demonstrations are annotated.", lower_bound=1)
+                                "initialisations and keep the best on the held-out demonstrations: the one that "
+                                "explains the most, then the likeliest (docs/training.md, the recipe). Default: "
+                                "1; fit: 2 where one or two demonstrations are annotated.", lower_bound=1)
 REPORT = flags.DEFINE_bool("report", True, "At the end, write WORKDIR/report.html: settings, results, learning "
                            "curves, call graph and three training demonstrations decoded and drawn (a few seconds).")
 
@@ -86,6 +86,9 @@ def train_php(experiment: run.Experiment, config, given, echo, restarts: int = 1
   """Trains experiment's PHP hierarchy in --workdir by the recipe (`php_jax.training.recipe`) for config,
   whose settings named in `given` were asked for, each candidate from --restarts initialisations (unset: from
   `restarts`); returns its results.json."""
-  chosen = recipe.choose(experiment.spec, experiment.demos, config, given, RESTARTS.value or restarts,
-                         experiment.numbers)
+  try:
+    chosen = recipe.choose(experiment.spec, experiment.demos, config, given, RESTARTS.value or restarts,
+                           experiment.numbers)
+  except ValueError as e:
+    raise UsageError(f"--restarts: {e}") from None
   return selection.train_and_choose(experiment, config, chosen, WORKDIR.value, OVERWRITE.value, WAIT.value, echo)

@@ -1,6 +1,6 @@
 """The recipe: how a run trains, read from the demonstrations where they decide it, and where they do not, a
-list of candidates of which the one most likely on held-out demonstrations is kept
-(`selection.train_and_choose`).
+list of candidates of which the best on held-out demonstrations is kept (`selection.train_and_choose`: the one
+that explains the most demonstrations, then the likeliest).
 
 What the demonstrations decide (`config.resolved`, for every candidate): the strong weight, the counter
 capacities (the longest annotated call; `fit` adds room for longer ones, `least_capacities`), annealing and the
@@ -25,10 +25,10 @@ import numpy as np
 from php_jax.demos import Demonstration
 from php_jax.hierarchy import HierarchySpec
 from php_jax.training import call_graph, segmentation
-from php_jax.training.config import TrainConfig, asks_joint, fields
+from php_jax.training.config import MAX_SEED, TrainConfig, asks_joint, fields
 from php_jax.training.objective import counter_capacity
 
-RESTART_SEED_STRIDE = 1000  # restart r initialises from init_seed + r × this: other seeds' restarts differ
+RESTART_SEED_STRIDE = 1000  # restart r initialises from init_seed + r × this
 MODE_CALL_GRAPH = {"levelwise": "all", "joint": "operations"}  # each mode's candidate call graph
 SEGMENTATION_SETTINGS = ("segment_rule", "segment_iterations", "split_rounds")
 UNSEGMENTED = "unsegmented"
@@ -67,9 +67,13 @@ def choose(spec: HierarchySpec, demos: Demonstration, config: TrainConfig, given
   """The recipe for training spec's hierarchy on demos from config, whose settings named in `given` were
   asked for (by a flag, a task or a hierarchy file) and are kept; restarts ≥ 1: initialisations of each
   candidate; numbers: each demonstration's number where the reasons name one (None: its index). Raises
-  ValueError if restarts < 1."""
+  ValueError if restarts < 1 or the last restart's initialisation seed would pass MAX_SEED."""
   if not (isinstance(restarts, int) and restarts >= 1):
     raise ValueError(f"restarts must be a positive integer; got {restarts!r}")
+  last_seed = config.network_seed + (restarts - 1) * RESTART_SEED_STRIDE
+  if last_seed > MAX_SEED:
+    raise ValueError(f"{restarts} restarts initialise the last from seed {last_seed}, past {MAX_SEED} (a 32-bit "
+                     f"seed): give a smaller --init_seed (or --seed), or fewer restarts")
   num_strong, num = int(np.sum(demos.strong)), len(demos.length)
   mode = _fixed_mode(config, given, num_strong > 0)
   if num_strong:
@@ -82,7 +86,8 @@ def choose(spec: HierarchySpec, demos: Demonstration, config: TrainConfig, given
                   if r else c for c in candidates for r in range(restarts)]  # restart 0: a run without restarts
     reasons.append(f"each is trained from {restarts} initialisations")
   if len(candidates) > 1:
-    reasons.append("the candidate most likely on the held-out demonstrations is kept")
+    reasons.append("the candidate that explains the most demonstrations is kept, of those the one most likely "
+                   "on the held-out demonstrations")
   return Recipe(tuple(candidates), tuple(reasons))
 
 
@@ -123,7 +128,7 @@ def _fixed_mode(config: TrainConfig, given, annotated: bool) -> str | None:
     return config.training
   if any(asks_joint(config, f) for f in fields()):
     return "joint"
-  if any(f.name in given and getattr(config, f.name) != f.default for f in fields() if f.metadata["levelwise_only"]):
+  if any(f.name in given for f in fields() if f.metadata["levelwise_only"]):
     return "levelwise"
   return None if annotated else "joint"
 
@@ -143,10 +148,10 @@ def _annotated_candidates(spec: HierarchySpec, demos: Demonstration, given, mode
     wider = call_graph.CALL_GRAPHS[:call_graph.CALL_GRAPHS.index(joint_graph)][::-1]  # calls, then all
     graph = next((g for g in wider if not _unfit_step(g, demos, spec, numbers)), "all")
     return [Candidate(mode, {"training": mode, "call_graph": graph})], [
-        stated + f"joint training, as asked, with call graph {graph}: with the one the annotation shows "
+        stated + f"joint training, as the settings given fix, with call graph {graph}: with the one the annotation shows "
         f"({joint_graph}), {unfit}"]
   if mode:
-    return [Candidate(mode, _mode_settings(mode, given))], [stated + f"{mode} training, as asked"]
+    return [Candidate(mode, _mode_settings(mode, given))], [stated + f"{mode} training, as the settings given fix"]
   if unfit:
     return [Candidate("levelwise", _mode_settings("levelwise", given))], [
         stated + "level-wise training (the paper's); joint training is not tried: with the call graph the "
@@ -181,10 +186,10 @@ def _discovery_candidates(spec: HierarchySpec, demos: Demonstration, given,
   """The candidates without annotation: where the segmentation starts from."""
   reason = f"no demonstration is annotated: {mode} training"
   if mode != "joint":
-    return [Candidate(mode, {"training": mode})], [reason + ", as asked"]
+    return [Candidate(mode, {"training": mode})], [reason + ", as the settings given fix"]
   base = {"training": "joint"}
   if given & set(SEGMENTATION_SETTINGS):
-    return [Candidate("joint", base)], [reason + "; the segmentation as asked"]
+    return [Candidate("joint", base)], [reason + "; the segmentation as the settings given fix"]
   if call_graph.restricts(spec.allowed_ops):
     return [Candidate("joint", base)], [reason + "; no segmentation: the hierarchy declares its call graph"]
   rules = {name: segmentation.read_rule(demos, name) for name in segmentation.RULES}

@@ -62,16 +62,19 @@ def train_and_choose(experiment: Experiment, config: TrainConfig, recipe: Recipe
   """Trains config's PHP hierarchy by the recipe in workdir and returns its results.json. One candidate: an
   ordinary run (`run.train_and_evaluate`) with its settings, results.json's "recipe" saying why. Several:
   each trained in workdir/candidates/NAME (its rows echoed with "candidate": NAME) and judged by
-  `held_out_score` on experiment.validation_demos (else its training demonstrations); the best's model and
-  metrics are copied to workdir and tested there. overwrite: train every candidate again. A finished run with
-  the same recipe is not trained again."""
+  `held_out_score` on experiment.validation_demos (ValueError if None); the best's model and metrics are
+  copied to workdir and tested there. overwrite: train every candidate again. A finished run with the same
+  recipe is not trained again."""
   plan = recipe.as_json()
   if len(recipe.candidates) == 1:
     [candidate] = recipe.candidates
     experiment = dataclasses.replace(experiment, extra={**experiment.extra,
                                                         "recipe": {**plan, "chosen": candidate.name}})
     return train_and_evaluate(experiment, candidate.config(config), workdir, overwrite, wait=wait, echo=echo)
-  judged_on = experiment.validation_demos if experiment.validation_demos is not None else experiment.demos
+  judged_on = experiment.validation_demos
+  if judged_on is None:
+    raise ValueError(f"{len(recipe.candidates)} candidates need held-out demonstrations to be judged on "
+                     "(Experiment.validation_demos)")
   commit = provenance.code_version()
   with workdir_lock(workdir, wait):
     clear_workdir(workdir, RUN_FILES + (CANDIDATES_DIR,), overwrite)

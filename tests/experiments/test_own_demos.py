@@ -364,10 +364,16 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
       (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={counting}",
         f"--workdir={tmp_path / 'w16'}"), f"{counting}: \"tau_limit\" must give one integer (0 to 4096) or null per "
        "level, root first (3); got [0, 1]"),
+      (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={hierarchy}",
+        f"--workdir={tmp_path / 'w17'}", "--restarts=3", "--init_seed=2147483000"),
+       "--restarts: 3 restarts initialise the last from seed 2147485000, past 2147483647 (a 32-bit seed)"),
+      (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={hierarchy}",
+        f"--workdir={tmp_path / 'w18'}", "--strong_warmup=10", "--split_rounds=1"),
+       "--strong_warmup: applies to level-wise training only, and --split_rounds=1 to joint training only"),
   ]
   # Run at the same time, each with its own workdir.
   processes.assert_refused(cases)
-  assert not any((tmp_path / f"w{i}").exists() for i in range(1, 17)) and not (tmp_path / "o.jsonl").exists()
+  assert not any((tmp_path / f"w{i}").exists() for i in range(1, 19)) and not (tmp_path / "o.jsonl").exists()
   assert not (tmp_path / "o.txt").exists()
 
 

@@ -11,7 +11,7 @@ from experiments.common import run_report
 from php_jax.envs import datasets, tasks
 from php_jax.hierarchy import HierarchySpec
 from php_jax.training import call_graph, checkpoint, joint, objective, recipe, selection
-from php_jax.training.config import TrainConfig
+from php_jax.training.config import MAX_SEED, TrainConfig
 from php_jax.training.networks import make_hierarchy
 from php_jax.training.run import Experiment, WorkdirError
 from tests import processes
@@ -101,6 +101,16 @@ def test_restarts_repeat_every_candidate_from_other_initialisations():
   assert [c.config(TrainConfig(seed=7)).network_seed for c in chosen.candidates] == [7, 1007, 7, 1007]
   with pytest.raises(ValueError, match="restarts must be a positive integer"):
     recipe.choose(NANOCRAFT.spec, demos, TrainConfig(), frozenset(), restarts=0)
+  last = TrainConfig(init_seed=MAX_SEED - recipe.RESTART_SEED_STRIDE)
+  assert len(recipe.choose(NANOCRAFT.spec, demos, last, {"init_seed"}, restarts=2).candidates) == 4
+  with pytest.raises(ValueError, match=f"3 restarts initialise the last from seed {MAX_SEED + 1000}, past"):
+    recipe.choose(NANOCRAFT.spec, demos, last, {"init_seed"}, restarts=3)
+
+
+def test_a_level_wise_setting_given_fixes_level_wise_training_even_at_its_default_value():
+  demos = datasets.training_demos(NANOCRAFT, 1, 8, 2)
+  assert _names(recipe.choose(NANOCRAFT.spec, demos, TrainConfig(root="lstm"), {"root"})) == ["levelwise"]
+  assert _names(recipe.choose(NANOCRAFT.spec, demos, TrainConfig(root="lstm"), set())) == ["levelwise", "joint"]
 
 
 def test_least_capacities_give_the_annotated_calls_room_in_proportion_to_the_lengths_at_most_the_spare():
@@ -153,7 +163,8 @@ def test_the_training_demonstrations_a_call_graph_forbids_are_counted(monkeypatc
 
 def _experiment(demos):
   return Experiment("nanocraft", NANOCRAFT.spec, demos, validate=lambda model: 0.0,
-                    test=lambda model: {"tested": 1.0}, extra={"seed": 1})
+                    test=lambda model: {"tested": 1.0}, extra={"seed": 1},
+                    validation_demos=datasets.training_demos(NANOCRAFT, 9, 4, 0))
 
 
 @pytest.mark.parametrize("trained_first", [True, False])
@@ -188,6 +199,9 @@ def test_the_candidate_most_likely_on_held_out_demonstrations_is_kept_and_become
   with pytest.raises(WorkdirError, match="other demonstrations"):
     selection.train_and_choose(_experiment(datasets.training_demos(NANOCRAFT, 2, 6, 6)), config, chosen,
                                str(tmp_path))
+  with pytest.raises(ValueError, match="2 candidates need held-out demonstrations"):
+    selection.train_and_choose(dataclasses.replace(_experiment(demos), validation_demos=None), config, chosen,
+                               str(tmp_path / "elsewhere"))
   # one more candidate (as a higher --restarts adds): the finished ones are reused, the new one trained
   more = recipe.Recipe(chosen.candidates + (recipe.Candidate("more", {"training": "joint", "iterations": 2}),),
                        ("by hand",))
