@@ -5,12 +5,15 @@ r"""Fits a PHP hierarchy to your own demonstrations: no environment code needed.
 Reads the hierarchy file and the demonstrations (JSON lines or a binary set; annotated ones carry their call
 stack, fully or partly) and trains the hierarchy as the recipe chooses from them: where they leave the
 training mode or the segmentation open, each candidate is trained (where one or two demonstrations are annotated,
-from two initialisations: --restarts) and the one most likely on the held-out demonstrations (--validation, or
-else --validation_fraction of TRAIN, held out at random by --seed) is kept.
+from two initialisations: --restarts) and the best on the held-out demonstrations (--validation, or else
+--validation_fraction of TRAIN, held out at random by --seed) is kept: the one that explains the most, then the
+likeliest.
 Each training keeps the snapshot that replays the most held-out demonstrations. A demonstration is replayed
 when the learned hierarchy's argmax policy, run on its recorded observations, takes every recorded action and
 returns from its root after the last. Writes the model (`experiments.decode --policy=DIR` reads it) and
-results.json with the held-out replay rate. Rerun the same command to resume an interrupted run.
+results.json with the held-out replay rate (optimistic: the same demonstrations chose the snapshot and the
+candidate; `experiments.decode` on demonstrations the run never read gives an unbiased one). Rerun the same
+command to resume an interrupted run.
 
 The file formats (demonstrations, the hierarchy file) and what fit chooses: docs/own-demonstrations.md;
 every training flag: docs/training.md.
