@@ -12,8 +12,8 @@ Each training keeps the snapshot that replays the most held-out demonstrations. 
 when the learned hierarchy's argmax policy, run on its recorded observations, takes every recorded action and
 returns from its root after the last. Writes the model (`experiments.decode --policy=DIR` reads it) and
 results.json with the held-out replay rate (optimistic: the same demonstrations chose the snapshot and the
-candidate; `experiments.decode` on demonstrations the run never read gives an unbiased one). Rerun the same
-command to resume an interrupted run.
+candidate) and, with --test, the replay rate of demonstrations that chose nothing. Rerun the same command to
+resume an interrupted run.
 
 The file formats (demonstrations, the hierarchy file) and what fit chooses: docs/own-demonstrations.md;
 every training flag: docs/training.md.
@@ -21,6 +21,7 @@ every training flag: docs/training.md.
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import numpy as np
 from absl import app, flags
@@ -42,6 +43,9 @@ _ENV = flags.DEFINE_string("env", None, "The Gymnasium environment the demonstra
                            "--env): the networks' encoders are chosen from its observation space (categories, "
                            "images, words), unless the hierarchy file gives \"observation\". Default: none, the "
                            "observations are read as numbers (or as the hierarchy file's \"observation\" says).")
+_TEST = flags.DEFINE_string("test", None, "Demonstrations to measure replay on and nothing else (results.json's "
+                            "test_replayed): the held-out ones choose the snapshot and the candidate, so their "
+                            "replay rate is optimistic; these choose nothing.")
 _VALIDATION_FRACTION = flags.DEFINE_float("validation_fraction", 0.1, "Share of --demos held out when "
                                           "--validation is not given (at least one demonstration).")
 _FIT_DEFAULTS = {"hidden": '64, or the hierarchy file\'s "hidden"',
@@ -137,17 +141,30 @@ def run() -> dict:
         raise config_flags.UsageError(f"--validation_fraction={_VALIDATION_FRACTION.value} holds out all "
                                   f"{len(demos.length)} demonstrations of --demos: lower it, or give --validation")
       demos, held_out, numbers = split(demos, _VALIDATION_FRACTION.value, config.seed)
+    tested = None
+    if _TEST.value:
+      read = {os.path.realpath(path): f"--{name}" for name, path in (("demos", _DEMOS.value),
+                                                                      ("validation", _VALIDATION.value)) if path}
+      if os.path.realpath(_TEST.value) in read:
+        raise config_flags.UsageError(f"--test={_TEST.value} is the {read[os.path.realpath(_TEST.value)]} file: "
+                                      "give demonstrations the run does not read")
+      tested, spec = demo_files.read_demonstrations(_TEST.value, spec)
   except demo_files.DemoFileError as e:
     raise config_flags.UsageError(str(e)) from None
 
   def rate(model) -> float:
     return replay.replayed_fraction(model, spec, held_out)
 
+  def test(model) -> dict:
+    return {"held_out_replayed": rate(model),
+            **({"test_replayed": replay.replayed_fraction(model, spec, tested)} if tested is not None else {})}
+
   experiment = Experiment(
-      spec.name, spec, demos, validate=rate, test=lambda model: {"held_out_replayed": rate(model)},
+      spec.name, spec, demos, validate=rate, test=test,
       extra={"demos": _DEMOS.value, "hierarchy": _HIERARCHY.value, "validation": _VALIDATION.value,
              "num_demos": len(demos.length), "num_annotated": int(np.sum(demos.strong)),
-             "num_held_out": len(held_out.length), "num_held_out_annotated": int(np.sum(held_out.strong))},
+             "num_held_out": len(held_out.length), "num_held_out_annotated": int(np.sum(held_out.strong)),
+             **({"test_demos": _TEST.value, "num_test": len(tested.length)} if tested is not None else {})},
       action_name=demo_files.action_namer(hierarchy.action_names), numbers=numbers, validation_demos=held_out)
   flat = training.flat_model()
   with progress.shown(config, None if flat else spec.num_levels, training.WORKDIR.value) as echo:

@@ -215,8 +215,10 @@ def _run(*args):
 @pytest.mark.slow
 def test_fit_decode_show_and_report_on_the_warehouse_example(tmp_path):
   workdir, out = tmp_path / "fit", tmp_path / "decoded.jsonl"
+  held_out = tmp_path / "held.jsonl"
+  held_out.write_text("".join((WAREHOUSE / "held_out.jsonl").read_text().splitlines(keepends=True)[:5]))
   fit = ["experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={WAREHOUSE / 'warehouse.json'}",
-         f"--workdir={workdir}", "--iterations=20", "--eval_every=10", "--hidden=16"]
+         f"--workdir={workdir}", "--iterations=20", "--eval_every=10", "--hidden=16", f"--test={held_out}"]
   proc = _run(*fit)
   assert proc.returncode == 0, proc.stderr
   results_before = (workdir / "results.json").read_bytes()
@@ -226,10 +228,9 @@ def test_fit_decode_show_and_report_on_the_warehouse_example(tmp_path):
   report = (workdir / "report.html").read_text()
   assert report.count("<svg") == 4 and "<script" not in report and "Decoded demonstrations" in report
   assert "fulfil" in report and "held_out_replayed" in report
+  assert results["test_demos"] == str(held_out) and results["num_test"] == 5
   captions = [part.split("</h3>")[0] for part in report.split("<h3>")[1:]]
   assert len(captions) == 3 and all(f" of {WAREHOUSE / 'train.jsonl'} (" in c for c in captions)  # as numbered there
-  held_out = tmp_path / "held.jsonl"
-  held_out.write_text("".join((WAREHOUSE / "held_out.jsonl").read_text().splitlines(keepends=True)[:5]))
   shown = [tmp_path / "shown.png", tmp_path / "shown.html"]
   wider, other_actions = tmp_path / "wider.jsonl", tmp_path / "other_actions.jsonl"  # files of other hierarchies
   wider.write_text(json.dumps({"observations": [[0.0] * 7] * 2, "actions": [[0]]}) + "\n")
@@ -252,6 +253,7 @@ def test_fit_decode_show_and_report_on_the_warehouse_example(tmp_path):
   rows = [json.loads(line) for line in out.read_text().splitlines()]
   given = [json.loads(line) for line in held_out.read_text().splitlines()]
   assert len(rows) == 5 and "level 1: decoded stacks agree" in decode.stdout
+  assert results["test"]["test_replayed"] == sum(row["replayed"] for row in rows) / 5  # decode's replay, the same
   assert "call boundaries: F1" in decode.stdout
   steps = sum(len(json.loads(line)["actions"]) for line in held_out.read_text().splitlines())
   per_step = sum(json.loads(line)["log_likelihood"] for line in out.read_text().splitlines()) / steps
@@ -370,10 +372,13 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
       (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={hierarchy}",
         f"--workdir={tmp_path / 'w18'}", "--strong_warmup=10", "--split_rounds=1"),
        "--strong_warmup: applies to level-wise training only, and --split_rounds=1 to joint training only"),
+      (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={hierarchy}",
+        f"--workdir={tmp_path / 'w19'}", f"--test={WAREHOUSE / 'train.jsonl'}"),
+       f"--test={WAREHOUSE / 'train.jsonl'} is the --demos file: give demonstrations the run does not read"),
   ]
   # Run at the same time, each with its own workdir.
   processes.assert_refused(cases)
-  assert not any((tmp_path / f"w{i}").exists() for i in range(1, 19)) and not (tmp_path / "o.jsonl").exists()
+  assert not any((tmp_path / f"w{i}").exists() for i in range(1, 20)) and not (tmp_path / "o.jsonl").exists()
   assert not (tmp_path / "o.txt").exists()
 
 
