@@ -10,8 +10,9 @@ the text the `--success` flag takes:
   terminated   the episode reached a terminal state of the environment (Gymnasium's `terminated`, also where its
                time limit truncated the same step), not one only truncated or ended by the policy
 
-Without a rule, an environment that reports `info["is_success"]` at the end of any episode is judged by
-info:is_success; for any other, success is unknown (None), never guessed.
+Without a rule, episodes of which any reports `info["is_success"]` with its last step are judged by
+info:is_success (those that do not report it count as failures, and the summary says how many); otherwise
+success is unknown (None), never guessed.
 """
 from __future__ import annotations
 
@@ -83,12 +84,20 @@ def judge(rule: SuccessRule | None, ending: Ending) -> bool | None:
   if rule is None:
     return None
   if rule.kind == "info":
-    return bool(np.all(ending.info.get(rule.key, False)))  # an array: true where every entry is
+    return _true(ending.info.get(rule.key, False))
   if rule.kind == "terminated":
     return ending.terminated
   value = ending.episode_return if rule.kind == "return" else ending.last_reward
   compare = operator.ge if rule.inclusive else operator.gt
   return value is not None and bool(compare(value, rule.threshold))
+
+
+def _true(value) -> bool:
+  """Whether an info value says yes: true, or an array whose every entry is (an empty one or a NaN does not)."""
+  value = np.asarray(value)
+  if value.size == 0 or (np.issubdtype(value.dtype, np.floating) and np.isnan(value).any()):
+    return False
+  return bool(np.all(value))
 
 
 def judge_all(rule: SuccessRule | None, endings: list[Ending]) -> tuple[SuccessRule | None, list[bool | None]]:
@@ -97,17 +106,24 @@ def judge_all(rule: SuccessRule | None, endings: list[Ending]) -> tuple[SuccessR
   return rule, [judge(rule, e) for e in endings]
 
 
-def summary(rule: SuccessRule | None, endings: list[Ending]) -> list[str]:
+def summary(given: SuccessRule | None, endings: list[Ending]) -> list[str]:
   """The lines a command prints about its episodes: the success rate and its rule, or why it is unknown; then
-  the mean return and how the episodes ended (those neither terminated nor truncated: by the policy)."""
-  rule, successes = judge_all(rule, endings)
-  count = max(len(endings), 1)
+  the mean return and how the episodes ended, each counted once (terminated, also where the time limit
+  truncated the same step; truncated only; neither: by the policy). No episodes: one line saying so."""
+  if not endings:
+    return ["no episodes"]
+  rule, successes = judge_all(given, endings)
+  count = len(endings)
   if rule is None:
-    first = (f"success unknown: the environment reports no info[\"{DEFAULT_KEY}\"]; " + HOW_TO_DEFINE)
+    first = f"success unknown: no episode's last step reported info[\"{DEFAULT_KEY}\"]; " + HOW_TO_DEFINE
   else:
     first = f"success {sum(successes) / count:.3f} ({rule})"
+    reported = sum(rule.key in e.info for e in endings) if given is None else count
+    if reported < count:
+      first += (f"; {count - reported} of {count} episodes did not report it and count as failures: "
+                + HOW_TO_DEFINE)
   terminated = sum(e.terminated for e in endings)
-  truncated = sum(e.truncated for e in endings)
+  truncated = sum(e.truncated and not e.terminated for e in endings)
   by_policy = sum(not (e.terminated or e.truncated) for e in endings)
   returns = sum(e.episode_return for e in endings) / count
   ends = f"{terminated} terminated, {truncated} truncated" + (f", {by_policy} ended by the policy" if by_policy else "")

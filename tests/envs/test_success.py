@@ -54,11 +54,22 @@ def test_without_a_rule_success_is_is_success_where_the_environment_reports_it_a
   silent = [_ending(1.0, 1.0, terminated=True), _ending(0.0, 0.0, terminated=True)]
   assert success.judge_all(None, silent) == (None, [None, None])
   first, second = success.summary(None, silent)
-  assert first == ('success unknown: the environment reports no info["is_success"]; --success=info:KEY, '
+  assert first == ('success unknown: no episode\'s last step reported info["is_success"]; --success=info:KEY, '
                    "return>X, reward>X or terminated defines it")
   assert second == "mean return 0.50; 2 terminated, 0 truncated"
   assert success.summary(success.parse("reward>0"), silent + [_ending()]) == [
       "success 0.333 (reward>0)", "mean return 0.33; 2 terminated, 0 truncated, 1 ended by the policy"]
+  assert success.summary(None, reported)[0] == (
+      "success 0.333 (info:is_success); 2 of 3 episodes did not report it and count as failures: "
+      "--success=info:KEY, return>X, reward>X or terminated defines it")
+  assert success.summary(success.parse("info:is_success"), reported)[0] == "success 0.333 (info:is_success)"
+
+
+def test_each_episode_counts_once_in_how_the_episodes_ended_and_no_episodes_print_no_rate():
+  at_the_limit = _ending(1.0, 1.0, terminated=True, truncated=True)  # terminal on the time limit's last step
+  assert success.summary(success.parse("terminated"), [at_the_limit, _ending(truncated=True)]) == [
+      "success 0.500 (terminated)", "mean return 0.50; 1 terminated, 1 truncated"]
+  assert success.summary(success.parse("reward>0"), []) == ["no episodes"]
 
 
 def _random_policy(env: gymnasium.Env, seed: int = 0) -> PHPHierarchy:
@@ -114,7 +125,7 @@ def test_act_and_record_commands_print_the_rate_only_under_a_rule(tmp_path):
   assert [e["success"] for e in episodes] == [e["return"] > 0 for e in episodes]
   assert ruled.stdout.splitlines()[-2] == f"success {rate:.3f} (reward>0)"
   assert [json.loads(line)["success"] for line in out.read_text().splitlines()] == [None] * 30
-  assert plain.stdout.splitlines()[-2].startswith('success unknown: the environment reports no info["is_success"]')
+  assert plain.stdout.splitlines()[-2].startswith('success unknown: no episode\'s last step reported info["is_success"]')
   terminated = sum(e["terminated"] for e in episodes)
   truncated = sum(e["truncated"] for e in episodes)
   assert plain.stdout.splitlines()[-1].endswith(f"{terminated} terminated, {truncated} truncated"
@@ -148,6 +159,8 @@ def test_an_info_key_is_read_without_spaces_and_an_array_value_is_true_where_eve
   assert rule.key == "done" and str(rule) == "info:done"
   assert success.judge(rule, _ending(info={"done": np.array([True, True])})) is True
   assert success.judge(rule, _ending(info={"done": np.array([True, False])})) is False
+  for nothing in (np.array([]), float("nan"), np.array([1.0, np.nan]), []):
+    assert success.judge(rule, _ending(info={"done": nothing})) is False, nothing
 
 
 def test_the_step_limit_of_an_environment_without_a_spec_is_its_time_limit_wrapper():
@@ -156,3 +169,12 @@ def test_the_step_limit_of_an_environment_without_a_spec_is_its_time_limit_wrapp
   assert max_steps_of(Corridor(), None) == DEFAULT_MAX_STEPS
   assert max_steps_of(gymnasium.wrappers.TimeLimit(Corridor(), 12_345), None) == 12_345
   assert max_steps_of(gymnasium.wrappers.TimeLimit(Corridor(), 12_345), 7) == 7
+  copies = gym.vector_env(lambda: gymnasium.wrappers.TimeLimit(Corridor(), 12_345), 2)  # act's, with --num_envs
+  assert max_steps_of(copies, None) == 12_345
+  assert max_steps_of(gym.vector_env(lambda: gymnasium.make("FrozenLake-v1"), 2), None) == 100
+
+
+def test_acting_for_no_episodes_is_refused():
+  env = _frozen_lake()
+  with pytest.raises(ValueError, match="episodes must be a positive integer; got 0"):
+    gym.act(_random_policy(env), env, 0, seed=0)

@@ -201,7 +201,10 @@ def act(policy: PHPHierarchy | FlatPolicy, env: gymnasium.Env | gymnasium.vector
   the end where the environment reports it in any episode, else None: see `success`), "terminated",
   "truncated", "stack" (per step the call stack [[procedure, counter], ...], root first; None for a flat
   LSTM)}. on_episode(ending) is called as each episode ends, with how it ended (for a progress display).
+  Raises ValueError if episodes < 1.
   """
+  if episodes < 1:
+    raise ValueError(f"episodes must be a positive integer; got {episodes}")
   on_episode = on_episode or (lambda _: None)
   envs = env if isinstance(env, gymnasium.vector.VectorEnv) else vector_env(lambda: env, 1)
   observation_space, action_space = envs.single_observation_space, envs.single_action_space

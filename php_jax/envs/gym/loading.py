@@ -80,9 +80,11 @@ def expert_maker(name: str) -> Callable[[gymnasium.Env], Any]:
 
 def max_steps_of(env: gymnasium.Env | gymnasium.vector.VectorEnv, max_steps: int | None) -> int:
   """An episode's step limit: max_steps where given, else the environment's time limit (a TimeLimit wrapper's,
-  or its spec's), else DEFAULT_MAX_STEPS."""
+  or its spec's; of a SyncVectorEnv, its first copy's), else DEFAULT_MAX_STEPS."""
   if max_steps is not None:
     return max_steps
+  if isinstance(env, gymnasium.vector.SyncVectorEnv) and env.envs:
+    env = env.envs[0]
   wrapped = env
   while isinstance(wrapped, gymnasium.Wrapper):
     if isinstance(wrapped, gymnasium.wrappers.TimeLimit):
