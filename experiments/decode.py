@@ -6,10 +6,15 @@ call stack at every step, and whether the hierarchy replays it.
 --policy is a workdir of `experiments.fit` (or of `experiments.train`). Each output line, in input order:
 
   {"log_likelihood": float or null,     log P(actions | observations), summed over every call stack (null
-                                        where no call stack the hierarchy allows fits the demonstration)
-   "stack": [[[h, tau], ...], ...],     per step, root first: the most likely stack (exact, whole-stack Viterbi)
+                                        where no call stack fits the demonstration within the hierarchy's call
+                                        graph and the counter capacities it was trained with)
+   "stack": [[[h, tau], ...], ...],     per step, root first: the most likely stack (exact, whole-stack
+                                        Viterbi; meaningless where log_likelihood is null)
    "replayed": bool,                    the argmax policy, run on the recorded observations, takes every
-                                        recorded action and its root returns after the last
+                                        recorded action and its root returns after the last (where its
+                                        demonstrations' environment ended them, every action is enough); the
+                                        policy runs without counter capacities, so a demonstration longer than
+                                        the training ones can replay with a null log_likelihood
    "first_mismatch": int or null}       the first step where it does not (null when replayed)
 
 It prints how many replay, the demonstrations' log-likelihood per step (an unsupervised score: of
@@ -17,7 +22,8 @@ held-out demonstrations, a way to compare runs or restarts without an environmen
 calls of each procedure the decoded stacks make (a procedure never called is one the hierarchy does not
 need for these demonstrations). Stacks in the input are
 not used for decoding; where they are given, the agreement of the decoded stacks with them is printed per
-level (exact, and up to a renaming of each level's procedures). A bad flag or a malformed line ends in one
+level (exact, and up to a renaming of each level's procedures), over the demonstrations some stack fits. A bad
+flag or a malformed line ends in one
 line and exit status 2 before anything runs; the output is written atomically. The file formats:
 docs/own-demonstrations.md.
 """
@@ -30,7 +36,7 @@ from absl import app, flags
 
 from experiments.common import cli
 from php_jax.analysis import decoding
-from php_jax.data import agreement, call_tree, demo_files, files
+from php_jax.data import agreement, call_tree, demo_files, files, views
 from php_jax.envs import replay
 from php_jax.model import PHPHierarchy
 from php_jax.training import checkpoint
@@ -79,6 +85,8 @@ def main(argv):
         + (f"; {unfit} of {len(lines)} demonstrations fit no call stack" if unfit else ""))
   spec = hierarchy.spec
   fits = np.isfinite(decoded.log_likelihood)  # the stacks of demonstrations that fit none mean nothing
+  if not fits.any():
+    return
   used = call_tree.calls_per_procedure(decoded.procedures[fits], decoded.counters[fits],
                                        np.asarray(batch.length)[fits],
                                        [spec.num_procs(level) for level in range(spec.num_levels)])
@@ -87,17 +95,19 @@ def main(argv):
     unused = int(np.sum(used[level] == 0))
     print(f"level {level} calls: {calls}" + (f"; {unused} of {spec.num_procs(level)} procedures never called"
                                               if unused else ""))
+  given = views.select(batch, fits)
+  procs, counters = decoded.procedures[fits], decoded.counters[fits]
+  over = f" (over the {int(fits.sum())} of {len(lines)} demonstrations some stack fits)" if unfit else ""
   for level in range(1, spec.num_levels):
-    measured = agreement.stack_agreement(batch.procedures, batch.counters, decoded.procedures, decoded.counters,
-                                         level)
+    measured = agreement.stack_agreement(given.procedures, given.counters, procs, counters, level)
     if measured:
       exact, renamed = measured
-      boundaries = agreement.stack_boundary_scores(batch.procedures, batch.counters, decoded.procedures,
-                                                   decoded.counters, batch.length, level)
+      boundaries = agreement.stack_boundary_scores(given.procedures, given.counters, procs, counters,
+                                                   given.length, level)
       found = f"; call boundaries: F1 {boundaries['f1']:.3f}" if boundaries else ""
-      procedures = agreement.stack_procedure_agreement(batch.procedures, decoded.procedures, level)
+      procedures = agreement.stack_procedure_agreement(given.procedures, procs, level)
       print(f"level {level}: decoded stacks agree with the given ones on {exact:.3f} of annotated steps "
-            f"({renamed:.3f} up to renaming; procedures alone, renamed: {procedures:.3f}){found}")
+            f"({renamed:.3f} up to renaming; procedures alone, renamed: {procedures:.3f}){found}{over}")
 
 
 if __name__ == "__main__":

@@ -273,6 +273,17 @@ def test_fit_decode_show_and_report_on_the_warehouse_example(tmp_path):
   # A finished run is not trained again: its results are shown, results.json is left as it was.
   assert json.loads(rerun.stdout.splitlines()[-1]).get("finished_before") is True
   assert (workdir / "results.json").read_bytes() == results_before
+  # A demonstration too long for the counter capacities fits no stack: agreement is measured without it.
+  long = dict(given[0], stack=None)
+  long["observations"] = given[0]["observations"][:1] + given[0]["observations"][1:] * 8
+  long["actions"] = given[0]["actions"] * 8
+  mixed = tmp_path / "mixed.jsonl"
+  mixed.write_text(held_out.read_text() + json.dumps(long) + "\n")
+  proc = _run("experiments.decode", f"--policy={workdir}", f"--demos={mixed}", f"--out={tmp_path / 'mixed.out'}")
+  assert proc.returncode == 0, proc.stderr
+  assert "1 of 6 demonstrations fit no call stack" in proc.stdout
+  assert "level 1: decoded stacks agree with the given ones on" in proc.stdout
+  assert proc.stdout.count("(over the 5 of 6 demonstrations some stack fits)") == 2  # levels 1 and 2
 
 
 def test_fit_restarts_each_candidate_by_default_where_one_or_two_demonstrations_are_annotated():
