@@ -44,7 +44,8 @@ def main(argv):
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
   cli.exit_on_interrupt(f"--out={_OUT.value} not written")
   try:
-    cli.check_outputs({"out": _OUT.value}, {"problems": _PROBLEMS.value})
+    cli.check_outputs({"out": _OUT.value}, {"problems": _PROBLEMS.value,
+                                            "policy": None if _POLICY.value == "oracle" else _POLICY.value})
     task = tasks.get(_TASK.value)
     problems = problem_files.read_problems(_PROBLEMS.value, task)
     policy = load_policy(_TASK.value, task, _POLICY.value)

@@ -17,6 +17,10 @@ from absl import flags, logging
 from experiments.common.flag_groups import GROUPS
 from php_jax.data import files, shards
 from php_jax.training import checkpoint
+from php_jax.training.run import RUN_FILES
+from php_jax.training.selection import CANDIDATES_DIR
+
+RUN_FOLDERS = (checkpoint.MODEL_DIR, checkpoint.TRAINING_DIR, CANDIDATES_DIR)  # what a run writes below its workdir
 
 
 def fail(message: str) -> NoReturn:
@@ -58,13 +62,14 @@ def check_outputs(outputs: dict[str, str | None], inputs: dict[str, str | None],
                   demo_sets: bool = False) -> None:
   """Raises ValueError naming the flag of the first output ({flag: path}; None: not asked for) that could
   not be written, before any work: an empty path, a directory, a file in a missing (unless make_folders: the
-  command makes it) or unwritable directory, one of the inputs ({flag: path}; a --policy workdir's flag: its
-  model files) or another output. demo_sets: an output ending in shards.SUFFIX is a binary demonstration set,
+  command makes it) or unwritable directory, one of the inputs ({flag: path}; a --policy workdir's flag: the
+  files its run wrote, and anything inside the folders it wrote) or another output. demo_sets: an output ending in shards.SUFFIX is a binary demonstration set,
   which replaces a set there but nothing else."""
-  seen = {}
+  seen, run_folders = {}, []
   for flag, path in inputs.items():
     if flag == "policy" and path:
-      seen.update({f"policy={path}:{name}": os.path.join(path, name) for name in checkpoint.MODEL_FILES})
+      seen.update({f"policy={path}:{name}": os.path.join(path, name) for name in RUN_FILES})
+      run_folders += [(path, name) for name in RUN_FOLDERS]
     else:
       seen[flag] = path
   for flag, path in outputs.items():
@@ -86,10 +91,15 @@ def check_outputs(outputs: dict[str, str | None], inputs: dict[str, str | None],
       raise ValueError(f"--{flag}={path}: {directory} is a file, not a directory")
     if not os.access(directory, os.W_OK | os.X_OK):
       raise ValueError(f"--{flag}={path}: directory {directory} is not writable")
+    for policy, name in run_folders:
+      if os.path.realpath(path).startswith(os.path.realpath(os.path.join(policy, name)) + os.sep):
+        raise ValueError(f"--{flag}={path} is inside {name}/ of --policy={policy}, which its run wrote: write "
+                         "elsewhere")
     for other, other_path in seen.items():
       if other_path and _same_file(path, other_path):
         if other.startswith("policy="):
-          raise ValueError(f"--{flag}={path} is the model file {other_path} of --{other.rsplit(':', 1)[0]}")
+          kind = "model" if os.path.basename(other_path) in checkpoint.MODEL_FILES else "run's"
+          raise ValueError(f"--{flag}={path} is the {kind} file {other_path} of --{other.rsplit(':', 1)[0]}")
         raise ValueError(f"--{flag}={path} is the {'input file' if other in inputs else 'same file as'} "
                          f"--{other}={other_path}")
     seen[flag] = path

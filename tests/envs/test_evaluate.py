@@ -86,6 +86,24 @@ def test_unusable_out_paths_are_refused(tmp_path):
   with pytest.raises(ValueError, match=r"--out=.*run/model.json is the model file .*model.json of --policy=.*run$"):
     cli.check_outputs({"out": str(tmp_path / "run" / "model.json")}, {"policy": str(tmp_path / "run")})
   cli.check_outputs({"out": str(tmp_path / "run" / "decoded.jsonl")}, {"policy": str(tmp_path / "run")})
+  with pytest.raises(ValueError, match=r"--out=.*run/results.json is the run's file .*results.json of --policy="):
+    cli.check_outputs({"out": str(tmp_path / "run" / "results.json")}, {"policy": str(tmp_path / "run")})
+  for folder in ("model", "checkpoint", "candidates"):  # the run's own folders: a file there spoils it
+    (tmp_path / "run" / folder).mkdir()
+    with pytest.raises(ValueError, match=rf"--out=.*run/{folder}/x.jsonl is inside {folder}/ of --policy=.*run, "
+                                         "which its run wrote: write elsewhere"):
+      cli.check_outputs({"out": str(tmp_path / "run" / folder / "x.jsonl")}, {"policy": str(tmp_path / "run")})
+
+
+def test_evaluate_refuses_to_write_over_the_model_it_reads(tmp_path):
+  (tmp_path / "run").mkdir()
+  problems = tmp_path / "in.jsonl"
+  problems.write_text('{"a": "1", "b": "2"}\n')
+  proc = subprocess.run([sys.executable, "-m", "experiments.evaluate", "--task=addition", f"--policy={tmp_path / 'run'}",
+                         f"--problems={problems}", f"--out={tmp_path / 'run' / 'model.json'}"],
+                        capture_output=True, text=True, timeout=300)
+  assert proc.returncode == 2 and proc.stderr.strip().endswith(f"is the model file {tmp_path / 'run' / 'model.json'} "
+                                                               f"of --policy={tmp_path / 'run'}"), proc.stderr
 
 
 def test_a_refusal_is_one_line_even_when_a_path_holds_a_newline(capsys):
