@@ -68,13 +68,16 @@ def main(argv):
     cli.fail(str(e))
   start = time.perf_counter()
   endings = []
-  with progress.counting(_EPISODES.value, "episodes") as on_episode:
-    def ended(ending: success.Ending) -> None:
-      endings.append(ending)
-      on_episode()
+  try:
+    with progress.counting(_EPISODES.value, "episodes") as on_episode:
+      def ended(ending: success.Ending) -> None:
+        endings.append(ending)
+        on_episode()
 
-    episodes = gym.act(policy, envs, _EPISODES.value, environment_flags.SEED.value,
-                       environment_flags.MAX_STEPS.value, ended, rule)
+      episodes = gym.act(policy, envs, _EPISODES.value, environment_flags.SEED.value,
+                         environment_flags.MAX_STEPS.value, ended, rule)
+  except gym.GymError as e:  # the environment failed, or gave an observation that is not finite
+    cli.fail(f"{e}; --out={_OUT.value} not written")
   seconds = time.perf_counter() - start
   with cli.output_errors("out", _OUT.value):
     files.write_atomically(_OUT.value, "".join(json.dumps(e) + "\n" for e in episodes).encode())

@@ -200,6 +200,68 @@ def test_record_refuses_a_broken_stack_a_bad_action_and_missing_stacks_naming_ep
     gym.record(make_corridor(), CorridorExpert(None), episodes=1, seed=0, annotate=1, spec=narrow)
 
 
+class _Failing(gymnasium.Env):
+  """Five steps of nothing on a Box observation, its step() raising at step fail_at or its observation NaN from
+  step nan_from."""
+  observation_space = spaces.Box(-np.inf, np.inf, (2,), np.float32)
+  action_space = spaces.Discrete(2)
+
+  def __init__(self, fail_at=None, nan_from=None):
+    self.fail_at, self.nan_from, self.t = fail_at, nan_from, 0
+
+  def _observation(self):
+    return np.array([np.nan if self.nan_from is not None and self.t >= self.nan_from else 0.0, 1.0], np.float32)
+
+  def reset(self, *, seed=None, options=None):
+    super().reset(seed=seed)
+    self.t = 0
+    return self._observation(), {}
+
+  def step(self, action):
+    self.t += 1
+    if self.t == self.fail_at:
+      raise RuntimeError("the motor stalled")
+    return self._observation(), 0.0, self.t >= 5, False, {}
+
+
+class _Idle:
+  def __init__(self, env=None):
+    pass
+
+  def act(self, observation, info):
+    return 0
+
+
+def test_an_environment_or_expert_that_fails_or_observes_nan_is_named_with_episode_and_step():
+  with pytest.raises(gym.GymError, match=r"^episode 0, step 1: the environment's step\(\) failed: RuntimeError: "
+                                         "the motor stalled$"):
+    gym.record(_Failing(fail_at=2), _Idle(), episodes=1, seed=0)
+  with pytest.raises(gym.GymError, match=r"^episode 0, step 2: the environment's observation holds NaN"):
+    gym.record(_Failing(nan_from=2), _Idle(), episodes=1, seed=0)
+
+  class ResetFails(CorridorExpert):
+    def reset(self, observation, info):
+      raise KeyError("goal")
+
+  with pytest.raises(gym.GymError, match=r"^episode 0, step 0: the expert's reset\(\) failed: KeyError: 'goal'"):
+    gym.record(make_corridor(), ResetFails(None), episodes=1, seed=0)
+  policy = PHPHierarchy(HierarchySpec("idle", (("root",), ("a",)), (2,), 2), hidden=(4,), rngs=nnx.Rngs(0))
+  for level in policy.levels:  # never stop: the environment ends each episode
+    level.termination.biases[-1][...] = jnp.full_like(level.termination.biases[-1][...], -30.0)
+  with pytest.raises(gym.GymError, match=r"^acting: the environment's step\(\) failed: RuntimeError: the motor"):
+    gym.act(policy, _Failing(fail_at=3), 2, seed=0)
+  with pytest.raises(gym.GymError, match=r"^episode 0, step 2: the environment's observation holds NaN"):
+    gym.act(policy, _Failing(nan_from=2), 2, seed=0)
+  gymnasium.register("PhpJaxUnmakeable-v0", entry_point=_unmakeable)  # as LunarLander without Box2D
+  with pytest.raises(gym.GymError, match=r"^environment 'PhpJaxUnmakeable-v0': making it failed: "
+                                         "DependencyNotInstalled: Box2D is not installed"):
+    gym.env_maker("PhpJaxUnmakeable-v0")()
+
+
+def _unmakeable():
+  raise gymnasium.error.DependencyNotInstalled("Box2D is not installed")
+
+
 class TupleExpert(CorridorExpert):
   """CorridorExpert's choices, its stack as a tuple of tuples of NumPy ints."""
 
@@ -263,7 +325,7 @@ def test_record_makes_its_folder_takes_module_env_id_and_judges_the_expert(tmp_p
   assert made.returncode == 0 and len(corridor.read_text().splitlines()) == 4, made.stderr
   assert made.stdout.splitlines()[-2] == "the expert: success 1.000 (info:is_success)"
   assert walked.returncode == 0 and len(lake.read_text().splitlines()) == 5, walked.stderr
-  assert walked.stdout.splitlines()[-2].startswith("the expert: success unknown: the environment reports no")
+  assert walked.stdout.splitlines()[-2].startswith("the expert: success unknown: no episode's last step reported")
   assert judged.returncode == 0 and re.fullmatch(r"the expert: success 0\.\d{3} \(reward>0\)",
                                                  judged.stdout.splitlines()[-2]), judged.stdout
 

@@ -16,7 +16,8 @@ from gymnasium import spaces
 from php_jax import executor
 from php_jax.envs import success
 from php_jax.envs.gym.loading import max_steps_of
-from php_jax.envs.gym.spaces import GymError, action_sizes, env_actions, flatten_batch, observation_size
+from php_jax.envs.gym.spaces import (GymError, action_sizes, call_user_code, check_finite, env_actions,
+                                     flatten_batch, observation_size)
 from php_jax.flat import FlatPolicy
 from php_jax.model import PHPHierarchy
 
@@ -211,7 +212,8 @@ def act(policy: PHPHierarchy | FlatPolicy, env: gymnasium.Env | gymnasium.vector
   check_policy(policy, observation_space, action_space)
   limit, num = max_steps_of(env, max_steps), envs.num_envs
   state = _Episodes(num, episodes, seed, isinstance(policy, PHPHierarchy))
-  observations, infos = envs.reset(seed=state.assign(np.arange(num)))
+  observations, infos = call_user_code("the environment's reset()", "acting", envs.reset,
+                                       seed=state.assign(np.arange(num)))
   state.reset_infos = [copy_info(infos, m) for m in range(num)]
   memory, fresh, key = _initial_memory(policy, num), np.ones(num, bool), jax.random.key(seed)
   graphdef, params = nnx.split(policy)
@@ -224,16 +226,19 @@ def act(policy: PHPHierarchy | FlatPolicy, env: gymnasium.Env | gymnasium.vector
     seeds = [None] * num
     for m, s in zip(copies, state.assign(copies)):
       seeds[m] = s
-    observations, infos = envs.reset(seed=seeds, options={"reset_mask": mask})  # every copy's observation
+    observations, infos = call_user_code("the environment's reset()", "acting", envs.reset, seed=seeds,
+                                         options={"reset_mask": mask})  # every copy's observation
     for m in copies:
       state.reset_infos[m] = copy_info(infos, m)
     fresh[copies] = True
 
   while (state.episode >= 0).any():
     while True:
+      flat = flatten_batch(envs, observations)
+      for m in np.flatnonzero(state.episode >= 0):
+        check_finite(flat[m], f"episode {state.episode[m]}, step {state.steps[m]}")
       new_memory, actions, returned = _decisions(
-          (graphdef, treedef), leaves, memory, flatten_batch(envs, observations), fresh,
-          (np.maximum(state.episode, 0), state.steps), key)
+          (graphdef, treedef), leaves, memory, flat, fresh, (np.maximum(state.episode, 0), state.steps), key)
       ended = np.flatnonzero(np.asarray(returned) & (state.episode >= 0))
       if not ended.size:
         break
@@ -246,7 +251,8 @@ def act(policy: PHPHierarchy | FlatPolicy, env: gymnasium.Env | gymnasium.vector
       frames = np.stack([np.asarray(memory.procedures), np.asarray(memory.counters)], -1).tolist()  # [M][d][2]
       for m in np.flatnonzero(state.episode >= 0):
         state.stacks[m].append(frames[m])
-    observations, rewards, terminated, truncated, infos = envs.step(env_actions(action_space, actions))
+    observations, rewards, terminated, truncated, infos = call_user_code(
+        "the environment's step()", "acting", envs.step, env_actions(action_space, actions))
     state.steps += 1
     state.returns += rewards
     state.last_rewards[:] = rewards

@@ -9,7 +9,7 @@ import gymnasium
 
 from php_jax.envs import import_path
 from php_jax import encoders
-from php_jax.envs.gym.spaces import GymError, observation_fields
+from php_jax.envs.gym.spaces import GymError, call_user_code, observation_fields
 
 DEFAULT_MAX_STEPS = 10_000  # an episode's step limit where the environment sets none
 
@@ -19,7 +19,7 @@ def _registered(name: str) -> Callable[[], gymnasium.Env]:
     gymnasium.spec(name)
   except gymnasium.error.Error as e:
     raise GymError(f"unknown environment {name!r}: {e}") from None
-  return lambda: gymnasium.make(name)
+  return lambda: call_user_code("making it", f"environment {name!r}", gymnasium.make, name)
 
 
 def env_maker(name: str) -> Callable[[], gymnasium.Env]:

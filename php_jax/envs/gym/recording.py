@@ -20,8 +20,8 @@ from php_jax.data import demo_files, files, shards
 from php_jax.demos import UNKNOWN
 from php_jax.envs import success
 from php_jax.envs.gym.loading import max_steps_of
-from php_jax.envs.gym.spaces import (GymError, action_factors, action_sizes, check_observation_space,
-                                     flatten_observation)
+from php_jax.envs.gym.spaces import (GymError, action_factors, action_sizes, call_user_code, check_finite,
+                                     check_observation_space, flatten_observation)
 from php_jax.hierarchy import HierarchySpec
 
 
@@ -116,26 +116,34 @@ def recorded(env: gymnasium.Env, expert, episodes: int, seed: int, annotate: int
 def _episode(env: gymnasium.Env, expert, seed: int, limit: int, episode: int
              ) -> tuple[dict, list, success.Ending]:
   """One episode of the expert, reset with seed: (its line without a stack, the stack it gave at each step
-  (None where it gave none), how it ended). GymError naming the episode and step where the expert fails."""
+  (None where it gave none), how it ended). GymError naming the episode and step where the expert or the
+  environment fails, or an observation is not finite."""
   observation_space, action_space = env.observation_space, env.action_space
-  observation, info = env.reset(seed=seed)
+
+  def where() -> str:
+    return f"episode {episode}, step {len(actions)}"
+
+  def flat(observation) -> list[float]:
+    vector = flatten_observation(observation_space, observation)
+    check_finite(vector, where())
+    return vector.tolist()
+
+  actions = []
+  observation, info = call_user_code("the environment's reset()", where(), env.reset, seed=seed)
   if hasattr(expert, "reset"):
-    expert.reset(observation, info)
-  observations, actions, stacks = [flatten_observation(observation_space, observation).tolist()], [], []
+    call_user_code("the expert's reset()", where(), expert.reset, observation, info)
+  observations, stacks = [flat(observation)], []
   rewards, terminated, truncated = [], False, False
   while not (terminated or truncated):
-    try:
-      action, stack = _expert_output(expert.act(observation, info))
-    except Exception as e:  # the user's code, failing in any way: one line naming where
-      raise GymError(f"episode {episode}, step {len(actions)}: the expert's act() failed: "
-                     f"{type(e).__name__}: {e}") from None
+    step = where()
+    action, stack = call_user_code("the expert's act()", step, lambda: _expert_output(expert.act(observation, info)))
     if not action_space.contains(action if not isinstance(action, list) else np.asarray(action)):
-      raise GymError(f"episode {episode}, step {len(actions)}: the expert's action {action!r} is not in the "
-                     f"action space {action_space}")
+      raise GymError(f"{step}: the expert's action {action!r} is not in the action space {action_space}")
     actions.append(action_factors(action_space, action))
     stacks.append(None if stack is None else _as_lists(stack))
-    observation, reward, terminated, truncated, info = env.step(action)
-    observations.append(flatten_observation(observation_space, observation).tolist())
+    observation, reward, terminated, truncated, info = call_user_code("the environment's step()", step, env.step,
+                                                                      action)
+    observations.append(flat(observation))
     rewards.append(float(reward))
     truncated = bool(truncated) or (len(actions) >= limit and not terminated)
   ending = success.Ending(sum(rewards), rewards[-1] if rewards else None, bool(terminated), truncated, dict(info))

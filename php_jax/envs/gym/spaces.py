@@ -21,6 +21,25 @@ class GymError(ValueError):
   """An environment, expert or policy that php_jax cannot use as given; the message says why."""
 
 
+def call_user_code(what: str, where: str, function, *args, **kwargs):
+  """function(*args, **kwargs): a call into the environment's or the expert's code, any exception it raises
+  becoming a GymError in one line naming where it happened and what failed ("episode 3, step 7: the
+  environment's step() failed: RuntimeError: ...")."""
+  try:
+    return function(*args, **kwargs)
+  except GymError:
+    raise
+  except Exception as e:  # the user's code, failing in any way
+    raise GymError(f"{where}: {what} failed: {type(e).__name__}: {e}") from None
+
+
+def check_finite(observations: np.ndarray, where: str) -> None:
+  """Raises GymError naming where unless every number of the flattened observation(s) is finite."""
+  if not np.all(np.isfinite(observations)):
+    raise GymError(f"{where}: the environment's observation holds NaN or infinity; php_jax needs finite numbers "
+                   "(an observation wrapper can replace them)")
+
+
 def check_observation_space(space: spaces.Space, where: str = "observation space") -> None:
   if isinstance(space, spaces.Dict):
     for key, sub in space.spaces.items():
