@@ -43,7 +43,8 @@ from php_jax.envs import tasks
 _TASK = flags.DEFINE_string("task", None, "The task trained (what experiments.train --task takes).")
 _WORKDIR = flags.DEFINE_string("workdir", None, "Parent directory of the runs' workdirs.")
 _GRID = flags.DEFINE_multi_string("grid", [], "name=v1,v2,...: a flag of the experiment and its values.")
-_PARALLEL = flags.DEFINE_integer("parallel", 1, "Runs at a time (with --gpus, on each GPU).", lower_bound=1)
+_PARALLEL = flags.DEFINE_integer("parallel", 1, "Runs at a time (with --gpus, on each GPU).", lower_bound=1,
+                                 upper_bound=1024)
 _GPUS = flags.DEFINE_list("gpus", None, "GPUs to run on (CUDA's ids, as CUDA_VISIBLE_DEVICES takes them): each run "
                           "gets one of them alone, --parallel runs per GPU. Default: every run sees this process's "
                           "devices.")
@@ -75,6 +76,17 @@ def parse_grid(entries: list[str]) -> list[dict[str, str]]:
   combos = [dict(c) for c in itertools.product(*axes)]
   return [c for c in combos
           if not ("num_strong" in c and "num_demos" in c and int(c["num_strong"]) > int(c["num_demos"]))]
+
+
+def check_passed_flags(extra: list[str], swept: set[str]) -> None:
+  """Raises ValueError naming the first flag after `--` that the sweep sets itself: --task, --workdir, or one
+  in swept (the --grid's names, and --seed(s) with --seeds). Passed on, it would silently replace the sweep's
+  value in every run."""
+  for arg in extra:
+    name = arg.lstrip("-").partition("=")[0]
+    if arg.startswith("-") and name in {"task", "workdir"} | swept:
+      raise ValueError(f"{arg} after --: the sweep sets --{name} itself (by --task, --workdir, --grid or --seeds): "
+                       "give it there")
 
 
 def run_name(combo: dict[str, str]) -> str:
@@ -152,6 +164,8 @@ def main(argv):
                         "command to go on")
   try:
     combos = parse_grid(_GRID.value)
+    check_passed_flags(extra, {name for combo in combos for name in combo} | (
+        {"seeds", "seed"} if _SEEDS.value is not None else set()))
   except ValueError as e:
     cli.fail(str(e))
   if not _WORKDIR.value:
@@ -169,7 +183,7 @@ def main(argv):
       cli.fail(str(e))
     extra = [f"--seeds={','.join(seeds)}", *extra]
   gpus = _GPUS.value or [None]
-  if _GPUS.value is not None and not (all(_GPUS.value) and len(set(_GPUS.value)) == len(_GPUS.value)):
+  if _GPUS.value is not None and not (_GPUS.value and all(_GPUS.value) and len(set(_GPUS.value)) == len(_GPUS.value)):
     cli.fail(f"--gpus={','.join(_GPUS.value)}: GPU ids must be distinct and non-empty")
   try:
     tasks.get(_TASK.value)

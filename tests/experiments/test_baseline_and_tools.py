@@ -248,7 +248,11 @@ def test_sweep_command_refuses_bad_flags_and_writes_nothing(tmp_path):
   cases = [(["--grid=num_demos=16,x"], "num_demos values"), (["--parallel=0"], "parallel"),
            (["--grid=seed=1", "--grid=seed=2"], "given twice"), (["--gpus=0,0"], "distinct"),
            (["--seeds=1,x"], "distinct non-negative integers"), (["--seeds=1,2", "--grid=seed=3"], "give one of them"),
-           (["--task=sorting"], "--task: unknown task 'sorting'"), (["--workdir="], "--workdir: must name a directory")]
+           (["--task=sorting"], "--task: unknown task 'sorting'"), (["--workdir="], "--workdir: must name a directory"),
+           (["--grid=seed=1,2", "--", "--seed=5"], "--seed=5 after --: the sweep sets --seed itself"),
+           (["--grid=seed=1", "--", f"--workdir={tmp_path / 'elsewhere'}"], "the sweep sets --workdir itself"),
+           (["--seeds=1,2", "--", "--seed=3"], "--seed=3 after --: the sweep sets --seed itself"),
+           (["--gpus="], "GPU ids must be distinct and non-empty"), (["--parallel=100000000000000000000"], "parallel")]
   # Run at the same time, each with its own workdir.
   processes.assert_refused([(["experiments.sweep", "--task=nanocraft", f"--workdir={tmp_path / f'sweep{i}'}", *flags],
                              message) for i, (flags, message) in enumerate(cases)], timeout=300)
