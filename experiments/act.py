@@ -40,7 +40,8 @@ from php_jax.training import checkpoint
 
 _POLICY = flags.DEFINE_string("policy", None, "Workdir of experiments.fit holding the policy.")
 _EPISODES = flags.DEFINE_integer("episodes", 100, "Episodes to run.", lower_bound=1)
-_NUM_ENVS = flags.DEFINE_integer("num_envs", 1, "Copies of the environment stepped together.", lower_bound=1)
+_NUM_ENVS = flags.DEFINE_integer("num_envs", 1, "Copies of the environment stepped together.", lower_bound=1,
+                                 upper_bound=4096)
 _OUT = flags.DEFINE_string("out", None, "Output JSON-lines file, one line per episode.")
 _SAMPLE = flags.DEFINE_bool("sample", False, "Draw each choice from the policy's distribution instead of taking "
                             "the most likely (a hierarchy: operations and terminations; a flat baseline: actions and "

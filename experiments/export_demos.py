@@ -13,6 +13,7 @@ set (a directory of shards, for large data sets; docs/own-demonstrations.md), an
 """
 from __future__ import annotations
 
+import numpy as np
 from absl import app, flags
 
 from experiments.common import cli
@@ -22,10 +23,11 @@ from php_jax.training.config import MAX_SEED
 
 _TASK = flags.DEFINE_string("task", None, f"The task: one of {', '.join(tasks.TASKS)}, or module:attribute.")
 _SPLIT = flags.DEFINE_enum("split", "training", ["training", "validation", "test"], "Which problems.")
-_NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "Demonstrations. Default: the task's training set size.")
+_NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "Demonstrations. Default: the task's training set size.",
+                                  upper_bound=datasets.MOST_DEMOS)
 _NUM_STRONG = flags.DEFINE_integer("num_strong", 0, "How many carry their call stack.")
 _SIZE = flags.DEFINE_integer("size", None, "test: problem size (digits, array length) where the task has sizes; "
-                             "default: the training distribution.")
+                             "default: the training distribution.", upper_bound=1 << 20)
 _SEED = flags.DEFINE_integer("seed", 0, "Seed (the training command's --seed for the same data).")
 _OUT = flags.DEFINE_string("out", None, "Output demonstration file: JSON lines, or a binary set where it ends in "
                            ".shards.")
@@ -52,6 +54,8 @@ def main(argv):
     cli.fail(f"--num_strong must be in 0..--num_demos={num} and --num_demos ≥ 1; got {_NUM_STRONG.value} of {num}")
   if _SIZE.value is not None and _SPLIT.value != "test":
     cli.fail("--size is for --split=test")
+  if _SIZE.value is not None and not task.defaults.test_lengths:
+    cli.fail(f"--size: {task.name}'s problems have no size (its tests draw from the training distribution)")
   if _SIZE.value is not None and _SIZE.value < 1:
     cli.fail(f"--size must be a positive integer; got {_SIZE.value}")
   if not 0 <= _SEED.value <= MAX_SEED:
@@ -64,7 +68,9 @@ def main(argv):
       problems = task.validation_problems(seed, num)
     else:
       problems = task.test_problems(seed, num, _SIZE.value)
-    task.states_and_budget(problems[:1])  # a size the task cannot pose (a one-digit array) is refused here
+    _, budget = task.states_and_budget(problems[:1])  # a size the task cannot pose (a one-digit array) is refused
+    if budget > np.iinfo(np.int32).max:
+      raise ValueError(f"its episodes may take {budget} steps, beyond 32-bit step counts: choose a smaller size")
   except ValueError as e:
     cli.fail(f"--size={_SIZE.value}: {e}" if _SIZE.value is not None else str(e))
   batch = datasets.problem_demonstrations(task, problems, 0)

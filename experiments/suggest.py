@@ -34,7 +34,7 @@ _TASK = flags.DEFINE_string("task", None, "A registered task (or module:attribut
 _SEED = flags.DEFINE_integer("seed", 0, "With --task: the seed of the training set (experiments.train's --seed).",
                              lower_bound=0)
 _NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "With --task: demonstrations in the training set, where the "
-                                  "task offers a choice. Default: the task's.")
+                                  "task offers a choice. Default: the task's.", upper_bound=datasets.MOST_DEMOS)
 _POLICY = flags.DEFINE_string("policy", None, "Optional: a trained hierarchy's workdir; its uncertainty about "
                               "each demonstration's segmentation ranks instead of the length.")
 _BUDGET = flags.DEFINE_integer("budget", None, "How many demonstrations to choose.", lower_bound=1)

@@ -49,7 +49,7 @@ def _per_task(value) -> str:
 _NUM_DEMOS = flags.DEFINE_integer("num_demos", None, "Demonstrations in the training set, where the task offers "
                                   "a choice. Default: the task's (" + _per_task(
                                       lambda d: d.num_demos if not d.num_demos_fixed else f"{d.num_demos}, fixed")
-                                  + ").")
+                                  + ").", upper_bound=datasets.MOST_DEMOS)
 _TEST_LENGTHS = flags.DEFINE_list("test_lengths", None, "Problem sizes of the test sets (e.g. digits, array "
                                   "lengths). Default: the task's (" + _per_task(
                                       lambda d: ",".join(map(str, d.test_lengths or ())) or "one set") + ").")

@@ -5,11 +5,12 @@ from __future__ import annotations
 from absl import flags
 
 from php_jax.envs import gym, success
+from php_jax.training.config import MAX_SEED
 
 ENV = flags.DEFINE_string("env", None, "A registered Gymnasium id (Taxi-v3); module:EnvId, which imports module "
                           "(registering its environments) and makes EnvId (minigrid:BabyAI-GoToLocal-v0); or "
                           "module:attribute of a callable returning a gymnasium.Env.")
-SEED = flags.DEFINE_integer("seed", 0, "Episode i is reset with seed + i.", lower_bound=0)
+SEED = flags.DEFINE_integer("seed", 0, "Episode i is reset with seed + i.", lower_bound=0, upper_bound=MAX_SEED)
 MAX_STEPS = flags.DEFINE_integer("max_steps", None, "Step limit per episode. Default: the environment's time "
                                  f"limit, else {gym.DEFAULT_MAX_STEPS}.", lower_bound=1)
 SUCCESS = flags.DEFINE_string(

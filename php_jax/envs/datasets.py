@@ -8,6 +8,7 @@ from php_jax import demos, executor
 from php_jax.envs.task import Task
 from php_jax.hierarchy import check_size
 
+MOST_DEMOS = 100_000  # the most demonstrations a command builds from a task's problems in memory
 SEED_OFFSETS = {"training": 0, "validation": 10_000, "test": 20_000}  # added to a run's seed per problem set
 
 

@@ -491,6 +491,7 @@ def test_record_and_act_refusals_end_in_one_line_and_exit_2(tmp_path):
       ((*record, "--episodes=2", "--annotated=3"), "--annotated=3 is more than --episodes=2"),
       ((*record, "--episodes=0"), "--episodes=0"),
       ((*record, "--episodes=2", "--annotated=-1"), "--annotated=-1"),
+      ((*record, "--episodes=1", "--seed=99999999999"), "99999999999 is not an integer in the range [0, 2147483647]"),
       ((*record, "--episodes=2", "--seed=-1"), "--seed=-1"),
       ((*record, "--episodes=2", "--max_steps=0"), "--max_steps=0"),
       (("experiments.act", f"--policy={flat}", env, "--num_envs=0", f"--out={out}"), "--num_envs=0"),

@@ -386,10 +386,18 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
       (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={hierarchy}",
         f"--workdir={tmp_path / 'w19'}", f"--test={WAREHOUSE / 'train.jsonl'}"),
        f"--test={WAREHOUSE / 'train.jsonl'} is the --demos file: give demonstrations the run does not read"),
+      (("experiments.export_demos", "--task=nanocraft", "--split=test", "--size=5", f"--out={tmp_path / 'o.jsonl'}"),
+       "--size: nanocraft's problems have no size"),
+      (("experiments.export_demos", "--task=bubblesort", "--split=test", "--size=16384", "--num_demos=1",
+        f"--out={tmp_path / 'o.jsonl'}"), "--size=16384: its episodes may take 2684141571 steps, beyond 32-bit"),
+      (("experiments.export_demos", "--task=nanocraft", "--num_demos=10000000000", f"--out={tmp_path / 'o.jsonl'}"),
+       "flag --num_demos=10000000000: 10000000000 is not integer <= 100000"),
+      (("experiments.train", "--task=nanocraft", "--num_demos=10000000000", f"--workdir={tmp_path / 'w20'}"),
+       "flag --num_demos=10000000000: 10000000000 is not integer <= 100000"),
   ]
   # Run at the same time, each with its own workdir.
   processes.assert_refused(cases)
-  assert not any((tmp_path / f"w{i}").exists() for i in range(1, 20)) and not (tmp_path / "o.jsonl").exists()
+  assert not any((tmp_path / f"w{i}").exists() for i in range(1, 21)) and not (tmp_path / "o.jsonl").exists()
   assert not (tmp_path / "o.txt").exists()
 
 
