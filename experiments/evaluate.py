@@ -47,7 +47,10 @@ def main(argv):
     cli.check_outputs({"out": _OUT.value}, {"problems": _PROBLEMS.value,
                                             "policy": None if _POLICY.value == "oracle" else _POLICY.value})
     task = tasks.get(_TASK.value)
-    problems = problem_files.read_problems(_PROBLEMS.value, task)
+    try:
+      problems = problem_files.read_problems(_PROBLEMS.value, task)
+    except OSError as e:
+      raise ValueError(f"--problems={_PROBLEMS.value}: {e.strerror or e}") from None
     policy = load_policy(_TASK.value, task, _POLICY.value)
   except (OSError, ValueError) as e:  # ProblemFileError and CheckpointError are ValueErrors
     cli.fail(str(e))

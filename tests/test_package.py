@@ -64,6 +64,20 @@ def test_write_atomically_removes_its_temporary_file_when_the_write_fails(tmp_pa
   assert os.listdir(tmp_path) == ["results.json"] and path.read_bytes() == b"old"
 
 
+def test_a_failed_write_removes_the_folders_it_made_for_its_file(tmp_path):
+  (tmp_path / "kept").mkdir()
+
+  def failing():
+    yield b"first line\n"
+    raise ValueError("the recording failed")
+
+  with pytest.raises(ValueError, match="the recording failed"):
+    files.write_streamed(str(tmp_path / "new" / "sub" / "o.jsonl"), failing())
+  with pytest.raises(TypeError):
+    files.write_atomically(str(tmp_path / "kept" / "new" / "o.json"), object())
+  assert sorted(os.listdir(tmp_path)) == ["kept"] and os.listdir(tmp_path / "kept") == []
+
+
 @pytest.mark.parametrize("error", [OSError("disk full"), KeyboardInterrupt()])
 def test_write_atomically_removes_its_temporary_file_when_the_rename_fails(tmp_path, monkeypatch, error):
   def fail(src, dst):

@@ -25,14 +25,13 @@ def write_atomically(path: str, data: bytes) -> None:
   if jax.process_index() != 0:
     return
   with WRITING:
-    path, tmp, f = _temporary(path)
+    path, tmp, f, made = _temporary(path)
     try:
       with f:
         f.write(data)
       os.replace(tmp, path)
     except BaseException:
-      with contextlib.suppress(OSError):
-        os.unlink(tmp)
+      _remove(tmp, made)
       raise
 
 
@@ -43,7 +42,7 @@ def write_streamed(path: str, chunks: Iterable[bytes]) -> None:
   if jax.process_index() != 0:
     return
   with WRITING:  # an interrupt finds the file listed as soon as it exists
-    path, tmp, f = _temporary(path)
+    path, tmp, f, made = _temporary(path)
     PARTIAL.add(tmp)
   try:
     with f:
@@ -53,8 +52,7 @@ def write_streamed(path: str, chunks: Iterable[bytes]) -> None:
       os.replace(tmp, path)
       PARTIAL.discard(tmp)
   except BaseException:
-    with contextlib.suppress(OSError):
-      os.unlink(tmp)
+    _remove(tmp, made)
     PARTIAL.discard(tmp)
     raise
 
@@ -70,15 +68,29 @@ def remove_partial() -> None:
     PARTIAL.discard(path)
 
 
-def _temporary(path: str) -> tuple[str, str, BinaryIO]:
-  """(path resolved through symbolic links, a new temporary file beside it, that file open for writing): mode
-  0o666 & ~umask (O_CREAT | O_EXCL: the kernel applies the umask), its folder made if missing."""
+def _temporary(path: str) -> tuple[str, str, BinaryIO, list[str]]:
+  """(path resolved through symbolic links, a new temporary file beside it, that file open for writing, the
+  folders made for it, deepest first): mode 0o666 & ~umask (O_CREAT | O_EXCL: the kernel applies the umask),
+  its folder made if missing."""
   path = os.path.realpath(path)
   directory = os.path.dirname(path)
+  made, missing = [], directory
+  while not os.path.exists(missing):
+    made.append(missing)
+    missing = os.path.dirname(missing)
   os.makedirs(directory, exist_ok=True)
   while True:
     tmp = os.path.join(directory, f".{os.path.basename(path)}.{secrets.token_hex(6)}.tmp")
     try:
-      return path, tmp, os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), "wb")
+      return path, tmp, os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), "wb"), made
     except FileExistsError:
       continue
+
+
+def _remove(tmp: str, made: list[str]) -> None:
+  """Removes a failed write's temporary file and the folders made for it (those still empty)."""
+  with contextlib.suppress(OSError):
+    os.unlink(tmp)
+  for folder in made:
+    with contextlib.suppress(OSError):
+      os.rmdir(folder)

@@ -56,7 +56,9 @@ def test_bad_flags_are_refused_before_anything_runs(tmp_path):
   problems = tmp_path / "in.jsonl"
   problems.write_text('{"a": "1", "b": "2"}\n')
   cases = [(f"--out={problems}", "is the input file"), ("--batch_size=0", "batch_size"),
-           ("--batch_size=x", "batch_size"), ("--tsk=addition", "tsk")]
+           ("--batch_size=x", "batch_size"), ("--tsk=addition", "tsk"),
+           (f"--problems={tmp_path}", f"error: --problems={tmp_path}: Is a directory"),
+           (f"--problems={tmp_path / 'none.jsonl'}", "none.jsonl: No such file or directory")]
   # Run at the same time, each with an --out of its own (which the first case's flag replaces).
   procs = processes.run_all([[sys.executable, "-m", "experiments.evaluate", "--task=addition", f"--problems={problems}",
                               f"--out={tmp_path / f'out{i}.jsonl'}", flag] for i, (flag, _) in enumerate(cases)],
