@@ -96,6 +96,8 @@ def check_outputs(outputs: dict[str, str | None], inputs: dict[str, str | None],
         raise ValueError(f"--{flag}={path} is inside {name}/ of --policy={policy}, which its run wrote: write "
                          "elsewhere")
     for other, other_path in seen.items():
+      if other_path and os.path.realpath(path).startswith(os.path.realpath(other_path) + os.sep):
+        raise ValueError(f"--{flag}={path} is inside --{other}={other_path}")
       if other_path and _same_file(path, other_path):
         if other.startswith("policy="):
           kind = "model" if os.path.basename(other_path) in checkpoint.MODEL_FILES else "run's"

@@ -90,6 +90,12 @@ def test_unusable_out_paths_are_refused(tmp_path):
   cli.check_outputs({"out": str(tmp_path / "run" / "decoded.jsonl")}, {"policy": str(tmp_path / "run")})
   with pytest.raises(ValueError, match=r"--out=.*run/results.json is the run's file .*results.json of --policy="):
     cli.check_outputs({"out": str(tmp_path / "run" / "results.json")}, {"policy": str(tmp_path / "run")})
+  (tmp_path / "set.shards").mkdir()  # a demonstration set is a folder: nothing may be written inside it
+  with pytest.raises(ValueError, match=r"--out=.*set.shards/o.jsonl is inside --demos=.*set.shards$"):
+    cli.check_outputs({"out": str(tmp_path / "set.shards" / "o.jsonl")}, {"demos": str(tmp_path / "set.shards")})
+  with pytest.raises(ValueError, match=r"--hierarchy_out=.*new.shards/h.json is inside --out=.*new.shards$"):
+    cli.check_outputs({"out": str(tmp_path / "new.shards"), "hierarchy_out": str(tmp_path / "new.shards" / "h.json")},
+                      {}, demo_sets=True, make_folders=True)
   for folder in ("model", "checkpoint", "candidates"):  # the run's own folders: a file there spoils it
     (tmp_path / "run" / folder).mkdir()
     with pytest.raises(ValueError, match=rf"--out=.*run/{folder}/x.jsonl is inside {folder}/ of --policy=.*run, "

@@ -195,6 +195,14 @@ def test_record_refuses_a_broken_stack_a_bad_action_and_missing_stacks_naming_ep
   with pytest.raises(gym.GymError, match=r"^episode 0 is to be annotated, but the expert gave no call stack"):
     gym.record(make_corridor(), Silent(None), episodes=1, seed=0, annotate=1)
   assert all("stack" not in line for line in gym.record(make_corridor(), Silent(None), episodes=2, seed=0))
+  class Huge(CorridorExpert):
+    def act(self, observation, info):
+      action, stack = super().act(observation, info)
+      return action, [stack[0], [10**12, stack[1][1]]]
+
+  with pytest.raises(gym.GymError, match=r"^episode 0, step 0: the expert's procedure id 1000000000000 at level 1 "
+                                         "is beyond 4095"):
+    gym.record(make_corridor(), Huge(None), episodes=1, seed=0, annotate=1)
   with pytest.raises(gym.GymError, match=r"^episode 0: stack step 0: procedure id 1 at level 1 is unknown"):
     narrow = HierarchySpec("c", (("root",), ("walk",)), (2,), 8)  # episode 0 (seed 0) walks right
     gym.record(make_corridor(), CorridorExpert(None), episodes=1, seed=0, annotate=1, spec=narrow)

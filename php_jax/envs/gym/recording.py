@@ -61,9 +61,13 @@ def _stack_spec(stacks: list, sizes: tuple[int, ...], episode: int) -> Hierarchy
       raise GymError(f"episode {episode}, step {t}: the expert's stack has {len(frames)} levels; at step {first} "
                      f"it had {depth} (one [procedure, counter] pair per level, root first, at every step)")
   widths = [1] * depth
-  for _, frames in given:
+  for t, frames in given:
     for level, frame in enumerate(frames[1:], 1):  # the root level has one procedure
       if isinstance(frame, list) and frame and isinstance(frame[0], int):
+        if frame[0] >= demo_files.MAX_SIZE:
+          raise GymError(f"episode {episode}, step {t}: the expert's procedure id {frame[0]} at level {level} is "
+                         f"beyond {demo_files.MAX_SIZE - 1} (a hierarchy has at most {demo_files.MAX_SIZE} "
+                         "procedures a level)")
         widths[level] = max(widths[level], frame[0] + 1)
   return HierarchySpec("expert", tuple(("p",) * w for w in widths), sizes, 0)
 
