@@ -22,10 +22,9 @@ held-out demonstrations, a way to compare runs or restarts without an environmen
 calls of each procedure the decoded stacks make (a procedure never called is one the hierarchy does not
 need for these demonstrations). Stacks in the input are
 not used for decoding; where they are given, the agreement of the decoded stacks with them is printed per
-level (exact, and up to a renaming of each level's procedures), over the demonstrations some stack fits. A bad
-flag or a malformed line ends in one
-line and exit status 2 before anything runs; the output is written atomically. The file formats:
-docs/own-demonstrations.md.
+level (exact, and up to a renaming of each level's procedures), over the demonstrations some stack fits. A
+bad flag or a malformed line ends in one line and exit status 2 before anything runs; the output is written
+atomically. The file formats: docs/own-demonstrations.md.
 """
 from __future__ import annotations
 

@@ -63,8 +63,9 @@ def check_outputs(outputs: dict[str, str | None], inputs: dict[str, str | None],
   """Raises ValueError naming the flag of the first output ({flag: path}; None: not asked for) that could
   not be written, before any work: an empty path, a directory, a file in a missing (unless make_folders: the
   command makes it) or unwritable directory, one of the inputs ({flag: path}; a --policy workdir's flag: the
-  files its run wrote, and anything inside the folders it wrote) or another output. demo_sets: an output ending in shards.SUFFIX is a binary demonstration set,
-  which replaces a set there but nothing else."""
+  files its run wrote, and anything inside the folders it wrote) or another output, or a path inside one of
+  them. demo_sets: an output ending in shards.SUFFIX is a binary demonstration set, which replaces a set there
+  but nothing else."""
   seen, run_folders = {}, []
   for flag, path in inputs.items():
     if flag == "policy" and path:

@@ -148,7 +148,8 @@ def _annotated_candidates(spec: HierarchySpec, demos: Demonstration, given, mode
     wider = call_graph.CALL_GRAPHS[:call_graph.CALL_GRAPHS.index(joint_graph)][::-1]  # calls, then all
     graph = next((g for g in wider if not _unfit_step(g, demos, spec, numbers)), "all")
     return [Candidate(mode, {"training": mode, "call_graph": graph})], [
-        stated + f"joint training, as the settings given fix, with call graph {graph}: with the one the annotation shows "
+        stated + f"joint training, as the settings given fix, with call graph {graph}: with the one the annotation "
+        f"shows "
         f"({joint_graph}), {unfit}"]
   if mode:
     return [Candidate(mode, _mode_settings(mode, given))], [stated + f"{mode} training, as the settings given fix"]

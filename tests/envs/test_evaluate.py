@@ -107,8 +107,9 @@ def test_evaluate_refuses_to_write_over_the_model_it_reads(tmp_path):
   (tmp_path / "run").mkdir()
   problems = tmp_path / "in.jsonl"
   problems.write_text('{"a": "1", "b": "2"}\n')
-  proc = subprocess.run([sys.executable, "-m", "experiments.evaluate", "--task=addition", f"--policy={tmp_path / 'run'}",
-                         f"--problems={problems}", f"--out={tmp_path / 'run' / 'model.json'}"],
+  proc = subprocess.run([sys.executable, "-m", "experiments.evaluate", "--task=addition",
+                         f"--policy={tmp_path / 'run'}", f"--problems={problems}",
+                         f"--out={tmp_path / 'run' / 'model.json'}"],
                         capture_output=True, text=True, timeout=300)
   assert proc.returncode == 2 and proc.stderr.strip().endswith(f"is the model file {tmp_path / 'run' / 'model.json'} "
                                                                f"of --policy={tmp_path / 'run'}"), proc.stderr

@@ -125,7 +125,8 @@ def test_act_and_record_commands_print_the_rate_only_under_a_rule(tmp_path):
   assert [e["success"] for e in episodes] == [e["return"] > 0 for e in episodes]
   assert ruled.stdout.splitlines()[-2] == f"success {rate:.3f} (reward>0)"
   assert [json.loads(line)["success"] for line in out.read_text().splitlines()] == [None] * 30
-  assert plain.stdout.splitlines()[-2].startswith('success unknown: no episode\'s last step reported info["is_success"]')
+  assert plain.stdout.splitlines()[-2].startswith(
+      'success unknown: no episode\'s last step reported info["is_success"]')
   terminated = sum(e["terminated"] for e in episodes)
   truncated = sum(e["truncated"] for e in episodes)
   assert plain.stdout.splitlines()[-1].endswith(f"{terminated} terminated, {truncated} truncated"
