@@ -19,6 +19,7 @@ from php_jax.inference.lattice_inputs import (NO_FRAME, LatticeInputs, LatticePa
                                               LatticeStructure, accepts_inputs, annotated_log_op, as_inputs,
                                               check_annotation, check_inputs, check_k, check_key, check_temperature,
                                               in_common_dtype)
+from php_jax.inference.stack_recursions import logsumexp
 
 
 @accepts_inputs
@@ -251,19 +252,15 @@ def _forward_filter_public(log_root, log_op, log_stop, log_cont, length):
   can_continue = jnp.arange(num_procs * capacity) % capacity < capacity - 1
   op, stop, cont = (x.reshape(num_steps, -1) for x in (log_op, log_stop, log_cont))
 
-  def log_sum_exp(x):
-    peak = _finite_or_zero(jnp.max(x))
-    return jnp.log(jnp.sum(jnp.exp(x - peak))) + peak
-
   def step(carry, t):
     # continuing [S], pending []: log-mass entering step t relative to offset [], the running log-scale.
     continuing, pending, offset = carry
     pushed = jnp.repeat(log_root[t] + pending, capacity)
     alpha = jnp.where(is_push, pushed, continuing) + op[t]
-    log_mass = log_sum_exp(alpha)
+    log_mass = logsumexp(alpha)
     used = t < length
     filtered = jnp.where(used & jnp.isfinite(log_mass), jnp.exp(alpha - _finite_or_zero(log_mass)), 0.0)
-    stop_total = log_sum_exp(alpha + stop[t])
+    stop_total = logsumexp(alpha + stop[t])
     cont_scores = jnp.where(can_continue, alpha + cont[t], -jnp.inf)
     scale = _finite_or_zero(jnp.maximum(jnp.max(cont_scores), stop_total))
     carry = (_shift(cont_scores, 1, -jnp.inf) - scale, stop_total - scale, offset + scale)

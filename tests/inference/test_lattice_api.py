@@ -174,6 +174,43 @@ def test_kl_gradients_are_finite_with_masked_cells():
     assert np.all(np.isfinite(g))
 
 
+def test_a_level_that_cannot_stop_at_some_step_leaves_every_derivative_finite_and_right():
+  """top_level's lattice allows no stop before the last step (a zero total of stop weights in the forward
+  scan): forward mode, the Hessian, the entropy's and KL's gradients and the forward filter's gradient are
+  NaN-free and equal to enumeration's."""
+  shape = (4, 1, 5, 4)  # one call of the length's operations, with counters to spare
+  length = shape[3]
+  root, op, stop, cont = _jnp(_lattice(21, shape))
+  inputs = (root, op, php_jax.top_level(stop), cont)
+  q_inputs = (root, op + 0.3 * jnp.asarray(np.random.default_rng(5).normal(size=op.shape)), inputs[2], cont)
+  every = bf.all_paths(shape[1], shape[2], length)
+  possible = np.isfinite(np.asarray(_enumerated_log_probs(inputs, every, length)))
+  paths = [path for path, kept in zip(every, possible) if kept]  # the impossible stops' paths left out
+  tangents = tuple(jnp.asarray(np.random.default_rng(3).normal(size=x.shape)) for x in inputs)
+  for got in jax.jvp(lambda *x: php_jax.forward_backward(*x, length=length), inputs, tangents)[1]:
+    assert np.all(np.isfinite(got))
+  v_of_op = lambda op: php_jax.forward_backward(inputs[0], op, *inputs[2:], length=length).v
+  np.testing.assert_allclose(jax.jacfwd(v_of_op)(inputs[1]), jax.jacrev(v_of_op)(inputs[1]), atol=1e-9)
+  log_z = lambda op: jax.nn.logsumexp(_enumerated_log_probs((inputs[0], op, *inputs[2:]), paths, length))
+  ours = lambda op: php_jax.forward_backward(inputs[0], op, *inputs[2:], length=length).log_likelihood
+  np.testing.assert_allclose(jax.hessian(ours)(inputs[1]), jax.hessian(log_z)(inputs[1]), atol=1e-6)
+
+  def enumerated_kl(p_op):
+    log_p = jax.nn.log_softmax(_enumerated_log_probs((inputs[0], p_op, *inputs[2:]), paths, length))
+    log_q = jax.nn.log_softmax(_enumerated_log_probs(q_inputs, paths, length))
+    return jnp.sum(jnp.exp(log_p) * (log_p - log_q))
+
+  def kl(p_op):
+    p = php_jax.LatticeInputs(inputs[0], p_op, *inputs[2:], length)
+    return php_jax.kl_divergence(p, php_jax.LatticeInputs(*q_inputs, length))
+
+  np.testing.assert_allclose(jax.grad(kl)(inputs[1]), jax.grad(enumerated_kl)(inputs[1]), atol=1e-6)
+  entropy = jax.grad(lambda p_op: php_jax.posterior_entropy(inputs[0], p_op, *inputs[2:], length=length))
+  assert np.all(np.isfinite(entropy(inputs[1])))
+  prefix = lambda p_op: php_jax.forward_filter(inputs[0], p_op, *inputs[2:], length=length).log_prefix.sum()
+  assert np.all(np.isfinite(jax.grad(prefix)(inputs[1])))
+
+
 def test_kl_refuses_different_lengths():
   inputs = _jnp(_lattice(0, (4, 2, 3, 4)))
   with pytest.raises(ValueError, match="same length"):
