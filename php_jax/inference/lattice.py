@@ -380,7 +380,8 @@ def top_level(log_stop, length=None):
 
 @accepts_inputs
 def posterior_entropy(log_root, log_op, log_stop, log_cont, length=None, procedures=None, counters=None):
-  """Entropy of P(ζ | ξ) in nats: log P(ξ) − E[log P(ζ, ξ)], from the marginals.
+  """Entropy of P(ζ | ξ) in nats: log P(ξ) − E[log P(ζ, ξ)], from the marginals; 0 where no path explains
+  ξ (a sum over no paths).
 
   Args:
     log_root [T, K], log_op, log_stop, log_cont [T, K, C], length [], procedures, counters [T]: as
@@ -392,7 +393,9 @@ def posterior_entropy(log_root, log_op, log_stop, log_cont, length=None, procedu
   log_op = annotated_log_op(log_op, procedures, counters, checked_length)
   inputs = in_common_dtype(log_root, log_op, log_stop, log_cont)
   post = forward_backward(*inputs, length)
-  return post.log_likelihood - _expected_log_joint(post, *inputs)
+  explained = jnp.isfinite(post.log_likelihood)
+  return jnp.where(explained, jnp.where(explained, post.log_likelihood, 0.0) - _expected_log_joint(post, *inputs),
+                   0.0)
 
 
 def _expected_log_joint(posterior: LatticePosterior, log_root, log_op, log_stop, log_cont):

@@ -87,7 +87,8 @@ def _top_k(k, log_root, log_op, log_stop, log_cont, length):
 def cross_entropy(p: LatticeInputs, q: LatticeInputs):
   """H(p, q) = −Σ_ζ p(ζ | ξ) log q(ζ | ξ) in nats, between the posteriors over latent paths of two lattices
   of the same shape and length: log P_q(ξ) − E_p[log P_q(ζ, ξ)], exact from p's marginals. +inf where q
-  rules out a path p allows. Differentiable w.r.t. both p and q.
+  rules out a path p allows; 0 where p allows no path (a sum over no paths). Differentiable w.r.t. both p
+  and q.
 
   Args:
     p, q: LatticeInputs with the same [T, K] / [T, K, C] shapes and length (checked when concrete).
@@ -104,7 +105,7 @@ def cross_entropy(p: LatticeInputs, q: LatticeInputs):
 def kl_divergence(p: LatticeInputs, q: LatticeInputs):
   """KL(p ‖ q) = Σ_ζ p(ζ | ξ) (log p(ζ | ξ) − log q(ζ | ξ)) in nats between the posteriors over latent paths
   (= cross_entropy(p, q) − the entropy of p): exact, ≥ 0, 0 iff the posteriors agree, +inf where q rules out
-  a path p allows. Differentiable w.r.t. both.
+  a path p allows, 0 where p allows no path (a sum over no paths). Differentiable w.r.t. both.
 
   Args:
     p, q: LatticeInputs with the same shapes and length (checked when concrete).
@@ -115,14 +116,17 @@ def kl_divergence(p: LatticeInputs, q: LatticeInputs):
   """
   p, q = _same_lattice(p, q)
   post_p = forward_backward(*p)
-  return _cross_entropy(post_p, q) - (post_p.log_likelihood - _expected_log_joint(post_p, *p[:4]))
+  explained = jnp.isfinite(post_p.log_likelihood)
+  entropy = jnp.where(explained, post_p.log_likelihood, 0.0) - _expected_log_joint(post_p, *p[:4])
+  return jnp.where(explained, _cross_entropy(post_p, q) - entropy, 0.0)
 
 
 def _cross_entropy(post_p, q: LatticeInputs):
   """log P_q(ξ) − E_p[log P_q(ζ, ξ)]; +inf when some path p allows has zero probability under q (then the
   expectation is −inf, and so is log P_q(ξ) if q allows no path at all)."""
   expected = _expected_log_joint(post_p, *q[:4])
-  return jnp.where(jnp.isneginf(expected), jnp.inf, forward_backward(*q).log_likelihood - expected)
+  value = jnp.where(jnp.isneginf(expected), jnp.inf, forward_backward(*q).log_likelihood - expected)
+  return jnp.where(jnp.isfinite(post_p.log_likelihood), value, 0.0)
 
 
 def _same_lattice(p: LatticeInputs, q: LatticeInputs):

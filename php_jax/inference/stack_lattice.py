@@ -335,12 +335,12 @@ def _entropy(p: StackInputs, procedures, counters, length):
 def _entropies(p: StackInputs, p_annotation, q: StackInputs, q_annotation, length):
   """(H(p), H(p, q)) between the posteriors over paths; annotations are (procedures, counters) pairs.
   H(p, q) = log P_q(ξ) − E_p[log P_q(ζ, ξ)], the expectation from p's event posteriors: +inf where q rules
-  out a path p allows."""
+  out a path p allows; both 0 where p allows no path (sums over no paths)."""
   q_potentials = annotation_potentials(q, *q_annotation)
-  entropy, events = entropy_and_events(p, annotation_potentials(p, *p_annotation), length)
+  entropy, events, log_z = entropy_and_events(p, annotation_potentials(p, *p_annotation), length)
   expected = expected_log_joint(events, (q, q_potentials))
   cross = jnp.where(jnp.isneginf(expected), jnp.inf, evidence(q, q_potentials, length) - expected)
-  return entropy, cross
+  return entropy, jnp.where(jnp.isfinite(log_z), cross, 0.0)
 
 
 def _named_arrays(inputs: StackInputs):
@@ -372,7 +372,8 @@ def _pair(p, q, p_annotation=(None, None), q_annotation=(None, None)):
 
 
 def posterior_entropy(inputs: StackInputs, procedures=None, counters=None) -> jax.Array:
-  """Entropy of P(ζ | ξ) over whole-stack paths in nats: log P(ξ) − E[log P(ζ, ξ)], from the event posteriors.
+  """Entropy of P(ζ | ξ) over whole-stack paths in nats: log P(ξ) − E[log P(ζ, ξ)], from the event posteriors;
+  0 where no path explains ξ (a sum over no paths).
 
   Args:
     inputs: StackInputs. procedures, counters: [T, d] int annotation or None (as forward_backward's).
@@ -384,7 +385,8 @@ def posterior_entropy(inputs: StackInputs, procedures=None, counters=None) -> ja
 
 def cross_entropy(p: StackInputs, q: StackInputs) -> jax.Array:
   """H(p, q) = −Σ_ζ p(ζ | ξ) log q(ζ | ξ) in nats between the posteriors over whole-stack paths of two lattices
-  of the same shapes and length: +inf where q rules out a path p allows. Differentiable w.r.t. both.
+  of the same shapes and length: +inf where q rules out a path p allows, 0 where p allows none. Differentiable
+  w.r.t. both.
 
   Args:
     p, q: StackInputs with the same shapes and length (checked when concrete). StackLattice(p,
@@ -397,7 +399,7 @@ def cross_entropy(p: StackInputs, q: StackInputs) -> jax.Array:
 
 def kl_divergence(p: StackInputs, q: StackInputs) -> jax.Array:
   """KL(p ‖ q) = H(p, q) − H(p) in nats between the posteriors over whole-stack paths: ≥ 0, 0 iff they agree,
-  +inf where q rules out a path p allows. Differentiable w.r.t. both.
+  +inf where q rules out a path p allows, 0 where p allows none. Differentiable w.r.t. both.
 
   Args:
     p, q: StackInputs with the same shapes and length (checked when concrete).

@@ -202,6 +202,9 @@ def expected_log_joint(events, log_factors):
 
 
 def entropy_and_events(p, potentials, length):
-  """(H(p), the posterior of every event: jax.grad of log P(ξ) w.r.t. the inputs and potentials)."""
+  """(H(p), the posterior of every event: jax.grad of log P(ξ) w.r.t. the inputs and potentials, log P(ξ)).
+  Where no path explains ξ, H(p) is 0 (a sum over no paths) and every event's posterior 0."""
   log_z, events = jax.value_and_grad(evidence, argnums=(0, 1))(p, potentials, length)
-  return log_z - expected_log_joint(events, (p, potentials)), events
+  explained = jnp.isfinite(log_z)
+  entropy = jnp.where(explained, log_z, 0.0) - expected_log_joint(events, (p, potentials))
+  return jnp.where(explained, entropy, 0.0), events, log_z

@@ -211,6 +211,21 @@ def test_a_level_that_cannot_stop_at_some_step_leaves_every_derivative_finite_an
   assert np.all(np.isfinite(jax.grad(prefix)(inputs[1])))
 
 
+def test_where_no_path_explains_the_actions_entropy_kl_and_cross_entropy_are_0_with_finite_gradients():
+  """Sums over no paths: 0, not −inf − (−inf)."""
+  root, op, stop, cont = _jnp(_lattice(8, (4, 2, 3, 4)))
+  never = jnp.full_like(stop, -jnp.inf)  # no frame ever stops: no path
+  q = php_jax.LatticeInputs(*_jnp(_lattice(9, (4, 2, 3, 4))), 4)
+
+  def measures(op):
+    p = php_jax.LatticeInputs(root, op, never, cont, 4)
+    return jnp.stack([php_jax.posterior_entropy(*p), php_jax.kl_divergence(p, q), php_jax.cross_entropy(p, q),
+                      php_jax.kl_divergence(p, p)])
+
+  np.testing.assert_array_equal(measures(op), 0.0)
+  assert np.all(np.isfinite(jax.jacrev(measures)(op)))
+
+
 def test_kl_refuses_different_lengths():
   inputs = _jnp(_lattice(0, (4, 2, 3, 4)))
   with pytest.raises(ValueError, match="same length"):

@@ -326,6 +326,20 @@ def test_top_k_matches_enumeration(case):
   assert (possible < k) == (case[1] == 1)
 
 
+def test_where_no_path_explains_the_actions_entropy_kl_and_cross_entropy_are_0_with_finite_gradients():
+  p = random_stack(np.random.default_rng(3), (1, 2, 2), (4, 3, 2), 4)
+  q = random_stack(np.random.default_rng(4), (1, 2, 2), (4, 3, 2), 4)
+  never = p._replace(log_act=np.full_like(p.log_act, -np.inf))  # no action can be taken: no path
+
+  def measures(log_act):
+    p_none = never._replace(log_act=log_act)
+    return jnp.stack([sl.posterior_entropy(p_none), sl.kl_divergence(p_none, q), sl.cross_entropy(p_none, q),
+                      sl.kl_divergence(p_none, p_none)])
+
+  np.testing.assert_array_equal(measures(never.log_act), 0.0)
+  assert np.all(np.isfinite(jax.jacrev(measures)(jnp.asarray(never.log_act))))
+
+
 def test_entropy_kl_and_cross_entropy_match_enumeration():
   """Against every trajectory's probability under p and q (three levels, padding, −inf masks), also restricted
   to an annotation (the agreeing trajectories only), and +inf where q rules out a trajectory p allows."""
