@@ -257,8 +257,9 @@ def _forward_filter_public(log_root, log_op, log_stop, log_cont, length):
   op, stop, cont = (x.reshape(num_steps, -1) for x in (log_op, log_stop, log_cont))
 
   def step(carry, t):
-    # continuing [S], pending []: log-mass entering step t relative to offset [], the running log-scale.
-    continuing, pending, offset = carry
+    # continuing [S], pending []: log-mass entering step t relative to offset [], the running log-scale, summed
+    # with Kahan's compensation (lost [], the low-order part the float additions dropped): float32 on long traces.
+    continuing, pending, offset, lost = carry
     pushed = jnp.repeat(log_root[t] + pending, capacity)
     alpha = jnp.where(is_push, pushed, continuing) + op[t]
     log_mass = logsumexp(alpha)
@@ -267,11 +268,14 @@ def _forward_filter_public(log_root, log_op, log_stop, log_cont, length):
     stop_total = logsumexp(alpha + stop[t])
     cont_scores = jnp.where(can_continue, alpha + cont[t], -jnp.inf)
     scale = _finite_or_zero(jnp.maximum(jnp.max(cont_scores), stop_total))
-    carry = (_shift(cont_scores, 1, -jnp.inf) - scale, stop_total - scale, offset + scale)
-    return carry, (jnp.where(used, offset + log_mass, 0.0), filtered, offset + stop_total)
+    added = scale - lost
+    total = offset + added
+    carry = (_shift(cont_scores, 1, -jnp.inf) - scale, stop_total - scale, total, (total - offset) - added)
+    here = offset - lost
+    return carry, (jnp.where(used, here + log_mass, 0.0), filtered, here + stop_total)
 
   init = (jnp.full(num_procs * capacity, -jnp.inf, log_op.dtype), jnp.zeros((), log_op.dtype),
-          jnp.zeros((), log_op.dtype))
+          jnp.zeros((), log_op.dtype), jnp.zeros((), log_op.dtype))
   _, (log_prefix, filtered, log_final) = jax.lax.scan(step, init, jnp.arange(num_steps))
   return LatticeFilter(log_final[length - 1], log_prefix, filtered.reshape(log_op.shape))
 

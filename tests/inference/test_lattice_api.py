@@ -428,6 +428,19 @@ def test_validate_inputs_refuses_traced_values():
     jax.jit(lambda x: php_jax.validate_inputs(x, *list(_valid_arrays().values())[1:]))(np.zeros((4, 2)))
 
 
+def test_the_forward_filter_in_float32_on_a_long_trace_is_as_close_to_float64_as_the_smoother():
+  """T = 10,000: the filter's running log-scale is a sum of 10,000 float32 terms, compensated (Kahan) so
+  that its log P(ξ) and log-prefixes err no more than forward_backward's whole-trace sum."""
+  inputs = bf.random_lattice(np.random.default_rng(0), 10_000, 3, 4, scale=5.0)
+  exact = php_jax.forward_backward(*_jnp(inputs)).log_likelihood  # float64 (the module's fixture)
+  single = [jnp.asarray(x, jnp.float32) for x in inputs]
+  filtered = lattice_ops.forward_filter(*single)
+  smoother_error = abs(float(php_jax.forward_backward(*single).log_likelihood) - float(exact))
+  assert abs(float(filtered.log_likelihood) - float(exact)) <= max(2 * smoother_error, 2e-3)
+  prefix = lattice_ops.forward_filter(*_jnp(inputs)).log_prefix
+  assert float(jnp.max(jnp.abs(filtered.log_prefix - prefix))) < 5e-3
+
+
 @pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
 def test_half_precision_inputs_are_computed_in_float32(dtype):
   """T = 10,000 with ×50 logits: log P(ξ) ≈ −66,000 is beyond float16's range (−65,504), so a float16
