@@ -173,7 +173,7 @@ class TrainingProgress:
     table.add_column("test set")
     table.add_column("result", justify="right")
     for name, value in row["test"].items():
-      table.add_row(name, f"{value:.3f}" if isinstance(value, float) else str(value))
+      table.add_row(name, f"{value:.3f}" if isinstance(value, float) else "–" if value is None else str(value))
     self.console.print(table)
     if row.get("finished_before"):
       self.console.print(f"this run had already finished in {workdir} ({row['wall_seconds']:.0f} s); "
