@@ -204,7 +204,7 @@ def perturb(key, log_root, log_op, log_stop, log_cont):
 
 
 def frame_indicators(path: LatticePath, shape):
-  """[T, K, C] with 1 at each step's (h_t, τ_t) of `path` (procedure, counter [T]) and zeros elsewhere and on
+  """[T, K, C] with 1 at each step's (h_t, τ_t) of `path` (procedures, counters [T]) and zeros elsewhere and on
   padding; shape: (T, K, C)."""
   num_steps, num_procs, capacity = shape
   valid = path.procedures != NO_FRAME
@@ -322,11 +322,11 @@ class TwoLevelLattice(LatticeStructure):
     return self.posterior().v
 
   def argmax(self) -> LatticePath:
-    """The most likely path (viterbi): procedure, counter [T], log_prob []."""
+    """The most likely path (viterbi): procedures, counters [T], log_prob []."""
     return viterbi(self.inputs, procedures=self.procedures, counters=self.counters)
 
   def top_k(self, k: int) -> LatticePath:
-    """The k most likely paths, best first: procedure, counter [k, T], log_prob [k]."""
+    """The k most likely paths, best first: procedures, counters [k, T], log_prob [k]."""
     return top_k(k, self.inputs, procedures=self.procedures, counters=self.counters)
 
   def sample(self, key, temperature=1.0) -> LatticePath:
