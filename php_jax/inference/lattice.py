@@ -109,9 +109,9 @@ def _forward_scan(log_root, log_op, log_stop, log_cont, length, semiring_max: bo
       peak = _finite_or_zero(jnp.max(stop_scores))
       weights = jnp.exp(stop_scores - peak)
       total = jnp.sum(weights)
-      used = total > 0  # a log guarded so that no derivative divides by a zero total (0/0: NaN)
-      stop_total = jnp.where(used, jnp.log(jnp.where(used, total, 1.0)) + peak, -jnp.inf)
-      used &= t < length  # dividing keeps the smoother's mass exactly 1
+      empty = total == 0  # a log guarded so that no derivative divides by a zero total (0/0: NaN); a NaN passes
+      stop_total = jnp.where(empty, -jnp.inf, jnp.log(jnp.where(empty, 1.0, total)) + peak)
+      used = (t < length) & (total > 0)  # dividing keeps the smoother's mass exactly 1
       stops = jnp.where(used, weights / jnp.where(used, total, 1.0), 0.0)
     scale = _finite_or_zero(jnp.maximum(jnp.max(cont_scores), stop_total))
     carry = (_shift(cont_scores, 1, -jnp.inf) - scale, stop_total - scale)

@@ -32,11 +32,12 @@ def finite_or_zero(x):
 
 
 def logsumexp(x):
-  """logsumexp over the last axis; −inf (value and zero gradient, no NaN) where every entry is −inf."""
+  """logsumexp over the last axis; −inf (value and zero gradient, no NaN) where every entry is −inf; NaN where
+  an entry is."""
   peak = jax.lax.stop_gradient(finite_or_zero(jnp.max(x, axis=-1)))
   total = jnp.sum(jnp.exp(x - peak[..., None]), axis=-1)
-  used = total > 0
-  return jnp.where(used, jnp.log(jnp.where(used, total, 1.0)) + peak, -jnp.inf)
+  empty = total == 0
+  return jnp.where(empty, -jnp.inf, jnp.log(jnp.where(empty, 1.0, total)) + peak)
 
 
 def descend(fresh, carry: tuple, scale, inputs, potentials, t):

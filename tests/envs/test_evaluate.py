@@ -55,9 +55,10 @@ def test_blank_file_is_refused(tmp_path):
 def test_bad_flags_are_refused_before_anything_runs(tmp_path):
   problems = tmp_path / "in.jsonl"
   problems.write_text('{"a": "1", "b": "2"}\n')
+  (tmp_path / "adir").mkdir()
   cases = [(f"--out={problems}", "is the input file"), ("--batch_size=0", "batch_size"),
            ("--batch_size=x", "batch_size"), ("--tsk=addition", "tsk"),
-           (f"--problems={tmp_path}", f"error: --problems={tmp_path}: Is a directory"),
+           (f"--problems={tmp_path / 'adir'}", f"error: --problems={tmp_path / 'adir'}: Is a directory"),
            (f"--problems={tmp_path / 'none.jsonl'}", "none.jsonl: No such file or directory")]
   # Run at the same time, each with an --out of its own (which the first case's flag replaces).
   procs = processes.run_all([[sys.executable, "-m", "experiments.evaluate", "--task=addition", f"--problems={problems}",
@@ -67,7 +68,7 @@ def test_bad_flags_are_refused_before_anything_runs(tmp_path):
     assert proc.returncode == 2 and message in proc.stderr, (flag, proc.stderr)
     assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
   assert problems.read_text() == '{"a": "1", "b": "2"}\n' and sorted(p.name for p in tmp_path.iterdir()) == [
-      "in.jsonl"]
+      "adir", "in.jsonl"]
 
 
 def test_unusable_out_paths_are_refused(tmp_path):
