@@ -235,7 +235,7 @@ def act(policy: PHPHierarchy | FlatPolicy, env: gymnasium.Env | gymnasium.vector
   while (state.episode >= 0).any():
     while True:
       flat = flatten_batch(envs, observations)
-      for m in np.flatnonzero(state.episode >= 0):
+      for m in np.flatnonzero(~np.isfinite(flat).all(axis=1) & (state.episode >= 0))[:1]:
         check_finite(flat[m], f"episode {state.episode[m]}, step {state.steps[m]}")
       new_memory, actions, returned = _decisions(
           (graphdef, treedef), leaves, memory, flat, fresh, (np.maximum(state.episode, 0), state.steps), key)
