@@ -14,7 +14,7 @@ import php_jax
 from php_jax import demos, executor
 from php_jax.analysis import annotation_choice
 from php_jax.data import call_tree
-from php_jax.envs import addition, bubblesort, datasets, gym, nanocraft, nanocraft_task, replay
+from php_jax.envs import addition, bubblesort, datasets, evaluation, gym, nanocraft, nanocraft_task, replay
 from php_jax.hierarchy import HierarchySpec
 from php_jax.inference import stack_lattice as sl
 from php_jax.model import PHPHierarchy, PHPLevel, RootLSTM, RootMLP
@@ -203,6 +203,7 @@ MISUSES = [
     ("bubblesort: digit 1.7", lambda: bubblesort.make_problem([3, 1.7]), "an array must hold integer digits"),
     ("bubblesort: width 3.5", lambda: bubblesort.make_problem([3, 1], 3.5), "width must be an integer; got 3.5"),
     ("states_and_budget: no problems", lambda: TASK.states_and_budget([]), "problems must list at least one"),
+    ("accuracy: no problems", lambda: evaluation.accuracy(TASK, "oracle", []), "accuracy needs at least one problem"),
 ]
 
 

@@ -59,5 +59,7 @@ def solve(task: Task, policy, problems: list, batch_size: int = 64, budget_facto
 
 
 def accuracy(task: Task, policy, problems: list) -> float:
-  """Fraction of problems solved completely correctly."""
+  """Fraction of problems solved completely correctly. Raises ValueError for no problems (no fraction)."""
+  if not problems:
+    raise ValueError("accuracy needs at least one problem")
   return float(np.mean([o["correct"] for o in solve(task, policy, problems)]))
