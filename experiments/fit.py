@@ -21,7 +21,6 @@ every training flag: docs/training.md.
 from __future__ import annotations
 
 import dataclasses
-import os
 
 import numpy as np
 from absl import app, flags
@@ -143,11 +142,10 @@ def run() -> dict:
       demos, held_out, numbers = split(demos, _VALIDATION_FRACTION.value, config.seed)
     tested = None
     if _TEST.value:
-      read = {os.path.realpath(path): f"--{name}" for name, path in (("demos", _DEMOS.value),
-                                                                      ("validation", _VALIDATION.value)) if path}
-      if os.path.realpath(_TEST.value) in read:
-        raise config_flags.UsageError(f"--test={_TEST.value} is the {read[os.path.realpath(_TEST.value)]} file: "
-                                      "give demonstrations the run does not read")
+      for name, path in (("demos", _DEMOS.value), ("validation", _VALIDATION.value)):
+        if path and cli.same_file(_TEST.value, path):
+          raise config_flags.UsageError(f"--test={_TEST.value} is the --{name} file: give demonstrations the run "
+                                        "does not read")
       tested, spec = demo_files.read_demonstrations(_TEST.value, spec)
   except demo_files.DemoFileError as e:
     raise config_flags.UsageError(str(e)) from None

@@ -93,13 +93,13 @@ def check_outputs(outputs: dict[str, str | None], inputs: dict[str, str | None],
     if not os.access(directory, os.W_OK | os.X_OK):
       raise ValueError(f"--{flag}={path}: directory {directory} is not writable")
     for policy, name in run_folders:
-      if os.path.realpath(path).startswith(os.path.realpath(os.path.join(policy, name)) + os.sep):
+      if _inside(path, os.path.join(policy, name)):
         raise ValueError(f"--{flag}={path} is inside {name}/ of --policy={policy}, which its run wrote: write "
                          "elsewhere")
     for other, other_path in seen.items():
-      if other_path and os.path.realpath(path).startswith(os.path.realpath(other_path) + os.sep):
+      if other_path and _inside(path, other_path):
         raise ValueError(f"--{flag}={path} is inside --{other}={other_path}")
-      if other_path and _same_file(path, other_path):
+      if other_path and same_file(path, other_path):
         if other.startswith("policy="):
           kind = "model" if os.path.basename(other_path) in checkpoint.MODEL_FILES else "run's"
           raise ValueError(f"--{flag}={path} is the {kind} file {other_path} of --{other.rsplit(':', 1)[0]}")
@@ -120,9 +120,15 @@ def writable_folder(flag: str, path: str) -> None:
     fail(f"--{flag}={path}: cannot write there: {e.strerror or e}")
 
 
-def _same_file(a: str, b: str) -> bool:
+def same_file(a: str, b: str) -> bool:
+  """Whether paths a and b name one file: the same after symbolic links, or hard links to one file."""
   return os.path.realpath(a) == os.path.realpath(b) or (
       os.path.exists(a) and os.path.exists(b) and os.path.samefile(a, b))
+
+
+def _inside(path: str, folder: str) -> bool:
+  """Whether path lies below folder (symbolic links followed)."""
+  return os.path.realpath(path).startswith(os.path.realpath(folder) + os.sep)
 
 
 @contextlib.contextmanager

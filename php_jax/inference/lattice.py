@@ -392,10 +392,15 @@ def posterior_entropy(log_root, log_op, log_stop, log_cont, length=None, procedu
   _, _, _, checked_length = check_inputs(log_root, log_op, log_stop, log_cont, length)
   log_op = annotated_log_op(log_op, procedures, counters, checked_length)
   inputs = in_common_dtype(log_root, log_op, log_stop, log_cont)
-  post = forward_backward(*inputs, length)
-  explained = jnp.isfinite(post.log_likelihood)
-  return jnp.where(explained, jnp.where(explained, post.log_likelihood, 0.0) - _expected_log_joint(post, *inputs),
-                   0.0)
+  return _entropy(forward_backward(*inputs, length), *inputs)
+
+
+def _entropy(posterior: LatticePosterior, log_root, log_op, log_stop, log_cont):
+  """log P(ξ) − E[log P(ζ, ξ)] from `posterior` of the lattice (log_root, ...); 0 where no path explains ξ (a sum
+  over no paths), its gradient finite there too. Returns []."""
+  explained = jnp.isfinite(posterior.log_likelihood)
+  joint = _expected_log_joint(posterior, log_root, log_op, log_stop, log_cont)
+  return jnp.where(explained, jnp.where(explained, posterior.log_likelihood, 0.0) - joint, 0.0)
 
 
 def _expected_log_joint(posterior: LatticePosterior, log_root, log_op, log_stop, log_cont):

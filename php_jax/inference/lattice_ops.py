@@ -13,8 +13,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from php_jax.inference.lattice import (_expected_log_joint, _finite_or_zero, _is_push, _path_from_states, _shift,
-                                       forward_backward, posterior_entropy, sample_posterior, viterbi)
+from php_jax.inference.lattice import (_entropy, _expected_log_joint, _finite_or_zero, _is_push, _path_from_states,
+                                       _shift, forward_backward, posterior_entropy, sample_posterior, viterbi)
 from php_jax.inference.lattice_inputs import (NO_FRAME, LatticeInputs, LatticePath, LatticePosterior,
                                               LatticeStructure, accepts_inputs, annotated_log_op, as_inputs,
                                               check_annotation, check_inputs, check_k, check_key, check_temperature,
@@ -116,9 +116,7 @@ def kl_divergence(p: LatticeInputs, q: LatticeInputs):
   """
   p, q = _same_lattice(p, q)
   post_p = forward_backward(*p)
-  explained = jnp.isfinite(post_p.log_likelihood)
-  entropy = jnp.where(explained, post_p.log_likelihood, 0.0) - _expected_log_joint(post_p, *p[:4])
-  return jnp.where(explained, _cross_entropy(post_p, q) - entropy, 0.0)
+  return _cross_entropy(post_p, q) - _entropy(post_p, *p[:4])  # both 0 where p allows no path
 
 
 def _cross_entropy(post_p, q: LatticeInputs):

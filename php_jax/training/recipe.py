@@ -149,8 +149,7 @@ def _annotated_candidates(spec: HierarchySpec, demos: Demonstration, given, mode
     graph = next((g for g in wider if not _unfit_step(g, demos, spec, numbers)), "all")
     return [Candidate(mode, {"training": mode, "call_graph": graph})], [
         stated + f"joint training, as the settings given fix, with call graph {graph}: with the one the annotation "
-        f"shows "
-        f"({joint_graph}), {unfit}"]
+        f"shows ({joint_graph}), {unfit}"]
   if mode:
     return [Candidate(mode, _mode_settings(mode, given))], [stated + f"{mode} training, as the settings given fix"]
   if unfit:

@@ -235,7 +235,9 @@ def act(policy: PHPHierarchy | FlatPolicy, env: gymnasium.Env | gymnasium.vector
   while (state.episode >= 0).any():
     while True:
       flat = flatten_batch(envs, observations)
-      for m in np.flatnonzero(~np.isfinite(flat).all(axis=1) & (state.episode >= 0))[:1]:
+      unfinite = np.flatnonzero(~np.isfinite(flat).all(axis=1) & (state.episode >= 0))
+      if unfinite.size:
+        m = unfinite[0]
         check_finite(flat[m], f"episode {state.episode[m]}, step {state.steps[m]}")
       new_memory, actions, returned = _decisions(
           (graphdef, treedef), leaves, memory, flat, fresh, (np.maximum(state.episode, 0), state.steps), key)
