@@ -224,7 +224,8 @@ def viterbi(log_root, log_op, log_stop, log_cont, length=None, procedures=None, 
     log_root [T, K], log_op, log_stop, log_cont [T, K, C], length [], procedures, counters [T]: as
       forward_backward (or one LatticeInputs for the first five).
   Returns:
-    LatticePath(procedures [T], counters [T], log_prob []).
+    LatticePath(procedures [T], counters [T], log_prob []); where no path explains the actions, log_prob −inf
+    and NO_FRAME at every step (as top_k).
   """
   _, _, _, length = check_inputs(log_root, log_op, log_stop, log_cont, length)
   log_op = annotated_log_op(log_op, procedures, counters, length)
@@ -244,7 +245,8 @@ def _viterbi(log_root, log_op, log_stop, log_cont, length):
     return jnp.where(t < length, state, state_next), state
 
   _, states = jax.lax.scan(backtrack, jnp.int32(0), (jnp.arange(num_steps), best_stop), reverse=True)
-  return _path_from_states(states, capacity, jnp.sum(log_increments))
+  log_prob = jnp.sum(log_increments)
+  return _path_from_states(_unless_impossible(states, log_prob), capacity, log_prob)
 
 
 @accepts_inputs
@@ -262,7 +264,8 @@ def sample_posterior(key, log_root, log_op, log_stop, log_cont, length=None, tem
     log_root [T, K], log_op, log_stop, log_cont [T, K, C], length [], procedures, counters [T]: as
       forward_backward (or one LatticeInputs for the five; pass temperature and the annotation by keyword).
   Returns:
-    LatticePath(procedures [T], counters [T], log_prob []): log_prob is log P(ζ, ξ) under the untempered model.
+    LatticePath(procedures [T], counters [T], log_prob []): log_prob is log P(ζ, ξ) under the untempered model;
+    where no path explains the actions, −inf and NO_FRAME at every step.
   Example:
     >>> path = sample_posterior(jax.random.key(0), log_root, log_op, log_stop, log_cont, 5, temperature=0.5)
   """
@@ -277,7 +280,7 @@ def sample_posterior(key, log_root, log_op, log_stop, log_cont, length=None, tem
 def _sample_posterior(key, log_root, log_op, log_stop, log_cont, length, temperature):
   num_steps, _, capacity = log_op.shape
   tempered = (x / temperature for x in (log_root, log_op, log_stop, log_cont))
-  _, stop_filter = _forward_filter(*tempered, length)
+  log_likelihood, stop_filter = _forward_filter(*tempered, length)
 
   def backward(state_next, xs):
     t, step_key, q = xs
@@ -290,7 +293,7 @@ def _sample_posterior(key, log_root, log_op, log_stop, log_cont, length, tempera
   keys = jax.random.split(key, num_steps)
   _, states = jax.lax.scan(backward, jnp.int32(0), (jnp.arange(num_steps), keys, stop_filter),
                            reverse=True)
-  path = _path_from_states(states, capacity, jnp.zeros(()))
+  path = _path_from_states(_unless_impossible(states, log_likelihood), capacity, jnp.zeros(()))
   return path._replace(log_prob=_complete_log_likelihood(
       log_root, log_op, log_stop, log_cont, path.procedures, path.counters, length))
 
@@ -311,6 +314,11 @@ def max_marginal_path(posterior: LatticePosterior, length=None) -> LatticePath:
   states = jnp.argmax(posterior.v.reshape(num_steps, -1), axis=1).astype(jnp.int32)
   states = jnp.where(jnp.arange(num_steps) < length, states, NO_FRAME)
   return _path_from_states(states, capacity, jnp.full((), jnp.nan, posterior.v.dtype))
+
+
+def _unless_impossible(states, log_likelihood):
+  """states [T], or NO_FRAME at every step where no path explains the actions (log_likelihood [] −inf)."""
+  return jnp.where(jnp.isneginf(log_likelihood), NO_FRAME, states)
 
 
 def _path_from_states(states, capacity, log_prob):

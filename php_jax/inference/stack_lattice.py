@@ -239,7 +239,8 @@ def _viterbi(inputs: StackInputs, procedures, counters, length):
   path_procedures, path_counters, _ = backtrack(backpointers, length, capacities,
                                                  lambda level, pointer, rank, t: (pointer, 0.0, rank),
                                                  inputs.log_act.dtype)
-  return StackPath(path_procedures, path_counters, jnp.sum(log_increments))
+  log_prob = jnp.sum(log_increments)
+  return StackPath(*_unless_impossible(path_procedures, path_counters, log_prob), log_prob)
 
 
 def viterbi(inputs: StackInputs, procedures=None, counters=None) -> StackPath:
@@ -250,7 +251,8 @@ def viterbi(inputs: StackInputs, procedures=None, counters=None) -> StackPath:
   Args:
     inputs: StackInputs. procedures, counters: [T, d] int annotation or None. (As forward_backward's.)
   Returns:
-    StackPath(procedures [T, d], counters [T, d], log_prob []); meaningless if log_prob is −inf.
+    StackPath(procedures [T, d], counters [T, d], log_prob []); where no path explains the actions, log_prob
+    −inf and NO_FRAME in every frame (as top_k).
   """
   return _viterbi(*_prepared(inputs, procedures, counters))
 
@@ -273,7 +275,14 @@ def _sample_posterior(key, inputs: StackInputs, procedures, counters, length, te
                                                              inputs.log_act.dtype)
   log_likelihood = jnp.sum(log_increments)
   log_prob = jnp.where(jnp.isfinite(log_likelihood), log_likelihood + log_posterior, -jnp.inf)
-  return StackPath(path_procedures, path_counters, log_prob * temperature)
+  return StackPath(*_unless_impossible(path_procedures, path_counters, log_likelihood), log_prob * temperature)
+
+
+def _unless_impossible(procedures, counters, log_likelihood):
+  """procedures, counters [T, d], or NO_FRAME in every frame where no path explains the actions (log_likelihood
+  [] −inf)."""
+  impossible = jnp.isneginf(log_likelihood)
+  return jnp.where(impossible, NO_FRAME, procedures), jnp.where(impossible, NO_FRAME, counters)
 
 
 def sample_posterior(key, inputs: StackInputs, procedures=None, counters=None, temperature=1.0) -> StackPath:
@@ -287,7 +296,7 @@ def sample_posterior(key, inputs: StackInputs, procedures=None, counters=None, t
       forward_backward's). temperature: [] a finite number > 0; 1 is the posterior itself.
   Returns:
     StackPath(procedures [T, d], counters [T, d], log_prob [] = log P(ζ, ξ) of the drawn path, untempered);
-    meaningless if log P(ξ) is −inf.
+    where no path explains the actions, −inf and NO_FRAME in every frame.
   """
   check_key(key)
   prepared = _prepared(inputs, procedures, counters)

@@ -226,6 +226,17 @@ def test_where_no_path_explains_the_actions_entropy_kl_and_cross_entropy_are_0_w
   assert np.all(np.isfinite(jax.jacrev(measures)(op)))
 
 
+def test_where_no_path_explains_the_actions_viterbi_and_samples_give_no_frame_and_minus_inf():
+  """As top_k past the possible paths: no made-up frames."""
+  root, op, stop, cont = _jnp(_lattice(8, (4, 2, 3, 4)))
+  never = jnp.full_like(stop, -jnp.inf)  # no frame ever stops: no path
+  for path in (php_jax.viterbi(root, op, never, cont, 3),
+               php_jax.sample_posterior(jax.random.key(0), root, op, never, cont, 3)):
+    assert np.isneginf(path.log_prob)
+    assert np.all(np.asarray(path.procedures) == php_jax.NO_FRAME)
+    assert np.all(np.asarray(path.counters) == php_jax.NO_FRAME)
+
+
 def test_kl_refuses_different_lengths():
   inputs = _jnp(_lattice(0, (4, 2, 3, 4)))
   with pytest.raises(ValueError, match="same length"):

@@ -340,6 +340,15 @@ def test_where_no_path_explains_the_actions_entropy_kl_and_cross_entropy_are_0_w
   assert np.all(np.isfinite(jax.jacrev(measures)(jnp.asarray(never.log_act))))
 
 
+def test_where_no_path_explains_the_actions_viterbi_and_samples_give_no_frame_and_minus_inf():
+  never = random_stack(np.random.default_rng(3), (1, 2, 2), (4, 3, 2), 4)
+  never = never._replace(log_act=np.full_like(never.log_act, -np.inf))  # no action can be taken: no path
+  for path in (sl.viterbi(never), sl.sample_posterior(jax.random.key(0), never)):
+    assert np.isneginf(path.log_prob)
+    assert np.all(np.asarray(path.procedures) == php_jax.NO_FRAME)
+    assert np.all(np.asarray(path.counters) == php_jax.NO_FRAME)
+
+
 def test_entropy_kl_and_cross_entropy_match_enumeration():
   """Against every trajectory's probability under p and q (three levels, padding, −inf masks), also restricted
   to an annotation (the agreeing trajectories only), and +inf where q rules out a trajectory p allows."""
