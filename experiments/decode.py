@@ -9,7 +9,7 @@ call stack at every step, and whether the hierarchy replays it.
                                         where no call stack fits the demonstration within the hierarchy's call
                                         graph and the counter capacities it was trained with)
    "stack": [[[h, tau], ...], ...],     per step, root first: the most likely stack (exact, whole-stack
-                                        Viterbi; meaningless where log_likelihood is null)
+                                        Viterbi; null where log_likelihood is)
    "replayed": bool,                    the argmax policy, run on the recorded observations, takes every
                                         recorded action and its root returns after the last (where its
                                         demonstrations' environment ended them, every action is enough); the
@@ -55,7 +55,8 @@ def decode_lines(hierarchy: PHPHierarchy, capacity, batch) -> tuple[list[dict], 
     stack = np.stack([decoded.procedures[b, :n], decoded.counters[b, :n]], axis=-1).tolist()
     mismatch = int(replayed.first_mismatch[b])
     log_likelihood = float(decoded.log_likelihood[b])
-    lines.append({"log_likelihood": log_likelihood if np.isfinite(log_likelihood) else None, "stack": stack,
+    fits = np.isfinite(log_likelihood)
+    lines.append({"log_likelihood": log_likelihood if fits else None, "stack": stack if fits else None,
                   "replayed": bool(replayed.replayed[b]), "first_mismatch": None if mismatch < 0 else mismatch})
   return lines, decoded
 

@@ -32,7 +32,10 @@ _SHOW = flags.DEFINE_integer("show", 3, "Wrong demonstrations printed side by si
 
 def classify(truth_procs, truth_taus, procs, taus) -> tuple[str, list[int]]:
   """One demonstration at one level: truth_* and decoded [n] frames per operation → (kind, the operations
-  where a call starts in one but not the other). kind: correct, split, merge or other."""
+  where a call starts in one but not the other). kind: correct, split, merge or other (also where nothing was
+  decoded: no path of the levels below explains the demonstration)."""
+  if not len(procs):
+    return "other", []
   if np.array_equal(truth_procs, procs) and np.array_equal(truth_taus, taus):
     return "correct", []
   truth_starts, starts = set(np.flatnonzero(truth_taus == 0)), set(np.flatnonzero(taus == 0))
@@ -46,12 +49,13 @@ def classify(truth_procs, truth_taus, procs, taus) -> tuple[str, list[int]]:
 
 def level_report(demos, view: views.LevelView, level: int, procs, taus, names) -> dict:
   """Counts of each kind over weak demonstrations that carry the supervisor's stack, the procedures where
-  splits and merges happen, and the wrong ones' frames (truth, decoded) as "name:τ" lists."""
+  splits and merges happen, and the wrong ones' frames (truth, decoded) as "name:τ" lists ("?:-1" where no
+  path explains the demonstration)."""
   true_procs, true_taus = np.asarray(demos.procedures), np.asarray(demos.counters)
   kinds, where, wrong = collections.Counter(), collections.Counter(), []
 
   def frames(procedures, counters):
-    return [f"{names[i]}:{j}" for i, j in zip(procedures, counters)]
+    return [f"{names[i] if i >= 0 else '?'}:{j}" for i, j in zip(procedures, counters)]
 
   for b in agreement.weak_with_stack(demos, view, level):
     n, times = view.length[b], view.times[b, :view.length[b]]

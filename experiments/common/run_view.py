@@ -114,7 +114,7 @@ def decoded(run: RunView, batch: Demonstration, indices: list[int]) -> list[tupl
     if supervisor:
       lines += ["the demonstration's own call stack:",
                 *("  " + line for line in call_tree.text(supervisor, run.procedure_name, actions))]
-      for level in range(1, procs.shape[1]):
+      for level in range(1, procs.shape[1]) if finite else ():  # no decoded stack where none fits
         measured = agreement.stack_agreement(procs, taus, stacks.procedures[b, :length],
                                              stacks.counters[b, :length], level)
         if measured:

@@ -21,7 +21,7 @@ from php_jax.training.objective import stack_query
 
 class Decoded(NamedTuple):
   """Per demonstration [B]: log_likelihood (float), and the most likely stack procedures / counters
-  [B, T, d] (root first; −1 on padding)."""
+  [B, T, d] (root first; −1 on padding, and at every step of a demonstration no stack fits)."""
   log_likelihood: np.ndarray
   procedures: np.ndarray
   counters: np.ndarray

@@ -60,8 +60,8 @@ class LatticePath(NamedTuple):
   `forward_backward(inputs, procedures=path.procedures, counters=path.counters)`.
 
   Attributes:
-    procedures: [T] int32 h_t, NO_FRAME on padding.
-    counters: [T] int32 τ_t, NO_FRAME on padding.
+    procedures: [T] int32 h_t, NO_FRAME on padding (and at every step where no path explains the actions).
+    counters: [T] int32 τ_t, NO_FRAME where procedures is.
     log_prob: [] log P(ζ, ξ) of the path (its complete-data log-likelihood).
   """
   procedures: jax.Array

@@ -169,7 +169,7 @@ def differentiable_sample(key, log_root, log_op, log_stop, log_cont, length=None
     log_root [T, K], log_op, log_stop, log_cont [T, K, C], length []: as forward_backward (or one
       LatticeInputs for the five).
   Returns:
-    [T, K, C] z (each valid step sums to 1; zero on padding).
+    [T, K, C] z (each valid step sums to 1; zero on padding, and everywhere if no path explains the actions).
   Example:
     >>> z = differentiable_sample(jax.random.key(0), log_root, log_op, log_stop, log_cont, 5)
     >>> jax.grad(lambda op: jnp.sum(weights * differentiable_sample(key, log_root, op, log_stop, log_cont, 5)))(log_op)

@@ -184,6 +184,8 @@ def test_segmentation_classifies_splits_merges_and_mistaken_procedures():
   assert segment_errors.classify(np.array([0, 0, 1]), np.array([0, 0, 0]), np.array([0, 0, 1]),
                                np.array([0, 1, 0])) == ("merge", [1])
   assert segment_errors.classify(procs, taus, np.array([0, 0, 0, 2]), taus)[0] == "other"
+  nothing = np.zeros(0, int)  # no path of the levels below explains the demonstration
+  assert segment_errors.classify(nothing, nothing, nothing, nothing) == ("other", [])
 
 
 def test_segmentation_report_finds_a_split_in_the_supervisors_level_1_view():

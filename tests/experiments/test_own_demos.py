@@ -282,6 +282,8 @@ def test_fit_decode_show_and_report_on_the_warehouse_example(tmp_path):
   proc = _run("experiments.decode", f"--policy={workdir}", f"--demos={mixed}", f"--out={tmp_path / 'mixed.out'}")
   assert proc.returncode == 0, proc.stderr
   assert "1 of 6 demonstrations fit no call stack" in proc.stdout
+  unfit = json.loads((tmp_path / "mixed.out").read_text().splitlines()[-1])
+  assert unfit["log_likelihood"] is None and unfit["stack"] is None
   assert "level 1: decoded stacks agree with the given ones on" in proc.stdout
   assert proc.stdout.count("(over the 5 of 6 demonstrations some stack fits)") == 2  # levels 1 and 2
 
