@@ -95,6 +95,10 @@ COUNTDOWN = Task(
                               learning_rate=3e-2))
 
 
+COUNTDOWN_JOINT = dataclasses.replace(  # a task whose defaults fix a training mode
+    COUNTDOWN, defaults=dataclasses.replace(COUNTDOWN.defaults, training="joint"))
+
+
 def test_a_task_defined_outside_the_library_demonstrates_and_trains_one_level():
   batch = datasets.training_demos(COUNTDOWN, seed=0, num_demos=6, num_strong=2)
   demos.validate(batch, SPEC)

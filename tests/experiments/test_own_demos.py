@@ -361,7 +361,7 @@ def test_bad_files_and_flags_end_in_one_line_and_exit_2(tmp_path):
       (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={observing}",
         f"--workdir={tmp_path / 'w9'}", "--trunk=8"), "--trunk: the hierarchy gives its procedures different"),
       (("experiments.train", "--task=nanocraft", f"--workdir={tmp_path / 'w10'}", "--seeds=1,2",
-        "--training=levelwise", "--restarts=2"), "--seeds and --restarts: give one of them"),
+        "--restarts=2"), "--seeds and --restarts: give one of them"),
       (("experiments.fit", f"--demos={WAREHOUSE / 'train.jsonl'}", f"--hierarchy={hierarchy}",
         f"--workdir={tmp_path / 'w11'}", "--memory=gru", "--training=levelwise"),
        "--memory: gru needs joint training"),
@@ -417,10 +417,10 @@ def test_export_demos_writes_the_training_set_of_train(tmp_path):
 
 @pytest.mark.slow
 def test_train_and_fit_on_its_exported_files_give_the_same_numbers(tmp_path):
-  """`fit`, given the files `export_demos` writes for a task and the settings the task states (NanoCraft's:
-  32 hidden units, joint training with the annotated call graph, no least capacity, one initialisation), trains
-  exactly what `train --task` trains: the same candidates, capacities and losses. (What validation measures differs:
-  the task's success against held-out replay.)"""
+  """`fit`, given the files `export_demos` writes for a task, the settings the task states (NanoCraft's: 32
+  hidden units) and two of its own choices undone (no least capacity, one initialisation), trains exactly what
+  `train --task` trains: the same candidates, chosen by the same recipe, with the same capacities and losses.
+  (What validation measures differs: the task's success against held-out replay.)"""
   common = ["--seed=3", "--iterations=10", "--eval_every=5"]
   exports = [["experiments.export_demos", "--task=nanocraft", "--num_demos=6", "--num_strong=2", "--seed=3",
               f"--out={tmp_path / 'train.jsonl'}", f"--hierarchy_out={tmp_path / 'h.json'}"],
@@ -432,8 +432,8 @@ def test_train_and_fit_on_its_exported_files_give_the_same_numbers(tmp_path):
        f"--workdir={tmp_path / 'train'}", *common],
       ["experiments.fit", f"--demos={tmp_path / 'train.jsonl'}", f"--hierarchy={tmp_path / 'h.json'}",
        f"--validation={tmp_path / 'validation.jsonl'}", f"--workdir={tmp_path / 'fit'}", "--hidden=32",
-       "--tau_in_termination=1,1,1", "--training=joint", "--call_graph=operations", "--min_capacity=0,0,0",
-       "--restarts=1", *common]]], capture_output=True, text=True, timeout=600)
+       "--tau_in_termination=1,1,1", "--min_capacity=0,0,0", "--restarts=1", *common]]],
+      capture_output=True, text=True, timeout=600)
   assert train.returncode == 0 and fit.returncode == 0, train.stderr[-2000:] + fit.stderr[-2000:]
 
   def numbers(run):
@@ -442,4 +442,5 @@ def test_train_and_fit_on_its_exported_files_give_the_same_numbers(tmp_path):
     return ([{k: v for k, v in row.items() if k not in ("seconds", "validation")} for row in rows],
             results["recipe"]["candidates"])
 
+  assert [c["name"] for c in numbers("train")[1]] == ["levelwise", "joint"]  # the mode left to the recipe
   assert numbers("train") == numbers("fit")

@@ -42,11 +42,11 @@ def test_help_shows_the_tasks_overrides():
 
 
 def test_flags_override_the_task_which_overrides_the_defaults():
-  nanocraft = tasks.get("nanocraft").defaults.overrides()
-  config = config_flags.config_from_flags(nanocraft, _flags("--iterations=7", "--tau_in_termination=1,0,1"))
+  bubblesort = tasks.get("bubblesort").defaults.overrides()
+  config = config_flags.config_from_flags(bubblesort, _flags("--iterations=7", "--tau_in_termination=1,0,1"))
   assert (config.iterations, config.tau_in_termination, config.hidden, config.training) == (
-      7, (True, False, True), (32,), "joint")
-  assert config.learning_rate == config_lib.TrainConfig().learning_rate  # neither the task nor a flag set it
+      7, (True, False, True), (64,), "levelwise")
+  assert config.call_graph == config_lib.TrainConfig().call_graph  # neither the task nor a flag set it
   assert config_flags.config_from_flags({}, _flags("--tau_limit=0,none,3")).tau_limit == (0, None, 3)
 
 

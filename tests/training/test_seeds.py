@@ -164,16 +164,17 @@ def test_the_training_command_with_seeds_writes_each_seeds_separate_run(tmp_path
 
 def test_the_training_command_refuses_seeds_with_flags_they_do_not_go_with(tmp_path):
   without_root = [a for a in BASE if a != "--root=mlp"]  # --root is level-wise training's
-  nanocraft = [sys.executable, "-m", "experiments.nanocraft", "--num_demos=4"]  # it trains jointly by default
+  nanocraft = [sys.executable, "-m", "experiments.nanocraft", "--num_demos=4"]
+  joint_task = [a.replace("COUNTDOWN", "COUNTDOWN_JOINT") for a in without_root]  # joint by its defaults
   cases = [
       # Seed 0's annotated demonstration shows build_u placing a block, seed 1's does not. (First: it makes the
       # demonstrations, the longest of the runs.)
-      (nanocraft + ["--training=levelwise"], "--num_strong=1",
+      (nanocraft + ["--call_graph=operations"], "--num_strong=1",
        "--seeds: the seeds' annotated demonstrations show different call graphs (operations)"),
       (BASE, "--seed=2", "--seeds and --seed: give one"), (BASE, "--seeds=1,1", "distinct"),
       (without_root, "--training=joint", "--seeds trains level-wise only; this run trains jointly (--training=joint)"),
-      (nanocraft, "--num_strong=1", "jointly (--training=joint, the task default): add --training=levelwise"),
-      (nanocraft, "--strong_warmup=10", "--strong_warmup: applies to level-wise training only")]
+      (joint_task, "--num_strong=1", "jointly (--training=joint, the task default): add --training=levelwise"),
+      (joint_task, "--strong_warmup=10", "--strong_warmup: applies to level-wise training only")]
   # Run at the same time, each with its own workdir.
   procs = processes.run_all([command + ["--seeds=0,1", flag, f"--workdir={tmp_path / f'bad{i}'}"]
                              for i, (command, flag, _) in enumerate(cases)], capture_output=True, text=True,
