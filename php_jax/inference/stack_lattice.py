@@ -103,8 +103,8 @@ class StackPath(NamedTuple):
   """One whole-stack latent path.
 
   Attributes:
-    procedures: [T, d] int32 h_{i,t} (level 0 is always 0), NO_FRAME on padding (and at every step where no
-      path explains the actions).
+    procedures: [T, d] int32 h_{i,t} (level 0's is 0), NO_FRAME on padding (and in every frame where no path
+      explains the actions).
     counters: [T, d] int32 τ_{i,t}, NO_FRAME where procedures is.
     log_prob: [] log P(ζ, ξ) of the path (its complete-data log-likelihood).
   """
