@@ -53,7 +53,7 @@ from php_jax.inference.lattice_inputs import (NO_FRAME, LatticeInputs, LatticePa
                                               LatticeStructure, accepts_inputs, annotate, annotated_log_op,
                                               check_annotation, check_inputs, check_key, check_length,
                                               check_log_probs, check_temperature, described, in_common_dtype,
-                                              validate_inputs)
+                                              no_frame_unless_explained, validate_inputs)
 
 __all__ = ["NO_FRAME", "LatticeInputs", "LatticePath", "LatticePosterior", "LatticeStructure", "accepts_inputs",
            "annotate", "complete_log_likelihood", "forward_backward", "max_marginal_path", "posterior_entropy",
@@ -246,7 +246,7 @@ def _viterbi(log_root, log_op, log_stop, log_cont, length):
 
   _, states = jax.lax.scan(backtrack, jnp.int32(0), (jnp.arange(num_steps), best_stop), reverse=True)
   log_prob = jnp.sum(log_increments)
-  return _path_from_states(_unless_impossible(states, log_prob), capacity, log_prob)
+  return _path_from_states(*no_frame_unless_explained(log_prob, states), capacity, log_prob)
 
 
 @accepts_inputs
@@ -293,7 +293,7 @@ def _sample_posterior(key, log_root, log_op, log_stop, log_cont, length, tempera
   keys = jax.random.split(key, num_steps)
   _, states = jax.lax.scan(backward, jnp.int32(0), (jnp.arange(num_steps), keys, stop_filter),
                            reverse=True)
-  path = _path_from_states(_unless_impossible(states, log_likelihood), capacity, jnp.zeros(()))
+  path = _path_from_states(*no_frame_unless_explained(log_likelihood, states), capacity, jnp.zeros(()))
   return path._replace(log_prob=_complete_log_likelihood(
       log_root, log_op, log_stop, log_cont, path.procedures, path.counters, length))
 
@@ -314,11 +314,6 @@ def max_marginal_path(posterior: LatticePosterior, length=None) -> LatticePath:
   states = jnp.argmax(posterior.v.reshape(num_steps, -1), axis=1).astype(jnp.int32)
   states = jnp.where(jnp.arange(num_steps) < length, states, NO_FRAME)
   return _path_from_states(states, capacity, jnp.full((), jnp.nan, posterior.v.dtype))
-
-
-def _unless_impossible(states, log_likelihood):
-  """states [T], or NO_FRAME at every step where no path explains the actions (log_likelihood [] −inf)."""
-  return jnp.where(jnp.isneginf(log_likelihood), NO_FRAME, states)
 
 
 def _path_from_states(states, capacity, log_prob):

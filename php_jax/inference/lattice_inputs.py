@@ -82,6 +82,13 @@ class LatticePath(NamedTuple):
     return self.counters
 
 
+def no_frame_unless_explained(log_likelihood, *frames) -> tuple:
+  """Each of frames, NO_FRAME where no path explains the actions (log_likelihood −inf, [] or one per path, shaped
+  to broadcast against the frames): a decoded, sampled or k-th best path that does not exist."""
+  impossible = jnp.isneginf(log_likelihood)
+  return tuple(jnp.where(impossible, NO_FRAME, x) for x in frames)
+
+
 def accepts_inputs(fn):
   """Lets fn, whose parameters include the five lattice arrays log_root .. length, take one LatticeInputs in
   log_root's place: the positional arguments after it fill fn's other parameters in order, so that

@@ -18,7 +18,7 @@ from php_jax.inference.lattice import (_entropy, _expected_log_joint, _finite_or
 from php_jax.inference.lattice_inputs import (NO_FRAME, LatticeInputs, LatticePath, LatticePosterior,
                                               LatticeStructure, accepts_inputs, annotated_log_op, as_inputs,
                                               check_annotation, check_inputs, check_k, check_key, check_temperature,
-                                              in_common_dtype)
+                                              in_common_dtype, no_frame_unless_explained)
 from php_jax.inference.stack_recursions import logsumexp
 
 
@@ -80,8 +80,7 @@ def _top_k(k, log_root, log_op, log_stop, log_cont, length):
     return state, jnp.where(t < length, state % num_cells, NO_FRAME)
 
   _, cells = jax.lax.scan(backtrack, jnp.zeros(k, jnp.int32), (jnp.arange(num_steps), stops), reverse=True)
-  cells = jnp.where(jnp.isneginf(log_prob)[:, None], NO_FRAME, cells.T)
-  return _path_from_states(cells, capacity, log_prob)
+  return _path_from_states(*no_frame_unless_explained(log_prob[:, None], cells.T), capacity, log_prob)
 
 
 def cross_entropy(p: LatticeInputs, q: LatticeInputs):

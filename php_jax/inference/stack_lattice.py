@@ -58,7 +58,6 @@ import jax
 import jax.numpy as jnp
 
 from php_jax.inference.lattice_inputs import (
-  NO_FRAME,
   LatticeStructure,
   as_inputs,
   check_annotation,
@@ -69,6 +68,7 @@ from php_jax.inference.lattice_inputs import (
   check_log_probs,
   check_temperature,
   described,
+  no_frame_unless_explained,
 )
 from php_jax.inference.stack_recursions import (annotation_potentials, backtrack, entropy_and_events, evidence,
                                                 expected_log_joint, forward, forward_top_k, logsumexp)
@@ -241,7 +241,7 @@ def _viterbi(inputs: StackInputs, procedures, counters, length):
                                                  lambda level, pointer, rank, t: (pointer, 0.0, rank),
                                                  inputs.log_act.dtype)
   log_prob = jnp.sum(log_increments)
-  return StackPath(*_unless_impossible(path_procedures, path_counters, log_prob), log_prob)
+  return StackPath(*no_frame_unless_explained(log_prob, path_procedures, path_counters), log_prob)
 
 
 def viterbi(inputs: StackInputs, procedures=None, counters=None) -> StackPath:
@@ -276,14 +276,9 @@ def _sample_posterior(key, inputs: StackInputs, procedures, counters, length, te
                                                              inputs.log_act.dtype)
   log_likelihood = jnp.sum(log_increments)
   log_prob = jnp.where(jnp.isfinite(log_likelihood), log_likelihood + log_posterior, -jnp.inf)
-  return StackPath(*_unless_impossible(path_procedures, path_counters, log_likelihood), log_prob * temperature)
+  return StackPath(*no_frame_unless_explained(log_likelihood, path_procedures, path_counters),
+                   log_prob * temperature)
 
-
-def _unless_impossible(procedures, counters, log_likelihood):
-  """procedures, counters [T, d], or NO_FRAME in every frame where no path explains the actions (log_likelihood
-  [] −inf)."""
-  impossible = jnp.isneginf(log_likelihood)
-  return jnp.where(impossible, NO_FRAME, procedures), jnp.where(impossible, NO_FRAME, counters)
 
 
 def sample_posterior(key, inputs: StackInputs, procedures=None, counters=None, temperature=1.0) -> StackPath:
@@ -315,9 +310,7 @@ def _top_k(k: int, inputs: StackInputs, procedures, counters, length):
 
   path_procedures, path_counters, _ = jax.vmap(
       lambda rank: backtrack(pointers, length, capacities, choose, inputs.log_act.dtype, rank))(jnp.arange(k))
-  impossible = jnp.isneginf(log_prob)[:, None, None]
-  return StackPath(jnp.where(impossible, NO_FRAME, path_procedures), jnp.where(impossible, NO_FRAME, path_counters),
-                   log_prob)
+  return StackPath(*no_frame_unless_explained(log_prob[:, None, None], path_procedures, path_counters), log_prob)
 
 
 def top_k(k: int, inputs: StackInputs, procedures=None, counters=None) -> StackPath:
